@@ -1,0 +1,62 @@
+"""``companion``: the command-line edge: parse arguments, load config, set up logging, map errors to exits.
+
+Exit codes: 0 ok, 1 failure or unhealthy, 2 bad usage/config/model or not built yet, 3 camera or link failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Callable, Sequence
+
+from companion import __version__
+from companion.errors import CompanionError
+
+log = logging.getLogger("companion")
+
+#: Command modules under companion.commands, in --help order.
+COMMAND_MODULES = ("run", "status", "config_cmd", "sim", "bench", "detector", "replay")
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser, with every command registered."""
+    parser = argparse.ArgumentParser(
+        prog="companion",
+        description="Wingman: vision-based leader-follower companion service for PX4.",
+    )
+    parser.add_argument("--version", action="version", version=f"wingman {__version__}")
+    parser.add_argument("--log-format", choices=("human", "json"), default=None, help="override the config")
+    parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"), default=None)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"companion.commands.{name}").register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``companion`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    handler: Handler = args.handler
+    try:
+        return handler(args)
+    except KeyboardInterrupt:
+        return 130
+    except CompanionError as exc:
+        for line in str(exc).splitlines() or [type(exc).__name__]:
+            print(f"companion: {line}", file=sys.stderr)
+        return exc.exit_code
+
+
+def not_built(what: str) -> Handler:
+    """A handler for a command that exists but is not implemented: says so and exits 2, never pretends."""
+
+    def handler(_args: argparse.Namespace) -> int:
+        print(f"companion {what}: not built yet", file=sys.stderr)
+        return 2
+
+    return handler

@@ -1,0 +1,278 @@
+"""The service's configuration: frozen pydantic models loaded from TOML plus ``WINGMAN_*`` overrides.
+
+Loaded once at the CLI edge and passed down explicitly; nothing below reads files or the environment.
+Overrides use double underscores between levels and TOML literals as values, e.g.
+``WINGMAN_LINK__URL=udpin://0.0.0.0:14541`` or ``WINGMAN_FORMATION__OFFSET_CAM_M='[0.0, 0.0, 6.0]'``.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from companion.errors import ConfigError
+
+SCHEMA_VERSION = 1
+ENV_PREFIX = "WINGMAN_"
+
+
+class Section(BaseModel):
+    """Base of every config section: immutable, and unknown keys are errors (typos must not pass)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class LinkConfig(Section):
+    """The autopilot link (MAVSDK connection URL and timing)."""
+
+    url: str = "udpin://0.0.0.0:14540"
+    connect_timeout_s: float = Field(10.0, gt=0)
+    #: MAVSDK resends setpoints at 20 Hz; PX4 needs > 2 Hz. This is how often *we* compute fresh ones.
+    setpoint_rate_hz: float = Field(20.0, gt=2.0, le=100.0)
+    command_timeout_s: float = Field(3.0, gt=0)
+
+
+class MountConfig(Section):
+    """Camera extrinsics: position of the camera in body FRD and its angles relative to body."""
+
+    x_m: float = 0.10
+    y_m: float = 0.0
+    z_m: float = 0.0
+    roll_deg: float = 0.0
+    #: Positive tilts the camera up: a follower flies nose-down, so a small up-tilt centres the leader.
+    pitch_deg: float = 5.0
+    yaw_deg: float = 0.0
+
+
+class CameraConfig(Section):
+    """Where RGB-D frames come from."""
+
+    source: Literal["sim", "file", "realsense"] = "sim"
+    #: file: a recorded folder or a RealSense .bag; sim: the simulator's camera socket.
+    path: str = "/run/wingman/camera.sock"
+    width_px: int = Field(640, gt=0)
+    height_px: int = Field(480, gt=0)
+    fps: float = Field(30.0, gt=0)
+    realtime: bool = True
+    loop: bool = False
+    mount: MountConfig = MountConfig()
+
+
+class DetectorConfig(Section):
+    """The leader detector."""
+
+    model_path: str = "models/leader_detector.pt"
+    #: Expected SHA-256 of the weights; empty to take it from the model card's sidecar file.
+    model_sha256: str = ""
+    runtime: Literal["auto", "torch", "onnx"] = "auto"
+    input_size_px: int = Field(320, ge=128, le=1280, multiple_of=32)
+    conf_threshold: float = Field(0.35, gt=0, lt=1)
+    nms_iou: float = Field(0.5, gt=0, lt=1)
+    threads: int = Field(2, ge=1, le=64)
+
+
+class LeaderConfig(Section):
+    """What the leader looks like, for the size prior and the surface-to-centre correction."""
+
+    #: Motor-to-motor diagonal of the leader, m (a 450-class quad is 0.45).
+    span_m: float = Field(0.45, gt=0.05, le=3.0)
+    #: Half the body depth seen by the camera: depth measured on the front surface + this = centre.
+    surface_to_centre_m: float = Field(0.05, ge=0.0, le=1.0)
+    #: Where the leader's own position comes from when it is shared (vision-external-position fallback).
+    shared_position: Literal["none", "mavlink", "mqtt"] = "none"
+    mavlink_system_id: int = Field(1, ge=1, le=255)
+
+
+class TrackerConfig(Section):
+    """Constant-velocity Kalman tracker of the leader's position relative to the follower."""
+
+    process_accel_std_m_s2: float = Field(2.0, gt=0)
+    gate_chi2: float = Field(16.27, gt=0)  # chi-square 3 dof, p = 0.001
+    confirm_hits: int = Field(3, ge=1)
+    confirm_window: int = Field(5, ge=1)
+    coast_timeout_s: float = Field(1.5, gt=0)
+    lost_timeout_s: float = Field(3.0, gt=0)
+    size_ratio_tolerance: float = Field(2.5, gt=1.0)
+
+
+class FormationConfig(Section):
+    """The formation law: desired slot and PID gains on the offset error."""
+
+    #: Desired leader position in the camera frame at level flight (x right, y down, z forward), m.
+    offset_cam_m: tuple[float, float, float] = (0.0, 0.0, 5.0)
+    kp_xy: float = 0.9
+    ki_xy: float = 0.05
+    kd_xy: float = 0.25
+    i_limit_xy_m_s: float = 0.5
+    kp_z: float = 0.8
+    ki_z: float = 0.1
+    i_limit_z_m_s: float = 0.4
+    #: Feed-forward of the leader's estimated velocity (0 = the paper's pure PID, 1 = full).
+    leader_velocity_ff: float = Field(1.0, ge=0.0, le=1.0)
+    kp_yaw: float = 1.5
+    max_yaw_rate_deg_s: float = Field(60.0, gt=0)
+    max_accel_m_s2: float = Field(3.0, gt=0)
+
+
+class MissionConfig(Section):
+    """The mission state machine's policy."""
+
+    takeoff_altitude_m: float = Field(5.0, gt=1.0)
+    gps_loss_policy: Literal["vision_attitude", "vision_external_position", "land"] = "vision_attitude"
+    leader_lost_action: Literal["hold", "land", "rtl"] = "land"
+    reacquire_coast_s: float = Field(2.0, ge=0)
+    reacquire_scan_s: float = Field(10.0, ge=0)
+    scan_yaw_rate_deg_s: float = Field(30.0, gt=0)
+    #: An estimate older than this is stale: the setpoint stream switches to hover, never resends it.
+    stale_estimate_s: float = Field(0.5, gt=0)
+    #: Hover this long on a stalled perception pipeline before the abort action.
+    stall_hover_s: float = Field(3.0, ge=0)
+    acquire_timeout_s: float = Field(60.0, gt=0)
+    landing_speed_m_s: float = Field(0.6, gt=0, le=0.7)
+    shutdown_action: Literal["hold_then_land", "land", "hold"] = "hold_then_land"
+
+
+class SafetyConfig(Section):
+    """Hard limits that every setpoint passes through."""
+
+    max_speed_m_s: float = Field(5.0, gt=0)
+    max_vertical_speed_m_s: float = Field(1.5, gt=0)
+    max_tilt_deg: float = Field(25.0, gt=0, lt=60)
+    min_altitude_m: float = Field(2.0, ge=0)
+    max_altitude_m: float = Field(40.0, gt=0)
+    min_separation_m: float = Field(2.0, gt=0)
+    geofence_radius_m: float = Field(200.0, gt=0)
+
+
+class MqttConfig(Section):
+    """Telemetry to an MQTT broker."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(1883, ge=1, le=65535)
+    topic_prefix: str = "wingman"
+    username: str = ""
+    #: A file holding the password (never the password itself in the config).
+    password_file: str = ""
+    tls: bool = False
+    ca_file: str = ""
+    state_rate_hz: float = Field(2.0, gt=0)
+    pose_rate_hz: float = Field(10.0, gt=0)
+    health_rate_hz: float = Field(0.5, gt=0)
+    buffer_messages: int = Field(1000, ge=1)
+    command_topic: bool = False
+
+
+class StatusConfig(Section):
+    """The local status endpoint (a Unix socket, mode 0660)."""
+
+    socket_path: str = "/run/wingman/status.sock"
+
+
+class LoggingConfig(Section):
+    """Log format and level; set once at the CLI edge."""
+
+    format: Literal["human", "json"] = "human"
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+
+class Config(Section):
+    """The whole service configuration."""
+
+    schema_version: int = SCHEMA_VERSION
+    vehicle_id: str = Field("follower1", pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    link: LinkConfig = LinkConfig()
+    camera: CameraConfig = CameraConfig()
+    detector: DetectorConfig = DetectorConfig()
+    leader: LeaderConfig = LeaderConfig()
+    tracker: TrackerConfig = TrackerConfig()
+    formation: FormationConfig = FormationConfig()
+    mission: MissionConfig = MissionConfig()
+    safety: SafetyConfig = SafetyConfig()
+    mqtt: MqttConfig = MqttConfig()
+    status: StatusConfig = StatusConfig()
+    logging: LoggingConfig = LoggingConfig()
+
+    @field_validator("schema_version")
+    @classmethod
+    def _known_schema(cls, v: int) -> int:
+        if v > SCHEMA_VERSION:
+            raise ValueError(f"written for a newer Wingman (schema {v} > {SCHEMA_VERSION}); upgrade")
+        if v < 1:
+            raise ValueError("must be >= 1")
+        return v
+
+
+def format_validation_error(exc: ValidationError) -> list[str]:
+    """One line per problem: ``dotted.key: what is wrong (got <value>)``."""
+    lines = []
+    for err in exc.errors():
+        key = ".".join(str(p) for p in err["loc"]) or "<root>"
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        got = err.get("input")
+        shown = "" if err["type"] in ("extra_forbidden", "missing") else f" (got {got!r})"
+        lines.append(f"{key}: {msg}{shown}")
+    return lines
+
+
+def env_overrides(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[str, Any]:
+    """Nested dict from ``PREFIX_SECTION__KEY=value`` variables; values parse as TOML literals or strings."""
+    out: dict[str, Any] = {}
+    for name, raw in environ.items():
+        if not name.startswith(prefix) or name == f"{prefix}CONFIG":
+            continue
+        path = [p.lower() for p in name[len(prefix) :].split("__") if p]
+        if not path:
+            continue
+        try:
+            value: Any = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw
+        node = out
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"${name}", [f"{'.'.join(path)}: conflicts with another override"])
+        node[path[-1]] = value
+    return out
+
+
+def deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    """Merge ``top`` into a copy of ``base``; tables merge key by key, other values replace."""
+    merged = dict(base)
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    """Parse a TOML file, turning every failure into a one-line :class:`ConfigError`."""
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(str(path), ["file not found"]) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(path), [f"not valid TOML: {exc}"]) from None
+    except OSError as exc:
+        raise ConfigError(str(path), [f"cannot read: {exc.strerror}"]) from None
+
+
+def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> Config:
+    """Load the service config from ``path`` (defaults when None) with environment overrides on top."""
+    data = read_toml(path) if path is not None else {}
+    data = deep_merge(data, env_overrides(os.environ if environ is None else environ))
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(str(path or "<defaults>"), format_validation_error(exc)) from None

@@ -1,0 +1,51 @@
+"""The service's exception tree. Events (GPS loss, a lost leader) are mission inputs, never exceptions."""
+
+
+class CompanionError(Exception):
+    """Base of every error the service raises on purpose; the CLI maps subclasses to exit codes."""
+
+    exit_code = 1
+
+
+class ConfigError(CompanionError):
+    """The configuration is invalid. Carries one human-readable line per problem."""
+
+    exit_code = 2
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.source = source
+        self.problems = problems
+        super().__init__("\n".join(f"{source}: {p}" for p in problems))
+
+
+class ModelError(CompanionError):
+    """The detector model is missing, corrupt or does not match its checksum."""
+
+    exit_code = 2
+
+
+class CameraError(CompanionError):
+    """The frame source cannot be opened (no device, missing library, unreadable recording)."""
+
+    exit_code = 3
+
+
+class LinkLostError(CompanionError):
+    """The autopilot link could not be established or was lost for good."""
+
+    exit_code = 3
+
+
+class CommandRejectedError(CompanionError):
+    """The autopilot refused a command (``result`` is the MAVLink MAV_RESULT or a MAVSDK result name)."""
+
+    def __init__(self, command: str, result: str) -> None:
+        self.command = command
+        self.result = result
+        super().__init__(f"{command} rejected: {result}")
+
+
+class NotBuiltError(CompanionError):
+    """A command that exists in the CLI but is not implemented yet."""
+
+    exit_code = 2

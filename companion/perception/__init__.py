@@ -1,0 +1,1 @@
+"""Perception: frame sources, the leader detector, pinhole pose. Only ``detector`` imports torch."""

@@ -1,0 +1,5 @@
+"""``python -m sitl``."""
+
+from sitl.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,69 @@
+"""``sitl``: run the simulator, make datasets, benchmark. Heavy imports live inside the handlers."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from companion import __version__
+from companion.errors import CompanionError
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _not_built(what: str) -> Handler:
+    def handler(_args: argparse.Namespace) -> int:
+        print(f"sitl {what}: not built yet", file=sys.stderr)
+        return 2
+
+    return handler
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``sitl`` argument parser."""
+    parser = argparse.ArgumentParser(prog="sitl", description="Wingman's PX4-compatible JSBSim simulator.")
+    parser.add_argument("--version", action="version", version=f"wingman-sitl {__version__}")
+    parser.add_argument("--log-format", choices=("human", "json"), default="human")
+    parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"), default="INFO")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    s = sub.add_parser("serve", help="run N vehicles over MAVLink/UDP in real time (Ctrl-C stops)")
+    s.add_argument("--config", type=Path, default=Path("config/sitl.toml"))
+    s.add_argument("--speed", type=float, default=None, help="speed factor (overrides the config)")
+    s.add_argument("--scenario", type=Path, default=None, help="scenario TOML (leader path, faults)")
+    s.set_defaults(handler=_not_built("serve"))
+
+    d = sub.add_parser("dataset", help="render a detector dataset with YOLO labels and COCO json")
+    d.add_argument("--out", type=Path, required=True)
+    d.add_argument("--count", type=int, required=True)
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(handler=_not_built("dataset"))
+
+    c = sub.add_parser(
+        "contact-sheet", help="PNG of 16 random dataset frames with boxes and false-colour depth"
+    )
+    c.add_argument("--data", type=Path, required=True)
+    c.add_argument("--out", type=Path, default=Path("runs/contact-sheet.png"))
+    c.add_argument("--seed", type=int, default=0)
+    c.set_defaults(handler=_not_built("contact-sheet"))
+
+    b = sub.add_parser("bench", help="lockstep real-time factor and rendering frame rate")
+    b.add_argument("--json", type=Path, default=None)
+    b.set_defaults(handler=_not_built("bench"))
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``sitl`` console script."""
+    args = build_parser().parse_args(argv)
+    handler: Handler = args.handler
+    try:
+        return handler(args)
+    except KeyboardInterrupt:
+        return 130
+    except CompanionError as exc:
+        for line in str(exc).splitlines():
+            print(f"sitl: {line}", file=sys.stderr)
+        return exc.exit_code

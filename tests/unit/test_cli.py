@@ -1,0 +1,71 @@
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from companion.cli import main as companion_main
+from sitl.cli import main as sitl_main
+
+
+def run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=60, check=False
+    )
+
+
+def test_companion_help_lists_every_command(repo_root: Path) -> None:
+    r = run("-m", "companion", "--help", cwd=repo_root)
+    assert r.returncode == 0
+    for cmd in ("run", "status", "health", "check-config", "sim", "bench", "detector", "replay", "record"):
+        assert cmd in r.stdout
+
+
+def test_sitl_help_lists_every_command(repo_root: Path) -> None:
+    r = run("-m", "sitl", "--help", cwd=repo_root)
+    assert r.returncode == 0
+    for cmd in ("serve", "dataset", "bench", "contact-sheet"):
+        assert cmd in r.stdout
+
+
+def test_help_does_not_import_heavy_modules(repo_root: Path) -> None:
+    code = (
+        "import sys; from companion.cli import build_parser; from sitl.cli import build_parser as b2; "
+        "build_parser(); b2(); heavy = [m for m in ('torch', 'cv2', 'mavsdk', 'jsbsim', 'moderngl') "
+        "if m in sys.modules]; print(heavy); sys.exit(bool(heavy))"
+    )
+    r = run("-c", code, cwd=repo_root)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_check_config_ok(repo_root: Path) -> None:
+    r = run("-m", "companion", "check-config", "config/wingman.toml", cwd=repo_root)
+    assert r.returncode == 0, r.stderr
+    assert 'url = "udpin://0.0.0.0:14540"' in r.stdout
+
+
+def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_text('vehicle_id = "f1"\n[link]\nconnect_timeout_s = "x"\n[mqtt]\nportt = 1\n')
+    r = run("-m", "companion", "check-config", str(p), cwd=repo_root)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 2
+    assert "link.connect_timeout_s" in lines[0]
+    assert lines[1] == f"companion: {p}: mqtt.portt: unknown key"
+
+
+@pytest.mark.parametrize("argv", [["run"], ["status"], ["health"]])
+def test_unbuilt_commands_say_so(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    # Once a command is built this list shrinks; a command never pretends to work.
+    code = companion_main(argv)
+    if code == 2:
+        assert "not built yet" in capsys.readouterr().err
+
+
+def test_sitl_unknown_command_is_usage_error() -> None:
+    with pytest.raises(SystemExit) as exc:
+        sitl_main(["fly-to-the-moon"])
+    assert exc.value.code == 2
