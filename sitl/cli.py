@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -13,10 +14,22 @@ from companion.errors import CompanionError
 Handler = Callable[[argparse.Namespace], int]
 
 
-def _not_built(what: str) -> Handler:
-    def handler(_args: argparse.Namespace) -> int:
-        print(f"sitl {what}: not built yet", file=sys.stderr)
-        return 2
+def _lazy(module: str, func: str, what: str) -> Handler:
+    """A handler that imports ``module`` only when the command runs (keeps ``sitl --help`` light).
+
+    Until the module exists the command says plainly that it is not built yet (exit 2).
+    """
+
+    def handler(args: argparse.Namespace) -> int:
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            if exc.name != module:
+                raise
+            print(f"sitl {what}: not built yet", file=sys.stderr)
+            return 2
+        result: int = getattr(mod, func)(args)
+        return result
 
     return handler
 
@@ -33,13 +46,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", type=Path, default=Path("config/sitl.toml"))
     s.add_argument("--speed", type=float, default=None, help="speed factor (overrides the config)")
     s.add_argument("--scenario", type=Path, default=None, help="scenario TOML (leader path, faults)")
-    s.set_defaults(handler=_not_built("serve"))
+    s.set_defaults(handler=_lazy("sitl.serve", "main", "serve"))
 
     d = sub.add_parser("dataset", help="render a detector dataset with YOLO labels and COCO json")
     d.add_argument("--out", type=Path, required=True)
     d.add_argument("--count", type=int, required=True)
     d.add_argument("--seed", type=int, default=0)
-    d.set_defaults(handler=_not_built("dataset"))
+    d.set_defaults(handler=_lazy("sitl.dataset", "main_dataset", "dataset"))
 
     c = sub.add_parser(
         "contact-sheet", help="PNG of 16 random dataset frames with boxes and false-colour depth"
@@ -47,11 +60,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--data", type=Path, required=True)
     c.add_argument("--out", type=Path, default=Path("runs/contact-sheet.png"))
     c.add_argument("--seed", type=int, default=0)
-    c.set_defaults(handler=_not_built("contact-sheet"))
+    c.set_defaults(handler=_lazy("sitl.dataset", "main_contact_sheet", "contact-sheet"))
 
-    b = sub.add_parser("bench", help="lockstep real-time factor and rendering frame rate")
+    b = sub.add_parser("bench", help="lockstep real-time factor for 2 vehicles, without rendering")
     b.add_argument("--json", type=Path, default=None)
-    b.set_defaults(handler=_not_built("bench"))
+    b.set_defaults(handler=_lazy("sitl.bench", "main", "bench"))
+
+    r = sub.add_parser("bench-render", help="rendered RGB-D frames per second at 640x480 with noise")
+    r.add_argument("--json", type=Path, default=None)
+    r.add_argument("--frames", type=int, default=300)
+    r.set_defaults(handler=_lazy("sitl.render.bench", "main", "bench-render"))
     return parser
 
 

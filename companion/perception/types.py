@@ -6,7 +6,9 @@ Arrays are not copied when these are built: a frame owns the buffers its source 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from collections.abc import AsyncIterator
+from types import TracebackType
+from typing import Protocol, Self
 
 import numpy as np
 from numpy.typing import NDArray
@@ -110,3 +112,23 @@ class Detector(Protocol):
     """Finds the leader in an RGB image. Implementations load weights once and are not thread-safe."""
 
     def detect(self, rgb: RgbImage) -> DetectorResult: ...
+
+
+class FrameSource(Protocol):
+    """An async iterator of RGB-D frames; an async context manager that owns the device or file.
+
+    ``async with source: async for frame in source: ...``. Opening a missing device or file raises
+    :class:`companion.errors.CameraError` with one clear line. Iteration ends at the end of a recording
+    (unless looping) and never yields a frame twice.
+    """
+
+    async def __aenter__(self) -> Self: ...
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+    def __aiter__(self) -> AsyncIterator[RgbdFrame]: ...

@@ -26,7 +26,7 @@ def test_companion_help_lists_every_command(repo_root: Path) -> None:
 def test_sitl_help_lists_every_command(repo_root: Path) -> None:
     r = run("-m", "sitl", "--help", cwd=repo_root)
     assert r.returncode == 0
-    for cmd in ("serve", "dataset", "bench", "contact-sheet"):
+    for cmd in ("serve", "dataset", "bench", "bench-render", "contact-sheet"):
         assert cmd in r.stdout
 
 
@@ -69,3 +69,11 @@ def test_sitl_unknown_command_is_usage_error() -> None:
     with pytest.raises(SystemExit) as exc:
         sitl_main(["fly-to-the-moon"])
     assert exc.value.code == 2
+
+
+def test_sitl_lazy_handler_reports_missing_module(capsys: pytest.CaptureFixture[str]) -> None:
+    from sitl.cli import _lazy
+
+    code = _lazy("sitl.no_such_module", "main", "thing")(None)  # type: ignore[arg-type]
+    assert code == 2
+    assert capsys.readouterr().err.strip() == "sitl thing: not built yet"
