@@ -5,8 +5,8 @@ Arrays are not copied when these are built: a frame owns the buffers its source 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Protocol, Self
 
