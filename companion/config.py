@@ -60,6 +60,9 @@ class CameraConfig(Section):
     fps: float = Field(30.0, gt=0)
     realtime: bool = True
     loop: bool = False
+    #: realsense: the D400 visual preset loaded at start (High Accuracy drops doubtful depth: fewer holes
+    #: filled with wrong values at range, which is what the leader's pose needs).
+    preset: Literal["default", "high_accuracy", "high_density", "medium_density"] = "high_accuracy"
     mount: MountConfig = MountConfig()
 
 
@@ -88,6 +91,26 @@ class LeaderConfig(Section):
     mavlink_system_id: int = Field(1, ge=1, le=255)
 
 
+class PoseConfig(Section):
+    """Leader position from a box and the aligned depth: depth window, stereo noise model, box jitter."""
+
+    #: Depth outside [depth_min_m, depth_max_m] is treated as invalid (D435: ~0.2 m minimum range).
+    depth_min_m: float = Field(0.2, ge=0.0)
+    depth_max_m: float = Field(20.0, gt=0.0)
+    #: Stereo depth noise sigma_z = z^2 * subpixel / (f * baseline) per pixel (D435: 50 mm, ~0.08 px).
+    stereo_baseline_m: float = Field(0.05, gt=0.0)
+    stereo_subpixel_px: float = Field(0.08, gt=0.0)
+    #: At most this many box pixels count as independent depth samples (stereo noise is correlated).
+    independent_depth_px: int = Field(16, ge=1)
+    #: Extra depth uncertainty from the leader's shape (where the visible surface is vs its centre), m.
+    surface_model_std_m: float = Field(0.02, ge=0.0)
+    #: Box-centre jitter of the detector: this many pixels plus this fraction of the box size.
+    box_jitter_px: float = Field(1.0, ge=0.0)
+    box_jitter_frac: float = Field(0.03, ge=0.0)
+    #: Fewer valid depth pixels than this inside a box: no measurement.
+    min_valid_px: int = Field(6, ge=1)
+
+
 class TrackerConfig(Section):
     """Constant-velocity Kalman tracker of the leader's position relative to the follower."""
 
@@ -98,6 +121,8 @@ class TrackerConfig(Section):
     coast_timeout_s: float = Field(1.5, gt=0)
     lost_timeout_s: float = Field(3.0, gt=0)
     size_ratio_tolerance: float = Field(2.5, gt=1.0)
+    #: Velocity uncertainty of a new track (the leader's relative speed is unknown at first sight), m/s.
+    init_velocity_std_m_s: float = Field(3.0, gt=0)
 
 
 class FormationConfig(Section):
@@ -190,6 +215,7 @@ class Config(Section):
     camera: CameraConfig = CameraConfig()
     detector: DetectorConfig = DetectorConfig()
     leader: LeaderConfig = LeaderConfig()
+    pose: PoseConfig = PoseConfig()
     tracker: TrackerConfig = TrackerConfig()
     formation: FormationConfig = FormationConfig()
     mission: MissionConfig = MissionConfig()
