@@ -149,3 +149,19 @@ def frame_from_view(view: View, stamp_s: float, seq: int, intr: Intrinsics = D43
         q_ned_follower_wxyz=np.array([1.0, 0.0, 0.0, 0.0]),
     )
     return RgbdFrame(rgb=rgb, depth_m=view.depth_m, intrinsics=intr, stamp_s=stamp_s, seq=seq, truth=truth)
+
+
+def leader_path_cam(t_s: float) -> NDArray[np.float64]:
+    """A leader weaving 4-7 m ahead of a hovering follower (camera frame), under 1 m/s^2 as flown."""
+    return np.array([1.2 * math.sin(0.6 * t_s), 0.3 * math.sin(0.5 * t_s), 5.5 - 1.5 * math.cos(0.8 * t_s)])
+
+
+def sequence_frames(n: int, *, fps: float = 30.0, seed: int = 0, t0_s: float = 50.0) -> list[RgbdFrame]:
+    """``n`` noisy frames of the leader on :func:`leader_path_cam`, with ground truth."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for k in range(n):
+        t = k / fps
+        view = render(leader_path_cam(t), rng=rng, yaw_rad=0.2 + 0.1 * t, hole_fraction=0.03)
+        frames.append(frame_from_view(view, t0_s + t, seq=k))
+    return frames

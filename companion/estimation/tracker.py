@@ -41,6 +41,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import cached_property
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -54,8 +55,28 @@ from companion.perception.transform import CameraGeometry, rotate_cov
 Mat6 = NDArray[np.float64]
 
 _H = np.hstack([np.eye(3), np.zeros((3, 3))])
+_EYE6 = np.eye(6)
+_F_DT = np.kron(np.array([[0.0, 1.0], [0.0, 0.0]]), np.eye(3))
+_Q_PP = np.kron(np.array([[1.0, 0.0], [0.0, 0.0]]), np.eye(3))
+_Q_PV = np.kron(np.array([[0.0, 1.0], [1.0, 0.0]]), np.eye(3))
+_Q_VV = np.kron(np.array([[0.0, 0.0], [0.0, 1.0]]), np.eye(3))
 #: Scores below this are clamped before the log in the selection cost.
 _MIN_SCORE = 1e-3
+
+
+def _mahalanobis2(y: Vec3, S: Mat3) -> float:
+    """``y^T S^-1 y`` for a symmetric positive-definite 3x3 ``S`` (closed form: no LAPACK call per box)."""
+    a, b, c = float(S[0, 0]), float(S[0, 1]), float(S[0, 2])
+    d, e, f = float(S[1, 1]), float(S[1, 2]), float(S[2, 2])
+    # Adjugate of the symmetric matrix [[a b c] [b d e] [c e f]].
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    if det <= 0.0:
+        return math.inf
+    y0, y1, y2 = float(y[0]), float(y[1]), float(y[2])
+    quad = A * y0 * y0 + D * y1 * y1 + F * y2 * y2 + 2.0 * (B * y0 * y1 + C * y0 * y2 + E * y1 * y2)
+    return quad / det
 
 
 class TrackStatus(StrEnum):
@@ -67,33 +88,72 @@ class TrackStatus(StrEnum):
     LOST = "lost"
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True)
 class RelativeEstimate:
-    """The leader relative to the follower at one instant, in NED axes, body FRD and the camera frame."""
+    """The leader relative to the follower at one instant, in NED axes, body FRD and the camera frame.
+
+    Stored in NED with the attitude it was taken at; the body and camera views are computed on first
+    access (most consumers read one frame's view, and the per-frame budget is tight).
+    """
 
     #: Leader centre minus follower centre, NED axes, m; and its rate, m/s.
     p_ned_rel_m: Vec3
     v_ned_rel_m_s: Vec3
     #: 6x6 covariance of (p_ned_rel_m, v_ned_rel_m_s), m^2, m^2/s, m^2/s^2.
     cov_ned: Mat6
-    #: Leader centre in body FRD (origin: the follower's centre), m; relative velocity in body axes.
-    p_body_leader_m: Vec3
-    v_body_rel_m_s: Vec3
-    cov_body_m2: Mat3
-    #: Leader centre in the camera frame (x right, y down, z forward), m; relative velocity in its axes.
-    p_cam_leader_m: Vec3
-    v_cam_rel_m_s: Vec3
-    cov_cam_m2: Mat3
-    #: Camera bearing of the leader: azimuth positive right, elevation positive up, rad.
-    azimuth_rad: float
-    elevation_rad: float
-    #: Distance from the camera to the leader's centre, m.
-    range_m: float
+    #: The follower's attitude at the estimate's stamp, and the camera mount.
+    R_ned_body: Mat3
+    camera: CameraGeometry
 
     @property
     def cov_ned_m2(self) -> Mat3:
-        """Position block of :attr:`cov_ned`."""
+        """Position block of :attr:`cov_ned`, m^2."""
         return self.cov_ned[:3, :3]
+
+    @cached_property
+    def p_body_leader_m(self) -> Vec3:
+        """Leader centre in body FRD (origin: the follower's centre), m."""
+        return self.R_ned_body.T @ self.p_ned_rel_m
+
+    @cached_property
+    def v_body_rel_m_s(self) -> Vec3:
+        """Relative velocity in body axes, m/s (the NED relative velocity rotated)."""
+        return self.R_ned_body.T @ self.v_ned_rel_m_s
+
+    @cached_property
+    def cov_body_m2(self) -> Mat3:
+        """Covariance of :attr:`p_body_leader_m`, m^2."""
+        return rotate_cov(self.R_ned_body.T, self.cov_ned_m2)
+
+    @cached_property
+    def p_cam_leader_m(self) -> Vec3:
+        """Leader centre in the camera frame (x right, y down, z forward), m."""
+        return self.camera.body_to_cam(self.p_body_leader_m)
+
+    @cached_property
+    def v_cam_rel_m_s(self) -> Vec3:
+        """Relative velocity in camera axes, m/s."""
+        return self.camera.R_body_cam.T @ self.v_body_rel_m_s
+
+    @cached_property
+    def cov_cam_m2(self) -> Mat3:
+        """Covariance of :attr:`p_cam_leader_m`, m^2."""
+        return rotate_cov(self.camera.R_ned_cam(self.R_ned_body).T, self.cov_ned_m2)
+
+    @cached_property
+    def azimuth_rad(self) -> float:
+        """Camera bearing of the leader, positive right, rad."""
+        return bearing(self.p_cam_leader_m)[0]
+
+    @cached_property
+    def elevation_rad(self) -> float:
+        """Camera elevation of the leader, positive up, rad."""
+        return bearing(self.p_cam_leader_m)[1]
+
+    @cached_property
+    def range_m(self) -> float:
+        """Distance from the camera to the leader's centre, m."""
+        return float(np.linalg.norm(self.p_cam_leader_m))
 
 
 @dataclass(frozen=True, slots=True)
@@ -221,9 +281,7 @@ class TargetTracker:
         best: _Candidate | None = None
         best_cost = math.inf
         for c in candidates:
-            y = c.p_ned_m - x[:3]
-            S = P_pp + c.R_ned_m2
-            d2 = float(y @ np.linalg.solve(S, y))
+            d2 = _mahalanobis2(c.p_ned_m - x[:3], P_pp + c.R_ned_m2)
             if d2 >= self.cfg.gate_chi2:
                 continue
             cost = d2 - 2.0 * math.log(max(c.meas.score, _MIN_SCORE))
@@ -251,14 +309,10 @@ class TargetTracker:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
-        F = np.eye(6)
-        F[:3, 3:] = np.eye(3) * dt
+        F = _EYE6 + dt * _F_DT
         q = self.cfg.process_accel_std_m_s2**2
         # Discrete white-noise acceleration, per axis [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q.
-        Q = np.zeros((6, 6))
-        Q[:3, :3] = np.eye(3) * (dt**4 / 4.0 * q)
-        Q[:3, 3:] = Q[3:, :3] = np.eye(3) * (dt**3 / 2.0 * q)
-        Q[3:, 3:] = np.eye(3) * (dt**2 * q)
+        Q = (q * dt * dt) * (_Q_PP * (dt * dt / 4.0) + _Q_PV * (dt / 2.0) + _Q_VV)
         kf.predict(F=F, Q=Q)
         self._stamp_s = stamp_s
 
@@ -312,26 +366,5 @@ class TargetTracker:
         )
 
     def _estimate(self, kf: KalmanFilter, R_ned_body: Mat3) -> RelativeEstimate:
-        x = kf.x[:, 0].copy()
-        P = kf.P.copy()
-        p_ned, v_ned = x[:3], x[3:]
-        R_body_ned = R_ned_body.T
-        R_cam_body = self.camera.R_body_cam.T
-        p_body = R_body_ned @ p_ned
-        p_cam = self.camera.body_to_cam(p_body)
-        cov_body = rotate_cov(R_body_ned, P[:3, :3])
-        az, el = bearing(p_cam)
-        return RelativeEstimate(
-            p_ned_rel_m=p_ned,
-            v_ned_rel_m_s=v_ned,
-            cov_ned=P,
-            p_body_leader_m=p_body,
-            v_body_rel_m_s=R_body_ned @ v_ned,
-            cov_body_m2=cov_body,
-            p_cam_leader_m=p_cam,
-            v_cam_rel_m_s=R_cam_body @ (R_body_ned @ v_ned),
-            cov_cam_m2=rotate_cov(R_cam_body, cov_body),
-            azimuth_rad=az,
-            elevation_rad=el,
-            range_m=float(np.linalg.norm(p_cam)),
-        )
+        x = kf.x[:, 0]
+        return RelativeEstimate(x[:3].copy(), x[3:].copy(), kf.P.copy(), R_ned_body, self.camera)
