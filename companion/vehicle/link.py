@@ -48,6 +48,13 @@ class VehicleLink(Protocol):
         """Stop the setpoint stream now and ask PX4 for Hold."""
         ...
 
+    async def release_offboard(self) -> None:
+        """Stop refreshing without asking for any mode: PX4 already left offboard (pilot or failsafe).
+
+        MAVSDK's own watchdog ends its resend once PX4's heartbeats stop saying Offboard.
+        """
+        ...
+
     async def send_external_position(self, fix: ExternalPosition) -> None:
         """Give PX4's estimator a position fix from outside (VISION_POSITION_ESTIMATE)."""
         ...
