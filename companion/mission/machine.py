@@ -447,6 +447,8 @@ class MissionMachine:
         if self._gps_ok:
             self._go(MissionState.FOLLOW, reason, detail)
             self.law.seed_velocity(np.array(inp.vehicle.v_ned_m_s))
+        elif self.m.gps_loss_policy == "land":
+            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
         else:
             self.vision_mode = VisionMode.ATTITUDE
             self._ext_valid_since = None

@@ -418,8 +418,15 @@ class MavsdkVehicleLink:
             return
 
     async def stop_offboard(self) -> None:
+        """Stop MAVSDK's resend and ask for Hold.
+
+        Works with the link down too: stopping the local stream is what matters then (a one-way loss would
+        otherwise keep feeding PX4 the last setpoint).
+        """
         self._stream_active = False
-        await self._call("stop_offboard", self._require(self._offboard).stop())
+        if self._offboard is None:
+            raise LinkLostError("no autopilot connected")
+        await self._call("stop_offboard", self._offboard.stop())
 
     async def release_offboard(self) -> None:
         self._stream_active = False
