@@ -35,6 +35,13 @@ class LinkConfig(Section):
     #: MAVSDK resends setpoints at 20 Hz; PX4 needs > 2 Hz. This is how often *we* compute fresh ones.
     setpoint_rate_hz: float = Field(20.0, gt=2.0, le=100.0)
     command_timeout_s: float = Field(3.0, gt=0)
+    #: No fresh setpoint from the mission for this long while streaming: the link stops offboard itself, so
+    #: MAVSDK's 20 Hz resend can never keep a dead mission's last setpoint alive.
+    setpoint_timeout_s: float = Field(0.5, gt=0)
+    #: No telemetry for this long counts as a lost link.
+    telemetry_timeout_s: float = Field(1.5, gt=0)
+    #: MAVSDK's own log lines go to the ``companion.vehicle.mavsdk`` logger at or above this level.
+    mavsdk_log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "WARNING"
 
 
 class MountConfig(Section):
@@ -160,6 +167,17 @@ class MissionConfig(Section):
     acquire_timeout_s: float = Field(60.0, gt=0)
     landing_speed_m_s: float = Field(0.6, gt=0, le=0.7)
     shutdown_action: Literal["hold_then_land", "land", "hold"] = "hold_then_land"
+    #: hold_then_land: how long PX4 holds before it is told to land. Without GPS every action is PX4 Land.
+    shutdown_hold_s: float = Field(10.0, ge=0)
+    #: GPS counts as lost after this long without a 3D fix (PX4 drops the fix ~1 s after the last sample).
+    gps_loss_confirm_s: float = Field(0.5, ge=0)
+    #: ... and as back after this long with a 3D fix and a valid estimate.
+    gps_restore_s: float = Field(5.0, ge=0)
+    takeoff_timeout_s: float = Field(40.0, gt=0)
+    #: vision_external_position: how long PX4 may take to accept the external fix before we stay on attitude.
+    external_position_accept_s: float = Field(5.0, gt=0)
+    #: Hover thrust to start the attitude law from when PX4's MPC_THR_HOVER cannot be read (0..1).
+    hover_thrust_norm: float = Field(0.5, gt=0.05, lt=0.95)
 
 
 class SafetyConfig(Section):
