@@ -5,6 +5,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
+import signal
+import sys
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -210,3 +213,43 @@ async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> 
     assert kinds == [("command", None), ("command_rejected", "REPLAYED"), ("command_rejected", "BAD_MAC")]
     assert vehicle.leader[0].lat_deg == pytest.approx(47.39)
     assert reporter.commands_rejected == 2
+
+
+REPORTER_PROC = """
+import asyncio, sys, time
+from companion.clock import MonotonicClock
+from companion.config import MqttConfig
+from companion.telemetry.mqtt import MqttReporter, TelemetrySources
+from companion.telemetry.payloads import HealthMsg, StateMsg
+
+async def main() -> None:
+    cfg = MqttConfig(enabled=True, port=int(sys.argv[1]), keepalive_s=2)
+    src = TelemetrySources(lambda: StateMsg(state="follow"), lambda: None, lambda: HealthMsg())
+    await MqttReporter(cfg, "f9", src, MonotonicClock(), time.time).run()
+
+asyncio.run(main())
+"""
+
+
+async def test_last_will_marks_a_killed_service_offline(broker: Mosquitto, repo_root: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(repo_root)}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", REPORTER_PROC, str(broker.port), cwd=repo_root, env=env
+    )
+    try:
+        async with aiomqtt.Client("127.0.0.1", broker.port) as c:
+            await c.subscribe("wingman/f9/state", qos=1)
+            async with asyncio.timeout(20):
+                async for m in c.messages:
+                    assert isinstance(m.payload, bytes)
+                    p = json.loads(m.payload)
+                    if p["online"]:
+                        proc.send_signal(signal.SIGKILL)  # no clean disconnect: the broker must speak for it
+                    else:
+                        break
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+        await asyncio.wait_for(proc.wait(), 5)
+    assert p == {**p, "online": False, "state": "OFFLINE", "vehicle_id": "f9"}
+    assert "connection to the service lost" in p["reason"]
