@@ -159,7 +159,12 @@ class FollowerService:
                 stack.callback(parts.perception.close)
             await stack.enter_async_context(
                 StatusServer(
-                    self._socket_path(), {"status": self.status_snapshot, "health": self.live_health}
+                    self._socket_path(),
+                    {
+                        "status": self.status_snapshot,
+                        "health": self.live_health,
+                        "start": self._request_start,
+                    },
                 )
             )
             if self.cfg.mqtt.enabled:
@@ -193,8 +198,11 @@ class FollowerService:
         return self.exit_code
 
     async def _run_mission(self, mission: MissionPort) -> None:
+        if self.cfg.service.auto_start:
+            mission.request_start()
         try:
             await mission.run()
+            await self._until_down(mission)
         except Exception as exc:
             await self._farewell(f"mission failed: {type(exc).__name__}: {exc}")
             raise
@@ -203,6 +211,31 @@ class FollowerService:
         log.info("mission over: %s (%s)", snap.state, snap.reason)
         await self._farewell(f"mission over: {snap.state}")
         raise _Finished
+
+    async def _until_down(self, mission: MissionPort) -> None:
+        """The mission handed a landing to PX4 and returned: watch it until touchdown and disarm."""
+        v = mission.snapshot().vehicle
+        if not (v.armed and v.flight_mode == "land"):
+            return
+        log.info("PX4 is landing the vehicle; waiting for touchdown and disarm")
+        while True:
+            v = mission.snapshot().vehicle
+            if not v.armed:
+                log.info("vehicle disarmed")
+                return
+            if not v.connected:
+                log.warning("autopilot link lost while PX4 lands; not waiting for the disarm")
+                return
+            self.health.beat(MISSION, detail="PX4 landing")
+            await asyncio.sleep(0.2)
+
+    def _request_start(self) -> dict[str, Any]:
+        assert self._parts is not None  # noqa: S101
+        if self.stopping:
+            return {"ok": False, "detail": f"stopping ({self._stop_reason})"}
+        self._parts.mission.request_start()
+        log.info("mission start requested over the status socket")
+        return {"ok": True, "detail": "start requested"}
 
     async def _lifecycle(self, mission: MissionPort) -> None:
         await self._stop.wait()

@@ -203,6 +203,9 @@ class StatusConfig(Section):
 class ServiceConfig(Section):
     """Lifecycle of the service and what it tells the ground station over MAVLink."""
 
+    #: Start the mission (arm, take off, follow) as soon as preflight passes, without `companion start`.
+    #: For the simulator and test stands; on a drone an operator starts it.
+    auto_start: bool = False
     #: Bound on the safe action at SIGTERM/SIGINT (hold, land, disarm) before exiting anyway.
     #: Keep the unit's TimeoutStopSec above this.
     shutdown_timeout_s: float = Field(120.0, gt=0)

@@ -21,6 +21,18 @@ def register(sub: Any) -> None:
     h.add_argument("--json", action="store_true", help="print the checks as JSON")
     h.add_argument("--timeout", type=float, default=5.0, help="seconds per probe (default 5)")
     h.set_defaults(handler=_health)
+    s = sub.add_parser("start", help="ask the running service to start the mission (arm, take off, follow)")
+    add_config_arg(s)
+    s.set_defaults(handler=_start)
+
+
+def _start(args: argparse.Namespace) -> int:
+    from companion.service.status import query_status
+
+    cfg = load(args)
+    reply = query_status(Path(cfg.status.socket_path), "start")
+    print(reply.get("detail", reply))
+    return 0 if reply.get("ok") else 1
 
 
 def _status(args: argparse.Namespace) -> int:

@@ -95,6 +95,10 @@ class MissionPort(Protocol):
         """Fly until the mission is over: after a shutdown request, once safe; raises on link failure."""
         ...
 
+    def request_start(self) -> None:
+        """Start the mission (arm, take off, acquire, follow) once preflight passes."""
+        ...
+
     def request_shutdown(self) -> None:
         """Perform the configured safe action (``mission.shutdown_action``), then let :meth:`run` return."""
         ...

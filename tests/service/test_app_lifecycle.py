@@ -51,6 +51,7 @@ class ScriptedMission:
         self.hang = False
         self.commands: list[str] = []
         self.history: list[str] = [self.state]
+        self.started = False
 
     def set_on_change(self, callback: Callable[[StateChange], None]) -> None:
         self.on_change = callback
@@ -61,8 +62,12 @@ class ScriptedMission:
         self.history.append(state)
         self.on_change(change)
 
+    def _touched_down(self) -> bool:
+        return self.state == "px4_land" and self.clock.now_s() - self.since_s > self.land_s
+
     def snapshot(self) -> FlightSnapshot:
-        flying = self.state in ("follow", "px4_hold", "px4_land")
+        flying = self.state in ("follow", "px4_hold", "px4_land") and not self._touched_down()
+        mode = {"follow": "offboard", "px4_land": "land"}.get(self.state, "hold")
         return FlightSnapshot(
             state=self.state,
             reason=self.reason,
@@ -71,9 +76,9 @@ class ScriptedMission:
             vehicle=VehicleSummary(
                 connected=True,
                 heartbeat_age_s=0.1,
-                armed=self.state not in ("wait_link", "disarmed"),
+                armed=self.state not in ("wait_link", "disarmed") and not self._touched_down(),
                 in_air=flying,
-                flight_mode="offboard" if self.state == "follow" else "hold",
+                flight_mode=mode,
                 gps_fix_type=3,
                 gps_satellites=10,
                 position_valid=True,
@@ -84,7 +89,6 @@ class ScriptedMission:
             )
             if self.state == "follow"
             else None,
-            shutdown_complete=self.state == "disarmed",
         )
 
     async def run(self) -> None:
@@ -103,10 +107,11 @@ class ScriptedMission:
                 t_land = now
             elif self.state == "px4_hold" and t_land is not None and now - t_land > self.land_s:
                 self._go("px4_land", "shutdown hold elapsed: landing")
-            elif self.state == "px4_land" and now - self.since_s > self.land_s:
-                self._go("disarmed", "disarmed")
-                return
+                return  # like flight's runner: PX4 lands by itself from here
             await asyncio.sleep(0.05)
+
+    def request_start(self) -> None:
+        self.started = True
 
     def request_shutdown(self) -> None:
         self.shutdown = True
@@ -189,12 +194,16 @@ async def test_stop_request_lands_then_exits_zero(
         task = tg.create_task(svc.run())
         await wait_until(lambda: mission.state == "follow" and exists(sock))
         await asyncio.sleep(0.5)
+        started = await asyncio.to_thread(query_status, sock, "start")
+        assert started == {"ok": True, "detail": "start requested"}
+        assert mission.started
         snap = await asyncio.to_thread(query_status, sock, "status")
         health = await asyncio.to_thread(query_status, sock, "health")
         svc.request_stop("SIGTERM")
         svc.request_stop("SIGTERM")  # a second signal changes nothing
     assert task.result() == 0
-    assert mission.history == ["wait_link", "follow", "px4_hold", "px4_land", "disarmed"]
+    assert mission.history == ["wait_link", "follow", "px4_hold", "px4_land"]
+    assert not mission.snapshot().vehicle.armed  # the service waited for the disarm before exiting
     assert not exists(sock)
     # status snapshot
     assert snap["mission"]["state"] == "follow"
@@ -218,7 +227,6 @@ async def test_stop_request_lands_then_exits_zero(
         "WM follow: leader acquired",
         "WM px4_hold: shutdown requested",
         "WM px4_land: shutdown hold elapsed: landing",
-        "WM disarmed: disarmed",
     ]
     assert gcs.onboard
     f = gcs.onboard[-1].fields
@@ -317,10 +325,10 @@ async def test_mqtt_telemetry_and_commands_through_the_service(tmp_path: Path) -
     states = [p["state"] for t, p in got if t == "state"]
     assert "follow" in states
     assert states[-1] == "OFFLINE"
-    assert states[-2] == "disarmed"
+    assert states[-2] == "px4_land"
     events = [p for t, p in got if t == "events"]
     kinds = [e["kind"] for e in events]
-    assert kinds.count("state_change") == 4
+    assert kinds.count("state_change") == 3
     assert "shutdown" in kinds
     assert "command" in kinds
     pose = next(p for t, p in got if t == "pose" and p["leader"])
