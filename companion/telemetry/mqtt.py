@@ -170,7 +170,8 @@ class MqttReporter:
 
     def state_changed(self) -> None:
         """Publish the state now (called on every mission transition), not only at the next tick."""
-        self._push_state(self._sources.state())
+        if not self._stopping:  # after stop() the last word is "offline"
+            self._push_state(self._sources.state())
 
     def event(self, kind: str, text: str, severity: Severity = "info", **data: Any) -> None:
         """Queue one event for ``events`` (QoS 1, kept while disconnected within the buffer bound)."""
@@ -343,7 +344,9 @@ class MqttReporter:
 
     async def _session(self, client: aiomqtt.Client) -> None:
         # A fresh retained state at once: it replaces the broker's last-will "offline" if one fired.
-        self._push_state(self._sources.state())
+        if not self._stopping:
+            self._push_state(self._sources.state())
+        self._wake.set()  # whatever is still buffered goes out now
         if self._verifier is not None:
             await client.subscribe(self.topics.cmd, qos=1)
         if self._on_leader_position is not None:
