@@ -238,6 +238,7 @@ class TruthTracker:
     status: TrackStatus = TrackStatus.CONFIRMED
     paused: bool = False
     share_leader_position: bool = False
+    min_leader_alt_m: float = 3.0
     #: Follower spawn in the world frame = its local NED origin (for the shared leader position).
     origin_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
@@ -246,6 +247,8 @@ class TruthTracker:
             await self.feed.updated.wait()
             if self.paused or FOLLOWER not in self.feed.latest:
                 continue
+            if -self.feed.latest[LEADER].p[2] < self.min_leader_alt_m:
+                continue  # the leader is still on the ground, out of sight of a flying follower's camera
             p_rel, v_rel = self.feed.rel()
             now = self.clock.now_s()
             self.runner.submit_leader(
@@ -320,6 +323,8 @@ class Row:
     alt_true_m: float | None
     vz_true_m_s: float | None
     speed_h_true_m_s: float | None
+    #: PX4's velocity estimate minus the true velocity (NED), m/s.
+    v_est_err_m_s: tuple[float, float, float] | None = None
 
 
 @dataclass
@@ -342,6 +347,7 @@ class Recorder:
         truth = self.feed.latest
         err = sep = alt = vz = vh = None
         err_h = None
+        v_err = None
         if LEADER in truth and FOLLOWER in truth:
             fol, lead = truth[FOLLOWER], truth[LEADER]
             rel = lead.p - fol.p
@@ -353,6 +359,8 @@ class Recorder:
             alt = float(-fol.p[2])
             vz = float(fol.v[2])
             vh = float(math.hypot(fol.v[0], fol.v[1]))
+            dv = np.array(inp.vehicle.v_ned_m_s) - fol.v
+            v_err = (float(dv[0]), float(dv[1]), float(dv[2]))
         self.rows.append(
             Row(
                 t_s=inp.vehicle.stamp_s,
@@ -367,6 +375,7 @@ class Recorder:
                 alt_true_m=alt,
                 vz_true_m_s=vz,
                 speed_h_true_m_s=vh,
+                v_est_err_m_s=v_err,
             )
         )
 
@@ -395,6 +404,12 @@ class Flight:
     tracker: TruthTracker
     rec: Recorder
     tap: WireTap
+
+    async def sim_time(self, t_s: float, timeout_s: float = 120.0) -> None:
+        """Until the simulator's clock reaches ``t_s``."""
+        async with asyncio.timeout(timeout_s):
+            while self.feed.sim_t_s < t_s:
+                await self.feed.updated.wait()
 
     async def reach(self, state: MissionState, timeout_s: float) -> None:
         try:
@@ -457,6 +472,8 @@ async def fly(
     finally:
         tap.close()
         transport.close()
+        if flight is not None:
+            dump(flight.rec, tmp_path / "flight.csv")
     assert flight is not None
     return flight
 
@@ -500,14 +517,16 @@ def dump(rec: Recorder, path: Path) -> None:
     """Write the recorded rows as CSV next to the test (for looking at a failed flight)."""
     with path.open("w") as f:
         f.write(
-            "t_s,state,setpoint,mode,position_valid,gps_fix,err_m,err_fwd,err_right,err_down,sep_m,alt_m,vz,vh\n"
+            "t_s,state,setpoint,mode,position_valid,gps_fix,err_m,err_fwd,err_right,err_down,sep_m,alt_m,vz,vh,"
+            "dvn,dve,dvd\n"
         )
         for r in rec.rows:
             eh = r.err_heading or (math.nan, math.nan, math.nan)
+            dv = r.v_est_err_m_s or (math.nan, math.nan, math.nan)
             f.write(
                 f"{r.t_s:.3f},{r.state.value},{r.setpoint},{r.mode},{r.position_valid},{r.gps_fix},"
                 f"{r.formation_err_m},{eh[0]:.3f},{eh[1]:.3f},{eh[2]:.3f},{r.separation_m},{r.alt_true_m},"
-                f"{r.vz_true_m_s},{r.speed_h_true_m_s}\n"
+                f"{r.vz_true_m_s},{r.speed_h_true_m_s},{dv[0]:.3f},{dv[1]:.3f},{dv[2]:.3f}\n"
             )
 
 
