@@ -64,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="lockstep real-time factor for 2 vehicles, without rendering")
     b.add_argument("--json", type=Path, default=None)
+    b.add_argument("--sim-s", type=float, default=60.0, help="sim seconds per run (default 60)")
+    b.add_argument("--repeats", type=int, default=3, help="runs; the median is reported (default 3)")
     b.set_defaults(handler=_lazy("sitl.bench", "main", "bench"))
 
     r = sub.add_parser("bench-render", help="rendered RGB-D frames per second at 640x480 with noise")
