@@ -868,7 +868,13 @@ class Autopilot:
         self, command: int, p: tuple[float, ...], link: int | None, src_system: int, src_component: int
     ) -> None:
         handler = _COMMANDS.get(command)
-        result = UNSUPPORTED if handler is None else handler(self, p, link)
+        if handler is None:
+            result = UNSUPPORTED
+        else:
+            # Decide on the current state: a setpoint that arrived since the last 50 Hz update counts
+            # (MAVSDK sends its first setpoint and the mode switch back to back).
+            self._update_flags()
+            result = handler(self, p, link)
         self._ack(command, result, link, src_system, src_component)
 
     def _cmd_arm_disarm(self, p: tuple[float, ...], link: int | None) -> int:

@@ -55,6 +55,14 @@ class MavlinkConfig(Section):
     gcs_remote_port: int = Field(14550, ge=1024, le=65535)
 
 
+class ServeConfig(Section):
+    """``sitl serve`` extras."""
+
+    #: In-process async components ("module:callable", each called with a SimHandle), e.g. the
+    #: renderer's camera server.
+    components: tuple[str, ...] = ()
+
+
 class VehicleConfig(Section):
     """One simulated vehicle."""
 
@@ -73,6 +81,7 @@ class SitlConfig(Section):
     schema_version: int = SCHEMA_VERSION
     world: WorldConfig = WorldConfig()
     mavlink: MavlinkConfig = MavlinkConfig()
+    serve: ServeConfig = ServeConfig()
     vehicles: tuple[VehicleConfig, ...] = (
         VehicleConfig(name="leader", role="leader", spawn_ned_m=(8.0, 0.0, 0.0)),
         VehicleConfig(name="follower", role="follower"),
