@@ -191,25 +191,21 @@ def double_sided(m: Mesh) -> Mesh:
 
 def ellipsoid(radii: tuple[float, float, float], seg_u: int = 10, seg_v: int = 6) -> Mesh:
     """Ellipsoid centred at the origin with smooth normals; uv = (longitude, latitude) in rad."""
-    rx, ry, rz = radii
+    r = np.asarray(radii, dtype=np.float64)
     lon = np.linspace(0.0, 2.0 * math.pi, seg_u + 1)
     lat = np.linspace(-math.pi / 2.0, math.pi / 2.0, seg_v + 1)
-    quads, nrms, uvs = [], [], []
+    LO, LA = np.meshgrid(lon, lat, indexing="xy")  # (seg_v + 1, seg_u + 1)
+    d = np.stack([np.cos(LA) * np.cos(LO), np.cos(LA) * np.sin(LO), np.sin(LA)], axis=-1)
+    pos = d * r
+    nrm = d / r
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    uvg = np.stack([LO, LA], axis=-1)
 
-    def pt(lo: float, la: float) -> tuple[list[float], list[float]]:
-        d = [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)]
-        n = np.array([d[0] / rx, d[1] / ry, d[2] / rz])
-        n /= np.linalg.norm(n)
-        return [rx * d[0], ry * d[1], rz * d[2]], list(n)
+    # Quad corners (i, j), (i+1, j), (i+1, j+1), (i, j+1): counter-clockwise seen from outside.
+    def corners(a: F64) -> F64:
+        return np.stack([a[:-1, :-1], a[:-1, 1:], a[1:, 1:], a[1:, :-1]], axis=2).reshape(-1, 4, a.shape[-1])
 
-    for j in range(seg_v):
-        for i in range(seg_u):
-            corners = [(lon[i], lat[j]), (lon[i + 1], lat[j]), (lon[i + 1], lat[j + 1]), (lon[i], lat[j + 1])]
-            ps, ns = zip(*(pt(lo, la) for lo, la in corners), strict=True)
-            quads.append(ps)
-            nrms.append(ns)
-            uvs.append(corners)
-    return quads_to_mesh(np.array(quads), np.array(uvs), np.array(nrms))
+    return quads_to_mesh(corners(pos), corners(uvg), corners(nrm))
 
 
 def concat(meshes: list[Mesh]) -> Mesh:

@@ -64,7 +64,9 @@ AE_TARGET = 0.18
 GAIN_AT_MAX_SHUTTER = 2.0
 #: The sky cube stores sqrt(radiance / SKY_SCALE).
 SKY_SCALE = 8.0
+#: Sky cube face size: texels about a pixel wide at 640 px (nearest); datasets supersample and filter.
 SKY_FACE_PX = 1024
+SKY_FACE_PX_SUPERSAMPLED = 512
 GROUND_TEX_PX = 2048
 #: Cube-map face (s, t, 1) -> direction, GL's convention, faces +X -X +Y -Y +Z -Z.
 _CUBE_FACES = (
@@ -233,7 +235,8 @@ class Renderer:
         )
         self._ground_tex = ctx.texture((GROUND_TEX_PX, GROUND_TEX_PX), 4)
         self._ground_fbo = ctx.framebuffer([self._ground_tex])
-        self._face_tex = ctx.texture((SKY_FACE_PX, SKY_FACE_PX), 4)
+        self._sky_face_px = SKY_FACE_PX if s == 1 else SKY_FACE_PX_SUPERSAMPLED
+        self._face_tex = ctx.texture((self._sky_face_px, self._sky_face_px), 4)
         self._face_fbo = ctx.framebuffer([self._face_tex])
         self._sky_cube: moderngl.TextureCube | None = None
         self._sdepth = ctx.depth_renderbuffer((W * s, H * s))
@@ -383,18 +386,19 @@ class Renderer:
             self._set(kp, f"u_{name}_rgb", getattr(L, f"{name}_rgb"))
         self._set(kp, "u_cloud", (CLOUD_ALTITUDE_M, CLOUD_TEXEL_M, *self.world.cloud_threshold))
         self._set(kp, "u_cloud_off", self.world.cloud_offset_texels)
-        self._set(kp, "u_face_px", float(SKY_FACE_PX))
+        face = self._sky_face_px
+        self._set(kp, "u_face_px", float(face))
         self._set(kp, "u_sky_scale", SKY_SCALE)
         self._ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
         self._pattern.use(4)
-        faces = np.empty((6, SKY_FACE_PX, SKY_FACE_PX, 4), dtype=np.uint8)
+        faces = np.empty((6, face, face, 4), dtype=np.uint8)
         self._face_fbo.use()
         for i, rows in enumerate(_CUBE_FACES):
             self._set(kp, "u_dir_from_st", _mat_bytes(np.array(rows, dtype=np.float64)))
             self._sky_bake_vao.render(moderngl.TRIANGLES)
             self._face_fbo.read_into(faces[i], components=4)
         if self._sky_cube is None:
-            self._sky_cube = self._ctx.texture_cube((SKY_FACE_PX, SKY_FACE_PX), 4)
+            self._sky_cube = self._ctx.texture_cube((face, face), 4)
         for i in range(6):
             self._sky_cube.write(i, faces[i].tobytes())
         self._sky_cube.filter = (
