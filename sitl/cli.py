@@ -60,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", type=Path, required=True)
     d.add_argument("--count", type=int, required=True)
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seq-len", type=int, default=6, help="frames per sequence (splits are by sequence)")
     d.set_defaults(handler=_lazy("sitl.dataset", "main_dataset", "dataset"))
 
     c = sub.add_parser(
@@ -68,6 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--data", type=Path, required=True)
     c.add_argument("--out", type=Path, default=Path("runs/contact-sheet.png"))
     c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--tile-px", type=int, default=320, help="width of each colour/depth tile")
     c.set_defaults(handler=_lazy("sitl.dataset", "main_contact_sheet", "contact-sheet"))
 
     b = sub.add_parser("bench", help="lockstep real-time factor for 2 vehicles, without rendering")
