@@ -54,7 +54,7 @@ def _open_out(path: str | None) -> Iterator[io.TextIOBase | None]:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from companion.perception.replay import make_detect, run_replay  # noqa: PLC0415
+    from companion.perception.replay import make_detect, run_replay
 
     cfg = load(args)
     detect = make_detect(args.detector, cfg, jitter_px=args.box_jitter_px, seed=args.seed)
@@ -68,7 +68,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _record(args: argparse.Namespace) -> int:
-    from companion.perception.replay import run_record  # noqa: PLC0415
+    from companion.perception.replay import run_record
 
     cfg = load(args)
     n = asyncio.run(
