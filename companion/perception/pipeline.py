@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import Config, LeaderConfig, PoseConfig, TrackerConfig
-from companion.estimation.tracker import TargetTracker, TrackState
+from companion.estimation.tracker import TargetTracker, TrackState, TrackStatus
 from companion.frames import Mat3
-from companion.perception.pose import LeaderMeasurement, measure_all
+from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
 from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.perception.types import Detection, RgbdFrame
 
@@ -51,6 +51,9 @@ class PerceptionPipeline:
         self.tracker = TargetTracker(tracker, camera)
         self.attitude = attitude if attitude is not None else AttitudeHistory()
         self.counters = PipelineCounters()
+        self.size = (
+            SizeCalibrator(leader.span_m, max_depth_m=0.95 * pose.depth_max_m) if pose.size_fallback else None
+        )
         self._last_R_ned_body: Mat3 = np.eye(3)
 
     @classmethod
@@ -66,6 +69,7 @@ class PerceptionPipeline:
             frame.stamp_s,
             leader=self.leader,
             cfg=self.pose_cfg,
+            size_prior=None if self.size is None else self.size.prior(),
         )
 
     def track(self, stamp_s: float, measurements: Sequence[LeaderMeasurement]) -> TrackState:
@@ -85,7 +89,10 @@ class PerceptionPipeline:
                 measurements = ()
                 R = self._last_R_ned_body
         self._last_R_ned_body = R
-        return self.tracker.step(stamp_s, measurements, R)
+        state = self.tracker.step(stamp_s, measurements, R)
+        if self.size is not None and state.measurement is not None and state.status == TrackStatus.CONFIRMED:
+            self.size.update(state.measurement)
+        return state
 
     def process(self, frame: RgbdFrame, detections: Sequence[Detection]) -> TrackState:
         """Both stages for one frame."""
