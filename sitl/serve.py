@@ -284,9 +284,8 @@ class Server:
     async def _open(self) -> None:
         loop = asyncio.get_running_loop()
         for ep in endpoints(self.cfg):
-            vehicle = self.world.vehicle(ep.vehicle)
             index = LINK_API if ep.kind == "api" else LINK_GCS
-            link = vehicle.links[index].open()
+            link = self.world.link(ep.vehicle, index)
             proto = UdpLink(link, ep.sysid, ep.remote, f"{ep.vehicle}/{ep.kind}")
             try:
                 await loop.create_datagram_endpoint(lambda p=proto: p, local_addr=ep.bind)  # type: ignore[misc]
