@@ -183,7 +183,16 @@ class QuadDynamics:
         c[2].set_double_value(u2)
         c[3].set_double_value(u3)
         self._fdm.run()
-        self._read_fast()
+        # _read_fast, inlined: this runs 250 times per sim second per vehicle.
+        p, q, r = self._rate_nodes
+        self.p_rad_s = p.get_double_value()
+        self.q_rad_s = q.get_double_value()
+        self.r_rad_s = r.get_double_value()
+        phi, theta, psi = self._att_nodes
+        self.roll_rad = phi.get_double_value()
+        self.pitch_rad = theta.get_double_value()
+        yaw = psi.get_double_value()
+        self.yaw_rad = yaw - 2.0 * math.pi if yaw > math.pi else yaw
 
     def set_wind_ned(self, wind_n_m_s: float, wind_e_m_s: float, wind_d_m_s: float) -> None:
         """Air-mass velocity in NED (the direction the air moves towards), m/s."""
