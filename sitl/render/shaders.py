@@ -365,8 +365,9 @@ void main() {
     float z = u_fB / max(dn, 1e-6);
     float leader = step(0.5, aux.a);
     float textured = (aux.a - 0.5 * leader) / 0.49;
+    // Range limits act on the true disparity (a matcher's search range), so noise is never truncated.
     // Low texture: clumps of failed matches, more where the surface is plain.
-    bool valid = d > 0.0 && dn > 0.0 && z >= u_zrange.x && z <= u_zrange.y
+    bool valid = d >= u_fB / u_zrange.y && d <= u_fB / u_zrange.x && dn > 0.0
         && nz.a >= u_hole_p.x + u_hole_p.y * (1.0 - textured);
 #if EDGES
     // Stereo shadow: the right imager sits at +x, so a surface k px to the right with k px more
