@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from companion.errors import ConfigError
 
@@ -35,6 +35,13 @@ class LinkConfig(Section):
     #: MAVSDK resends setpoints at 20 Hz; PX4 needs > 2 Hz. This is how often *we* compute fresh ones.
     setpoint_rate_hz: float = Field(20.0, gt=2.0, le=100.0)
     command_timeout_s: float = Field(3.0, gt=0)
+    #: No fresh setpoint from the mission for this long while streaming: the link stops offboard itself, so
+    #: MAVSDK's 20 Hz resend can never keep a dead mission's last setpoint alive.
+    setpoint_timeout_s: float = Field(0.5, gt=0)
+    #: No telemetry for this long counts as a lost link.
+    telemetry_timeout_s: float = Field(1.5, gt=0)
+    #: MAVSDK's own log lines go to the ``companion.vehicle.mavsdk`` logger at or above this level.
+    mavsdk_log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "WARNING"
 
 
 class MountConfig(Section):
@@ -60,6 +67,9 @@ class CameraConfig(Section):
     fps: float = Field(30.0, gt=0)
     realtime: bool = True
     loop: bool = False
+    #: realsense: the D400 visual preset loaded at start (High Accuracy drops doubtful depth: fewer holes
+    #: filled with wrong values at range, which is what the leader's pose needs).
+    preset: Literal["default", "high_accuracy", "high_density", "medium_density"] = "high_accuracy"
     mount: MountConfig = MountConfig()
 
 
@@ -88,6 +98,30 @@ class LeaderConfig(Section):
     mavlink_system_id: int = Field(1, ge=1, le=255)
 
 
+class PoseConfig(Section):
+    """Leader position from a box and the aligned depth: depth window, stereo noise model, box jitter."""
+
+    #: Depth outside [depth_min_m, depth_max_m] is treated as invalid (D435: ~0.2 m minimum range).
+    #: Keep depth_max_m at or below the camera's own cut-off: the pose undoes the bias of a known cut.
+    depth_min_m: float = Field(0.2, ge=0.0)
+    depth_max_m: float = Field(10.0, gt=0.0)
+    #: Stereo depth noise sigma_z = z^2 * subpixel / (f * baseline) per pixel (D435: 50 mm, ~0.08 px).
+    stereo_baseline_m: float = Field(0.05, gt=0.0)
+    stereo_subpixel_px: float = Field(0.08, gt=0.0)
+    #: At most this many box pixels count as independent depth samples (stereo noise is correlated).
+    independent_depth_px: int = Field(16, ge=1)
+    #: Extra depth uncertainty from the leader's shape (where the visible surface is vs its centre), m.
+    surface_model_std_m: float = Field(0.02, ge=0.0)
+    #: Box-centre jitter of the detector: this many pixels plus this fraction of the box size.
+    box_jitter_px: float = Field(1.0, ge=0.0)
+    box_jitter_frac: float = Field(0.03, ge=0.0)
+    #: Fewer valid depth pixels than this inside a box: no depth measurement.
+    min_valid_px: int = Field(6, ge=1)
+    #: Without depth (beyond the stereo range, a hole), range the leader from its box size, learnt
+    #: online from depth measurements at closer range.
+    size_fallback: bool = True
+
+
 class TrackerConfig(Section):
     """Constant-velocity Kalman tracker of the leader's position relative to the follower."""
 
@@ -98,6 +132,8 @@ class TrackerConfig(Section):
     coast_timeout_s: float = Field(1.5, gt=0)
     lost_timeout_s: float = Field(3.0, gt=0)
     size_ratio_tolerance: float = Field(2.5, gt=1.0)
+    #: Velocity uncertainty of a new track (the leader's relative speed is unknown at first sight), m/s.
+    init_velocity_std_m_s: float = Field(3.0, gt=0)
 
 
 class FormationConfig(Section):
@@ -135,6 +171,17 @@ class MissionConfig(Section):
     acquire_timeout_s: float = Field(60.0, gt=0)
     landing_speed_m_s: float = Field(0.6, gt=0, le=0.7)
     shutdown_action: Literal["hold_then_land", "land", "hold"] = "hold_then_land"
+    #: hold_then_land: how long PX4 holds before it is told to land. Without GPS every action is PX4 Land.
+    shutdown_hold_s: float = Field(10.0, ge=0)
+    #: GPS counts as lost after this long without a 3D fix (PX4 drops the fix ~1 s after the last sample).
+    gps_loss_confirm_s: float = Field(0.5, ge=0)
+    #: ... and as back after this long with a 3D fix and a valid estimate.
+    gps_restore_s: float = Field(5.0, ge=0)
+    takeoff_timeout_s: float = Field(40.0, gt=0)
+    #: vision_external_position: how long PX4 may take to accept the external fix before we stay on attitude.
+    external_position_accept_s: float = Field(5.0, gt=0)
+    #: Hover thrust to start the attitude law from when PX4's MPC_THR_HOVER cannot be read (0..1).
+    hover_thrust_norm: float = Field(0.5, gt=0.05, lt=0.95)
 
 
 class SafetyConfig(Section):
@@ -150,28 +197,71 @@ class SafetyConfig(Section):
 
 
 class MqttConfig(Section):
-    """Telemetry to an MQTT broker."""
+    """Telemetry to an MQTT broker (topics under ``<topic_prefix>/<vehicle_id>/``)."""
 
     enabled: bool = False
     host: str = "127.0.0.1"
     port: int = Field(1883, ge=1, le=65535)
-    topic_prefix: str = "wingman"
+    topic_prefix: str = Field("wingman", pattern=r"^[A-Za-z0-9_/-]{1,64}$")
     username: str = ""
     #: A file holding the password (never the password itself in the config).
     password_file: str = ""
     tls: bool = False
+    #: CA bundle for the broker's certificate; empty: the system's CAs.
     ca_file: str = ""
+    #: Client certificate and key for mutual TLS; both or neither.
+    cert_file: str = ""
+    key_file: str = ""
+    keepalive_s: int = Field(10, ge=2, le=600)
+    #: Reconnect backoff: jittered, doubling from min to max.
+    reconnect_min_s: float = Field(0.5, gt=0)
+    reconnect_max_s: float = Field(30.0, gt=0)
     state_rate_hz: float = Field(2.0, gt=0)
     pose_rate_hz: float = Field(10.0, gt=0)
     health_rate_hz: float = Field(0.5, gt=0)
+    #: state and events messages kept while disconnected; the oldest are dropped (and counted) beyond it.
     buffer_messages: int = Field(1000, ge=1)
+    #: Accept land/hold/set_offset on <prefix>/<vehicle_id>/cmd, each signed with command_key_file.
     command_topic: bool = False
+    command_key_file: str = ""
+    command_max_age_s: float = Field(30.0, gt=0)
+    #: Where the leader's shared position arrives when leader.shared_position = "mqtt".
+    leader_topic: str = "wingman/leader/position"
+
+    @model_validator(mode="after")
+    def _consistent(self) -> MqttConfig:
+        if self.command_topic and not self.command_key_file:
+            raise ValueError("command_topic = true needs command_key_file (commands must be authenticated)")
+        if bool(self.cert_file) != bool(self.key_file):
+            raise ValueError("cert_file and key_file go together")
+        if self.reconnect_min_s > self.reconnect_max_s:
+            raise ValueError("reconnect_min_s must be <= reconnect_max_s")
+        if any(c in self.leader_topic for c in "#+"):
+            raise ValueError("leader_topic must not contain wildcards")
+        return self
 
 
 class StatusConfig(Section):
     """The local status endpoint (a Unix socket, mode 0660)."""
 
     socket_path: str = "/run/wingman/status.sock"
+
+
+class ServiceConfig(Section):
+    """Lifecycle of the service and what it tells the ground station over MAVLink."""
+
+    #: Start the mission (arm, take off, follow) as soon as preflight passes, without `companion start`.
+    #: For the simulator and test stands; on a drone an operator starts it.
+    auto_start: bool = False
+    #: Bound on the safe action at SIGTERM/SIGINT (hold, land, disarm) before exiting anyway.
+    #: Keep the unit's TimeoutStopSec above this.
+    shutdown_timeout_s: float = Field(120.0, gt=0)
+    #: STATUSTEXT to the ground station on every mission state change.
+    statustext: bool = True
+    #: ONBOARD_COMPUTER_STATUS (CPU, memory, temperatures) to the ground station; 0 turns it off.
+    onboard_status_rate_hz: float = Field(1.0, ge=0, le=10)
+    #: How often the machine's load and temperatures are sampled.
+    system_sample_period_s: float = Field(1.0, gt=0)
 
 
 class LoggingConfig(Section):
@@ -190,12 +280,14 @@ class Config(Section):
     camera: CameraConfig = CameraConfig()
     detector: DetectorConfig = DetectorConfig()
     leader: LeaderConfig = LeaderConfig()
+    pose: PoseConfig = PoseConfig()
     tracker: TrackerConfig = TrackerConfig()
     formation: FormationConfig = FormationConfig()
     mission: MissionConfig = MissionConfig()
     safety: SafetyConfig = SafetyConfig()
     mqtt: MqttConfig = MqttConfig()
     status: StatusConfig = StatusConfig()
+    service: ServiceConfig = ServiceConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @field_validator("schema_version")

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
+import json
+from pathlib import Path
 from typing import Any
 
-from companion.cli import not_built
-from companion.commands._common import add_config_arg
+from companion.commands._common import add_config_arg, config_path, load
 
 
 def register(sub: Any) -> None:
@@ -13,8 +15,141 @@ def register(sub: Any) -> None:
     p = sub.add_parser("status", help="show the running service's state")
     add_config_arg(p)
     p.add_argument("--json", action="store_true", help="print the raw JSON snapshot")
-    p.set_defaults(handler=not_built("status"))
+    p.set_defaults(handler=_status)
     h = sub.add_parser("health", help="run preflight checks; exit 0 healthy, 1 not")
     add_config_arg(h)
     h.add_argument("--json", action="store_true", help="print the checks as JSON")
-    h.set_defaults(handler=not_built("health"))
+    h.add_argument("--timeout", type=float, default=5.0, help="seconds per probe (default 5)")
+    h.set_defaults(handler=_health)
+    s = sub.add_parser("start", help="ask the running service to start the mission (arm, take off, follow)")
+    add_config_arg(s)
+    s.set_defaults(handler=_start)
+
+
+def _start(args: argparse.Namespace) -> int:
+    from companion.service.status import query_status
+
+    cfg = load(args)
+    reply = query_status(Path(cfg.status.socket_path), "start")
+    print(reply.get("detail", reply))
+    return 0 if reply.get("ok") else 1
+
+
+def _status(args: argparse.Namespace) -> int:
+    from companion.service.status import query_status
+
+    cfg = load(args)
+    snap = query_status(Path(cfg.status.socket_path), "status")
+    if args.json:
+        print(json.dumps(snap, indent=2))
+    else:
+        print(render_status(snap))
+    return 0
+
+
+def _health(args: argparse.Namespace) -> int:
+    from companion.service.health_checks import run_health
+    from companion.service.wiring import autopilot_probe
+
+    report = run_health(config_path(args), probe_autopilot=autopilot_probe, timeout_s=args.timeout)
+    if args.json:
+        print(json.dumps(report.to_json(), indent=2))
+    else:
+        width = max(len(c.name) for c in report.checks)
+        for c in report.checks:
+            print(f"{'ok  ' if c.ok else 'FAIL'}  {c.name:<{width}}  {c.detail}")
+        running = f"service running ({report.state})" if report.service_running else "service not running"
+        print(f"{'healthy' if report.healthy else 'NOT healthy'}; {running}")
+    return 0 if report.healthy else 1
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.2f}"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return str(value)
+
+
+def render_status(s: dict[str, Any]) -> str:
+    """The snapshot as a two-column table for a terminal."""
+    rows: list[tuple[str, str]] = []
+    m, link, gps = s.get("mission", {}), s.get("link", {}), s.get("gps", {})
+    rows.append(("vehicle", f"{s.get('vehicle_id')}  (wingman {s.get('version')}, pid {s.get('pid')})"))
+    rows.append(
+        (
+            "uptime",
+            f"{_fmt(s.get('uptime_s'))} s" + (f"  STOPPING: {s['stopping']}" if s.get("stopping") else ""),
+        )
+    )
+    rows.append(("state", f"{m.get('state')}  ({m.get('reason')}; {_fmt(m.get('state_age_s'))} s)"))
+    rows.append(
+        (
+            "link",
+            f"{'up' if link.get('connected') else 'DOWN'}, "
+            f"heartbeat {_fmt(link.get('heartbeat_age_s'))} s ago, "
+            f"{link.get('flight_mode')}, {'armed' if link.get('armed') else 'disarmed'}, "
+            f"{'in air' if link.get('in_air') else 'on ground'}",
+        )
+    )
+    rows.append(
+        (
+            "gps",
+            f"fix {gps.get('fix_type')}, {gps.get('satellites')} sats, "
+            f"position valid {gps.get('position_valid')}",
+        )
+    )
+    ld = s.get("leader")
+    if ld:
+        cov = ld.get("cov_ned_m2")
+        sd = "-" if not cov else "[" + ", ".join(f"{cov[i][i] ** 0.5:.2f}" for i in range(3)) + "] m"
+        rows.append(
+            (
+                "leader",
+                f"{ld.get('status')}, rel NED {_fmt(ld.get('p_rel_ned_m'))} m, "
+                f"range {_fmt(ld.get('range_m'))} m, "
+                f"1-sigma {sd}",
+            )
+        )
+    else:
+        rows.append(("leader", "no estimate"))
+    fr = s.get("frames") or {}
+    if fr:
+        rows.append(
+            (
+                "frames",
+                f"{fr.get('received')} received, {fr.get('processed')} processed, "
+                f"{fr.get('dropped')} dropped",
+            )
+        )
+    for stage, st in (s.get("latency_ms") or {}).items():
+        rows.append(
+            (f"  {stage}", f"p50 {st['p50_ms']:.1f} ms, p99 {st['p99_ms']:.1f} ms ({st['count']} samples)")
+        )
+    sysr = s.get("system") or {}
+    if sysr:
+        temps = (
+            ", ".join(f"{k} {v:.0f} C" for k, v in (sysr.get("temperatures_c") or {}).items()) or "no sensors"
+        )
+        rows.append(
+            (
+                "machine",
+                f"load {_fmt(sysr.get('load_1m'))}, cpu {_fmt(sysr.get('cpu_percent'))} %, "
+                f"mem {_fmt(sysr.get('mem_used_mib'))}/{_fmt(sysr.get('mem_total_mib'))} MiB, {temps}",
+            )
+        )
+    mq = s.get("mqtt") or {}
+    if mq.get("enabled"):
+        rows.append(
+            (
+                "mqtt",
+                f"{'connected' if mq.get('connected') else 'DISCONNECTED'}, {mq.get('published')} sent, "
+                f"{mq.get('buffered')} buffered, {mq.get('dropped')} dropped",
+            )
+        )
+    for c in s.get("components", []):
+        rows.append((f"  {c['name']}", f"{'ok' if c['ok'] else 'NOT OK'}: {c['detail']}"))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

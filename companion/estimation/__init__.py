@@ -1,0 +1,1 @@
+"""Estimation: the leader tracker (constant-velocity Kalman filter on the relative position)."""

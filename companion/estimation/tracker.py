@@ -1,0 +1,370 @@
+"""TargetTracker: the leader's position and velocity relative to the follower, from pose measurements.
+
+State and frame:
+    A constant-velocity Kalman filter (filterpy) on ``[p_ned_rel_m, v_ned_rel_m_s]``: the leader's
+    position minus the follower's, and its rate of change, in local NED *axes* (origin at the follower's
+    centre). Only the follower's attitude is needed to place a measurement there, so the track survives
+    GPS loss; relative motion is close to constant-velocity whatever the follower's heading does.
+
+Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurements of every detection
+(camera frame) and the follower's attitude at that stamp, and:
+
+1. predicts to the stamp (white-noise acceleration of ``process_accel_std_m_s2``);
+2. rejects boxes whose pixel size disagrees with their depth (``size_ratio`` outside
+   ``[1/size_ratio_tolerance, size_ratio_tolerance]``; a box cut by the image border may be small);
+3. selects the leader: with a track, among measurements inside the Mahalanobis gate
+   (``d^2 < gate_chi2``) the one with the least ``d^2 - 2 ln(score)``; without one, the best score;
+4. updates, or coasts: no update, so the covariance grows with the prediction.
+
+Output: a :class:`TrackState` every step. Its ``status``:
+    * ``TENTATIVE``: a new track, not yet ``confirm_hits`` hits in its first ``confirm_window`` frames.
+      Not to be flown on. Dropped when it cannot reach the count any more.
+    * ``CONFIRMED``: confirmed and updated by a measurement at this step.
+    * ``COASTING``: confirmed, no measurement at this step, the last one at most ``coast_timeout_s`` ago.
+      The estimate is the prediction; its covariance grows. Fit to fly on with care.
+    * ``LOST``: no measurement for more than ``coast_timeout_s``. ``estimate`` still holds the prediction
+      (for a search toward it) until ``lost_timeout_s``, then the track is dropped and ``estimate`` is
+      None. A measurement inside the gate before that resumes the track as ``CONFIRMED``; one outside
+      starts a new tentative track. ``LOST`` with ``estimate=None`` also means "never acquired".
+
+``estimate`` (:class:`RelativeEstimate`) gives the same relative position in NED axes, in body FRD and
+in the camera frame (``p_body_leader_m``/``p_cam_leader_m`` are positions of the leader's centre as
+those frames see it, i.e. including the mount offset), the relative velocity in each frame's axes
+(the NED relative velocity rotated, not the velocity seen by a rotating observer), covariances in
+each frame, the camera bearing and range. Everything here is pure: time comes in as ``stamp_s``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import StrEnum
+from functools import cached_property
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+from numpy.typing import NDArray
+
+from companion.config import TrackerConfig
+from companion.frames import Mat3, Vec3
+from companion.perception.pose import LeaderMeasurement, bearing
+from companion.perception.transform import CameraGeometry, rotate_cov
+
+Mat6 = NDArray[np.float64]
+
+_H = np.hstack([np.eye(3), np.zeros((3, 3))])
+_EYE6 = np.eye(6)
+_F_DT = np.kron(np.array([[0.0, 1.0], [0.0, 0.0]]), np.eye(3))
+_Q_PP = np.kron(np.array([[1.0, 0.0], [0.0, 0.0]]), np.eye(3))
+_Q_PV = np.kron(np.array([[0.0, 1.0], [1.0, 0.0]]), np.eye(3))
+_Q_VV = np.kron(np.array([[0.0, 0.0], [0.0, 1.0]]), np.eye(3))
+#: Scores below this are clamped before the log in the selection cost.
+_MIN_SCORE = 1e-3
+
+
+def _mahalanobis2(y: Vec3, S: Mat3) -> float:
+    """``y^T S^-1 y`` for a symmetric positive-definite 3x3 ``S`` (closed form: no LAPACK call per box)."""
+    a, b, c = float(S[0, 0]), float(S[0, 1]), float(S[0, 2])
+    d, e, f = float(S[1, 1]), float(S[1, 2]), float(S[2, 2])
+    # Adjugate of the symmetric matrix [[a b c] [b d e] [c e f]].
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    if det <= 0.0:
+        return math.inf
+    y0, y1, y2 = float(y[0]), float(y[1]), float(y[2])
+    quad = A * y0 * y0 + D * y1 * y1 + F * y2 * y2 + 2.0 * (B * y0 * y1 + C * y0 * y2 + E * y1 * y2)
+    return quad / det
+
+
+class TrackStatus(StrEnum):
+    """Where the leader track stands (see the module docstring for the rules)."""
+
+    TENTATIVE = "tentative"
+    CONFIRMED = "confirmed"
+    COASTING = "coasting"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class RelativeEstimate:
+    """The leader relative to the follower at one instant, in NED axes, body FRD and the camera frame.
+
+    Stored in NED with the attitude it was taken at; the body and camera views are computed on first
+    access (most consumers read one frame's view, and the per-frame budget is tight).
+    """
+
+    #: Leader centre minus follower centre, NED axes, m; and its rate, m/s.
+    p_ned_rel_m: Vec3
+    v_ned_rel_m_s: Vec3
+    #: 6x6 covariance of (p_ned_rel_m, v_ned_rel_m_s), m^2, m^2/s, m^2/s^2.
+    cov_ned: Mat6
+    #: The follower's attitude at the estimate's stamp, and the camera mount.
+    R_ned_body: Mat3
+    camera: CameraGeometry
+
+    @property
+    def cov_ned_m2(self) -> Mat3:
+        """Position block of :attr:`cov_ned`, m^2."""
+        return self.cov_ned[:3, :3]
+
+    @cached_property
+    def p_body_leader_m(self) -> Vec3:
+        """Leader centre in body FRD (origin: the follower's centre), m."""
+        return self.R_ned_body.T @ self.p_ned_rel_m
+
+    @cached_property
+    def v_body_rel_m_s(self) -> Vec3:
+        """Relative velocity in body axes, m/s (the NED relative velocity rotated)."""
+        return self.R_ned_body.T @ self.v_ned_rel_m_s
+
+    @cached_property
+    def cov_body_m2(self) -> Mat3:
+        """Covariance of :attr:`p_body_leader_m`, m^2."""
+        return rotate_cov(self.R_ned_body.T, self.cov_ned_m2)
+
+    @cached_property
+    def p_cam_leader_m(self) -> Vec3:
+        """Leader centre in the camera frame (x right, y down, z forward), m."""
+        return self.camera.body_to_cam(self.p_body_leader_m)
+
+    @cached_property
+    def v_cam_rel_m_s(self) -> Vec3:
+        """Relative velocity in camera axes, m/s."""
+        return self.camera.R_body_cam.T @ self.v_body_rel_m_s
+
+    @cached_property
+    def cov_cam_m2(self) -> Mat3:
+        """Covariance of :attr:`p_cam_leader_m`, m^2."""
+        return rotate_cov(self.camera.R_ned_cam(self.R_ned_body).T, self.cov_ned_m2)
+
+    @cached_property
+    def azimuth_rad(self) -> float:
+        """Camera bearing of the leader, positive right, rad."""
+        return bearing(self.p_cam_leader_m)[0]
+
+    @cached_property
+    def elevation_rad(self) -> float:
+        """Camera elevation of the leader, positive up, rad."""
+        return bearing(self.p_cam_leader_m)[1]
+
+    @cached_property
+    def range_m(self) -> float:
+        """Distance from the camera to the leader's centre, m."""
+        return float(np.linalg.norm(self.p_cam_leader_m))
+
+
+@dataclass(frozen=True, slots=True)
+class TrackState:
+    """What the tracker knows after one step; consumed by the formation law and the mission."""
+
+    stamp_s: float
+    status: TrackStatus
+    #: Increments with each new track; 0 before the first.
+    track_id: int
+    #: None when there is no track (never acquired, or dropped after ``lost_timeout_s``).
+    estimate: RelativeEstimate | None
+    #: Time since the track started, s (0 without a track).
+    age_s: float
+    #: Stamp of the last measurement that updated the track, s (None without a track).
+    last_measurement_s: float | None
+    #: Measurements accepted by this track.
+    hits: int
+    #: The measurement that updated the track at this step, if any.
+    measurement: LeaderMeasurement | None
+    #: Measurements offered this step, and how many the size prior rejected.
+    n_candidates: int = 0
+    n_size_rejected: int = 0
+
+    @property
+    def usable(self) -> bool:
+        """Confirmed and recent: the formation law may fly on it."""
+        return self.status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)
+
+    @property
+    def since_measurement_s(self) -> float:
+        """Time since the last accepted measurement, s (inf without a track)."""
+        return math.inf if self.last_measurement_s is None else self.stamp_s - self.last_measurement_s
+
+
+@dataclass(frozen=True, slots=True)
+class _Candidate:
+    meas: LeaderMeasurement
+    p_ned_m: Vec3
+    R_ned_m2: Mat3
+
+
+class TargetTracker:
+    """Constant-velocity Kalman tracker of one leader, with gating, N-of-M confirmation and coasting."""
+
+    def __init__(self, cfg: TrackerConfig, camera: CameraGeometry) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self._kf: KalmanFilter | None = None
+        self._stamp_s = 0.0
+        self._start_s = 0.0
+        self._last_meas_s = 0.0
+        self._confirmed = False
+        self._window: deque[bool] = deque(maxlen=cfg.confirm_window)
+        self._hits = 0
+        self._track_id = 0
+
+    @property
+    def has_track(self) -> bool:
+        return self._kf is not None
+
+    def reset(self) -> None:
+        """Forget the current track (e.g. when the mission starts a new acquisition)."""
+        self._kf = None
+        self._confirmed = False
+        self._window.clear()
+        self._hits = 0
+
+    def step(self, stamp_s: float, measurements: Sequence[LeaderMeasurement], R_ned_body: Mat3) -> TrackState:
+        """Advance to ``stamp_s`` with this frame's measurements (may be empty) and attitude.
+
+        Args:
+            stamp_s: the frame's capture time, s; steps with an earlier stamp than the last do not
+                predict backwards (the measurement is applied at the filter's current time).
+            measurements: pose of every detection in this frame, camera frame.
+            R_ned_body: the follower's attitude at ``stamp_s`` (from :class:`AttitudeHistory`).
+        """
+        cfg = self.cfg
+        if self._kf is not None:
+            self._predict(self._kf, stamp_s)
+            since = self._stamp_s - self._last_meas_s
+            if since > cfg.lost_timeout_s or (not self._confirmed and since > cfg.coast_timeout_s):
+                self.reset()
+        candidates, n_rejected = self._candidates(measurements, R_ned_body)
+        accepted: _Candidate | None = None
+        if self._kf is not None:
+            accepted = self._select_gated(self._kf, candidates)
+            if accepted is not None:
+                self._update(self._kf, accepted)
+            elif candidates and self._confirmed and self._stamp_s - self._last_meas_s > cfg.coast_timeout_s:
+                self.reset()  # the old track is unusable and something else is seen: start over
+            if not self._confirmed and self._kf is not None:
+                self._window.append(accepted is not None)
+                if sum(self._window) >= cfg.confirm_hits:
+                    self._confirmed = True
+                elif len(self._window) == cfg.confirm_window:
+                    self.reset()
+        if self._kf is None and candidates:
+            accepted = max(candidates, key=lambda c: c.meas.score)
+            self._start(stamp_s, accepted)
+            if cfg.confirm_hits <= 1:
+                self._confirmed = True
+        return self._state(stamp_s, R_ned_body, accepted, len(measurements), n_rejected)
+
+    # -- internals -------------------------------------------------------------------------------
+
+    def _candidates(
+        self, measurements: Sequence[LeaderMeasurement], R_ned_body: Mat3
+    ) -> tuple[list[_Candidate], int]:
+        tol = self.cfg.size_ratio_tolerance
+        R_ned_cam = self.camera.R_ned_cam(R_ned_body)
+        out = []
+        rejected = 0
+        for m in measurements:
+            if m.size_ratio > tol or (m.size_ratio < 1.0 / tol and not m.truncated):
+                rejected += 1
+                continue
+            p_ned = R_ned_body @ self.camera.cam_to_body(m.p_cam_leader_m)
+            out.append(_Candidate(m, p_ned, rotate_cov(R_ned_cam, m.cov_cam_m2)))
+        return out, rejected
+
+    def _select_gated(self, kf: KalmanFilter, candidates: list[_Candidate]) -> _Candidate | None:
+        x = kf.x[:, 0]
+        P_pp = kf.P[:3, :3]
+        best: _Candidate | None = None
+        best_cost = math.inf
+        for c in candidates:
+            d2 = _mahalanobis2(c.p_ned_m - x[:3], P_pp + c.R_ned_m2)
+            if d2 >= self.cfg.gate_chi2:
+                continue
+            cost = d2 - 2.0 * math.log(max(c.meas.score, _MIN_SCORE))
+            if cost < best_cost:
+                best, best_cost = c, cost
+        return best
+
+    def _start(self, stamp_s: float, c: _Candidate) -> None:
+        kf = KalmanFilter(dim_x=6, dim_z=3)
+        kf.x = np.concatenate([c.p_ned_m, np.zeros(3)]).reshape(6, 1)
+        P = np.zeros((6, 6))
+        P[:3, :3] = c.R_ned_m2
+        P[3:, 3:] = np.eye(3) * self.cfg.init_velocity_std_m_s**2
+        kf.P = P
+        kf.H = _H.copy()
+        self._kf = kf
+        self._track_id += 1
+        self._stamp_s = self._start_s = self._last_meas_s = stamp_s
+        self._confirmed = False
+        self._window.clear()
+        self._window.append(True)
+        self._hits = 1
+
+    def _predict(self, kf: KalmanFilter, stamp_s: float) -> None:
+        dt = stamp_s - self._stamp_s
+        if dt <= 0.0:
+            return
+        F = _EYE6 + dt * _F_DT
+        q = self.cfg.process_accel_std_m_s2**2
+        # Discrete white-noise acceleration, per axis [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q.
+        Q = (q * dt * dt) * (_Q_PP * (dt * dt / 4.0) + _Q_PV * (dt / 2.0) + _Q_VV)
+        kf.predict(F=F, Q=Q)
+        self._stamp_s = stamp_s
+
+    def _update(self, kf: KalmanFilter, c: _Candidate) -> None:
+        kf.update(c.p_ned_m.reshape(3, 1), R=c.R_ned_m2)
+        kf.P = 0.5 * (kf.P + kf.P.T)
+        self._last_meas_s = self._stamp_s
+        self._hits += 1
+
+    def _state(
+        self,
+        stamp_s: float,
+        R_ned_body: Mat3,
+        accepted: _Candidate | None,
+        n_candidates: int,
+        n_rejected: int,
+    ) -> TrackState:
+        if self._kf is None:
+            return TrackState(
+                stamp_s=stamp_s,
+                status=TrackStatus.LOST,
+                track_id=self._track_id,
+                estimate=None,
+                age_s=0.0,
+                last_measurement_s=None,
+                hits=0,
+                measurement=None,
+                n_candidates=n_candidates,
+                n_size_rejected=n_rejected,
+            )
+        since = self._stamp_s - self._last_meas_s
+        if not self._confirmed:
+            status = TrackStatus.TENTATIVE
+        elif accepted is not None:
+            status = TrackStatus.CONFIRMED
+        elif since <= self.cfg.coast_timeout_s:
+            status = TrackStatus.COASTING
+        else:
+            status = TrackStatus.LOST
+        return TrackState(
+            stamp_s=stamp_s,
+            status=status,
+            track_id=self._track_id,
+            estimate=self._estimate(self._kf, R_ned_body),
+            age_s=self._stamp_s - self._start_s,
+            last_measurement_s=self._last_meas_s,
+            hits=self._hits,
+            measurement=None if accepted is None else accepted.meas,
+            n_candidates=n_candidates,
+            n_size_rejected=n_rejected,
+        )
+
+    def _estimate(self, kf: KalmanFilter, R_ned_body: Mat3) -> RelativeEstimate:
+        x = kf.x[:, 0]
+        return RelativeEstimate(x[:3].copy(), x[3:].copy(), kf.P.copy(), R_ned_body, self.camera)

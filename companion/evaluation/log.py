@@ -1,0 +1,140 @@
+"""What a closed-loop run records: per control tick, per camera frame, and per mission transition.
+
+Frames: world is local NED; ``rel`` vectors are leader minus follower in NED, m. Everything is on the
+simulator's clock (s). The recorder appends to Python lists (cheap per tick) and freezes into numpy arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+Vec3T = tuple[float, float, float]
+_NAN3: Vec3T = (float("nan"), float("nan"), float("nan"))
+# t, follower, leader, yaw, estimate, formation, gps_ok, state, follower velocity
+_Tick = tuple[float, Vec3T, Vec3T, float, Vec3T, bool, bool, str, Vec3T]
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """A mission state change: when, from, to, and the reason's name."""
+
+    t_s: float
+    from_state: str
+    to_state: str
+    reason: str
+
+
+@dataclass(slots=True)
+class FlightLog:
+    """Frozen arrays of one run. Tick arrays have length N, frame arrays length M."""
+
+    # per control tick
+    t_s: F64
+    p_ned_follower_m: F64  # N x 3, truth
+    p_ned_leader_m: F64  # N x 3, truth
+    yaw_follower_rad: F64  # N, truth
+    rel_ned_est_m: F64  # N x 3, the service's estimate of leader - follower; NaN when it has none
+    formation: NDArray[np.bool_]  # N, True while the mission is in a formation-keeping state
+    gps_ok: NDArray[np.bool_]  # N, the follower's true GPS availability (fault schedule)
+    state: list[str]  # N, mission state names
+    v_ned_follower_m_s: F64  # N x 3, truth
+    # per camera frame
+    frame_t_s: F64  # M
+    frame_leader_visible: NDArray[np.bool_]  # M, truth: some of the leader is in the image
+    frame_detected: NDArray[np.bool_]  # M, the detector's box matched the truth box (IoU >= 0.5)
+    frame_false_positive: NDArray[np.bool_]  # M, a box was reported that matches no leader
+    frame_latency_ms: F64  # M, capture -> estimate, NaN when not measured
+    transitions: list[Transition] = field(default_factory=list)
+    gps_loss_t_s: float | None = None
+    crashed: bool = False
+    landed: bool = False
+
+
+@dataclass(slots=True)
+class FlightRecorder:
+    """Append-only recorder used by the harness; :meth:`freeze` produces the :class:`FlightLog`."""
+
+    _ticks: list[_Tick] = field(default_factory=list)
+    _frames: list[tuple[float, bool, bool, bool, float]] = field(default_factory=list)
+    transitions: list[Transition] = field(default_factory=list)
+    gps_loss_t_s: float | None = None
+    crashed: bool = False
+    landed: bool = False
+
+    def tick(
+        self,
+        t_s: float,
+        p_ned_follower_m: Vec3T,
+        p_ned_leader_m: Vec3T,
+        yaw_follower_rad: float,
+        rel_ned_est_m: Vec3T | None,
+        *,
+        formation: bool,
+        gps_ok: bool,
+        state: str,
+        v_ned_follower_m_s: Vec3T = (0.0, 0.0, 0.0),
+    ) -> None:
+        """Record one control tick."""
+        self._ticks.append(
+            (
+                t_s,
+                p_ned_follower_m,
+                p_ned_leader_m,
+                yaw_follower_rad,
+                rel_ned_est_m if rel_ned_est_m is not None else _NAN3,
+                formation,
+                gps_ok,
+                state,
+                v_ned_follower_m_s,
+            )
+        )
+
+    def frame(
+        self,
+        t_s: float,
+        *,
+        leader_visible: bool,
+        detected: bool,
+        false_positive: bool,
+        latency_ms: float = float("nan"),
+    ) -> None:
+        """Record one camera frame's detection outcome against the truth."""
+        self._frames.append((t_s, leader_visible, detected, false_positive, latency_ms))
+
+    def transition(self, t_s: float, from_state: str, to_state: str, reason: str) -> None:
+        """Record a mission transition."""
+        self.transitions.append(Transition(t_s, from_state, to_state, reason))
+
+    def freeze(self) -> FlightLog:
+        """Arrays of everything recorded so far."""
+        n = len(self._ticks)
+        cols = list(zip(*self._ticks, strict=True)) if n else [()] * 9
+        fcols = list(zip(*self._frames, strict=True)) if self._frames else [()] * 5
+
+        def vec(i: int) -> F64:
+            return np.array(cols[i], dtype=np.float64).reshape(n, 3)
+
+        return FlightLog(
+            t_s=np.array(cols[0], dtype=np.float64),
+            p_ned_follower_m=vec(1),
+            p_ned_leader_m=vec(2),
+            yaw_follower_rad=np.array(cols[3], dtype=np.float64),
+            rel_ned_est_m=vec(4),
+            formation=np.array(cols[5], dtype=bool),
+            gps_ok=np.array(cols[6], dtype=bool),
+            state=list(cols[7]),
+            v_ned_follower_m_s=vec(8),
+            frame_t_s=np.array(fcols[0], dtype=np.float64),
+            frame_leader_visible=np.array(fcols[1], dtype=bool),
+            frame_detected=np.array(fcols[2], dtype=bool),
+            frame_false_positive=np.array(fcols[3], dtype=bool),
+            frame_latency_ms=np.array(fcols[4], dtype=np.float64),
+            transitions=list(self.transitions),
+            gps_loss_t_s=self.gps_loss_t_s,
+            crashed=self.crashed,
+            landed=self.landed,
+        )

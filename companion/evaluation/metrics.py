@@ -1,0 +1,189 @@
+"""The paper's metrics and ours, computed from a :class:`FlightLog` (pure numpy, no I/O).
+
+Definitions (the report.json contract documents them too):
+    * relative position error: the service's estimate of leader-minus-follower (NED) minus the truth,
+      over formation ticks where an estimate exists.
+    * relative yaw (bearing) error: the leader's azimuth in the follower's heading frame, estimated minus
+      true; both use the follower's true heading so the figure isolates the relative estimate.
+    * formation error: the true leader position in the follower's level heading frame minus the desired
+      slot (the configured camera-frame offset, e.g. leader 5 m ahead on the camera axis, level).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.evaluation.log import F64, FlightLog
+
+#: The paper's Table (position RMSE m, yaw RMSE deg, maximum deviation m).
+PAPER_TABLE: Mapping[str, tuple[float, float, float]] = {
+    "straight": (0.25, 2.5, 0.60),
+    "circle": (0.32, 3.1, 0.75),
+    "gps-loss": (0.45, 3.8, 0.95),
+    "visibility": (0.58, 4.6, 1.20),
+}
+PAPER_ROW_NAMES: Mapping[str, str] = {
+    "straight": "Straight line",
+    "circle": "Circular path",
+    "gps-loss": "Sensor failure (GPS)",
+    "visibility": "Visibility stress test",
+}
+#: Issue #8's targets: about 2x better than the paper.
+TARGETS: Mapping[str, Mapping[str, float]] = {
+    "straight": {
+        "relative_position_rmse_m": 0.12,
+        "relative_yaw_rmse_deg": 1.5,
+        "formation_max_deviation_m": 0.30,
+    },
+    "circle": {
+        "relative_position_rmse_m": 0.15,
+        "relative_yaw_rmse_deg": 1.5,
+        "formation_max_deviation_m": 0.38,
+    },
+    "gps-loss": {
+        "relative_position_rmse_m": 0.22,
+        "relative_yaw_rmse_deg": 1.5,
+        "formation_max_deviation_m": 0.48,
+    },
+    "visibility": {
+        "relative_position_rmse_m": 0.30,
+        "relative_yaw_rmse_deg": 1.5,
+        "formation_max_deviation_m": 0.60,
+    },
+}
+FORMATION_STATES = frozenset({"FOLLOW", "FOLLOW_VISION"})
+OUTCOMES = ("completed", "landed_safely", "aborted", "crashed")
+
+
+def offset_cam_to_level_body(offset_cam_m: Sequence[float]) -> F64:
+    """Camera-frame offset (x right, y down, z forward) as a level-body FRD vector."""
+    x, y, z = (float(c) for c in offset_cam_m)
+    return np.array([z, x, y])
+
+
+def to_heading_frame(rel_ned_m: F64, yaw_rad: F64) -> F64:
+    """Rotate N x 3 NED vectors into each tick's level heading frame (x forward, y right, z down)."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    out = np.empty_like(rel_ned_m)
+    out[:, 0] = c * rel_ned_m[:, 0] + s * rel_ned_m[:, 1]
+    out[:, 1] = -s * rel_ned_m[:, 0] + c * rel_ned_m[:, 1]
+    out[:, 2] = rel_ned_m[:, 2]
+    return out
+
+
+def rms(x: NDArray[np.float64]) -> float | None:
+    """Root mean square of a 1-D array; None for an empty one (no data is not zero error)."""
+    return float(np.sqrt(np.mean(np.square(x)))) if x.size else None
+
+
+def percentiles_ms(x: F64) -> dict[str, float | None]:
+    """p50/p95/p99 of the finite values, or None each when there are none."""
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return {"p50": None, "p95": None, "p99": None}
+    p50, p95, p99 = np.percentile(x, [50, 95, 99])
+    return {"p50": float(p50), "p95": float(p95), "p99": float(p99)}
+
+
+@dataclass(frozen=True, slots=True)
+class FlightMetrics:
+    """The numbers a report carries (None where the run produced no data for a metric)."""
+
+    relative_position_rmse_m: float | None
+    relative_yaw_rmse_deg: float | None
+    formation_rmse_m: float | None
+    formation_max_deviation_m: float | None
+    min_separation_m: float | None
+    detection_recall: float | None
+    false_positive_rate: float | None
+    perception_latency_ms: dict[str, float | None]
+    frames: int
+    formation_s: float
+    outcome: str
+
+
+def relative_errors(log: FlightLog) -> tuple[F64, F64]:
+    """Per-tick relative position error norms (m) and bearing errors (rad) where an estimate exists."""
+    rel_true = log.p_ned_leader_m - log.p_ned_follower_m
+    have = log.formation & np.all(np.isfinite(log.rel_ned_est_m), axis=1)
+    err = np.linalg.norm(log.rel_ned_est_m[have] - rel_true[have], axis=1)
+    yaw = log.yaw_follower_rad[have]
+    h_true = to_heading_frame(rel_true[have], yaw)
+    h_est = to_heading_frame(log.rel_ned_est_m[have], yaw)
+    az_err = np.arctan2(h_est[:, 1], h_est[:, 0]) - np.arctan2(h_true[:, 1], h_true[:, 0])
+    az_err = (az_err + math.pi) % (2 * math.pi) - math.pi
+    return err, az_err
+
+
+def formation_errors(log: FlightLog, offset_cam_m: Sequence[float]) -> F64:
+    """Per-tick formation error norms (m) over formation ticks."""
+    rel_true = log.p_ned_leader_m - log.p_ned_follower_m
+    sel = log.formation
+    h = to_heading_frame(rel_true[sel], log.yaw_follower_rad[sel])
+    err: F64 = np.linalg.norm(h - offset_cam_to_level_body(offset_cam_m), axis=1)
+    return err
+
+
+def outcome_of(log: FlightLog) -> str:
+    """Completed (ended in formation), landed_safely, aborted (ended otherwise in the air), or crashed."""
+    if log.crashed:
+        return "crashed"
+    if log.landed:
+        return "landed_safely"
+    if log.state and log.state[-1] in FORMATION_STATES:
+        return "completed"
+    return "aborted"
+
+
+def compute_metrics(log: FlightLog, offset_cam_m: Sequence[float]) -> FlightMetrics:
+    """All report metrics of one run."""
+    pos_err, az_err = relative_errors(log)
+    form_err = formation_errors(log, offset_cam_m)
+    sep = np.linalg.norm(log.p_ned_leader_m - log.p_ned_follower_m, axis=1)
+    visible = log.frame_leader_visible
+    n_frames = int(log.frame_t_s.size)
+    dt = np.diff(log.t_s, append=log.t_s[-1] if log.t_s.size else 0.0)
+    yaw_rms = rms(az_err)
+    return FlightMetrics(
+        relative_position_rmse_m=rms(pos_err),
+        relative_yaw_rmse_deg=math.degrees(yaw_rms) if yaw_rms is not None else None,
+        formation_rmse_m=rms(form_err),
+        formation_max_deviation_m=float(form_err.max()) if form_err.size else None,
+        min_separation_m=float(sep.min()) if sep.size else None,
+        detection_recall=float(log.frame_detected[visible].mean()) if visible.any() else None,
+        false_positive_rate=float(log.frame_false_positive.mean()) if n_frames else None,
+        perception_latency_ms=percentiles_ms(log.frame_latency_ms),
+        frames=n_frames,
+        formation_s=float(dt[log.formation].sum()) if log.t_s.size else 0.0,
+        outcome=outcome_of(log),
+    )
+
+
+def monte_carlo_summary(reports: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
+    """Percentiles (p5/p50/p95/max) of each numeric metric over runs, and the count of each outcome."""
+    runs = list(reports)
+    keys = (
+        "relative_position_rmse_m",
+        "relative_yaw_rmse_deg",
+        "formation_rmse_m",
+        "formation_max_deviation_m",
+        "min_separation_m",
+        "detection_recall",
+    )
+    out: dict[str, Any] = {"runs": len(runs), "outcomes": {o: 0 for o in OUTCOMES}}
+    for r in runs:
+        out["outcomes"][r["outcome"]] = out["outcomes"].get(r["outcome"], 0) + 1
+    for key in keys:
+        vals = np.array([r[key] for r in runs if r.get(key) is not None], dtype=np.float64)
+        if vals.size:
+            p5, p50, p95 = np.percentile(vals, [5, 50, 95])
+            out[key] = {"p5": float(p5), "p50": float(p50), "p95": float(p95), "max": float(vals.max())}
+        else:
+            out[key] = None
+    return out

@@ -1,0 +1,239 @@
+"""The mission's inputs and outputs: plain values, so the machine can be driven by anything.
+
+The tracker, the shared-leader feed and the service convert their own types into these; the mission does not
+depend on their modules.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+from companion.vehicle.types import ExternalPosition, Setpoint, Severity, Vec3T, VehicleState
+
+
+class TrackStatus(StrEnum):
+    """The tracker's opinion of its leader track."""
+
+    TENTATIVE = "tentative"
+    CONFIRMED = "confirmed"
+    COASTING = "coasting"
+    LOST = "lost"
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderEstimate:
+    """The tracker's estimate of the leader relative to the follower.
+
+    ``p_ned_rel_m`` is leader minus follower expressed in local NED axes (the follower's attitude applied,
+    never its GPS position), ``v_ned_rel_m_s`` its rate. ``stamp_s`` is when the estimate is valid for and
+    ``last_measurement_s`` when the last detection went into it, both on the service clock.
+    """
+
+    stamp_s: float
+    status: TrackStatus
+    p_ned_rel_m: Vec3T
+    v_ned_rel_m_s: Vec3T
+    last_measurement_s: float
+    #: Position covariance diagonal in NED, m^2 (for the external-position fix and logging).
+    var_ned_rel_m2: Vec3T = (0.25, 0.25, 0.25)
+
+    @property
+    def usable(self) -> bool:
+        """Whether the law may fly on it: confirmed, or coasting through a short dropout."""
+        return self.status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)
+
+
+@dataclass(frozen=True, slots=True)
+class SharedLeaderPosition:
+    """The leader's own position, shared over MAVLink or MQTT, in the follower's local NED frame, m."""
+
+    stamp_s: float
+    p_ned_m: Vec3T
+    variance_m2: Vec3T = (1.0, 1.0, 4.0)
+
+
+class CommandKind(StrEnum):
+    """One-shot commands the machine asks the runner to send."""
+
+    ARM = "arm"
+    DISARM = "disarm"
+    TAKEOFF = "takeoff"
+    START_OFFBOARD = "start_offboard"
+    STOP_OFFBOARD = "stop_offboard"
+    #: PX4 already left offboard (pilot or failsafe): stop refreshing without asking for any mode.
+    RELEASE_OFFBOARD = "release_offboard"
+    HOLD = "hold"
+    LAND = "land"
+    RTL = "rtl"
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """A command for the autopilot; ``altitude_m`` only for TAKEOFF."""
+
+    kind: CommandKind
+    altitude_m: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class CommandResult:
+    """What became of a command: ``ok`` and, when not, why (the autopilot's or MAVSDK's words)."""
+
+    kind: CommandKind
+    ok: bool
+    detail: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class MissionInputs:
+    """Everything one step of the machine reads.
+
+    ``leader`` is the *latest* tracker output however old (the machine judges staleness from its stamp);
+    ``command_results`` are the outcomes that arrived since the previous step.
+    """
+
+    vehicle: VehicleState
+    leader: LeaderEstimate | None = None
+    leader_shared: SharedLeaderPosition | None = None
+    start_requested: bool = False
+    shutdown_requested: bool = False
+    command_results: tuple[CommandResult, ...] = ()
+
+
+class MissionState(StrEnum):
+    """The states of the mission. ``PX4_*`` states are flown by PX4 itself; the companion only watches."""
+
+    WAIT_LINK = "wait_link"
+    PREFLIGHT = "preflight"
+    ARMING = "arming"
+    TAKEOFF = "takeoff"
+    ACQUIRE = "acquire"
+    FOLLOW = "follow"
+    FOLLOW_VISION = "follow_vision"
+    REACQUIRE = "reacquire"
+    HOVER = "hover"
+    CONTROLLED_LANDING = "controlled_landing"
+    PX4_HOLD = "px4_hold"
+    PX4_LAND = "px4_land"
+    PX4_RTL = "px4_rtl"
+    PX4_IN_CONTROL = "px4_in_control"
+    LINK_LOST = "link_lost"
+    LANDED = "landed"
+    DISARMED = "disarmed"
+
+
+class Reason(StrEnum):
+    """Why a transition happened. The value is the one-line text for logs, STATUSTEXT and MQTT."""
+
+    LINK_UP = "autopilot link up"
+    LINK_LOST = "autopilot link lost"
+    LINK_RESTORED = "autopilot link restored"
+    START_REQUESTED = "mission start requested"
+    PREFLIGHT_OK = "preflight checks passed"
+    ALREADY_FLYING = "vehicle already armed and in air"
+    ARMED = "armed"
+    ARM_FAILED = "arming refused"
+    TAKEOFF_DONE = "takeoff altitude reached"
+    TAKEOFF_FAILED = "takeoff refused or timed out"
+    LEADER_ACQUIRED = "leader acquired"
+    ACQUIRE_TIMEOUT = "leader not found in time"
+    OFFBOARD_REJECTED = "offboard refused"
+    GPS_LOST = "GPS lost"
+    GPS_RESTORED = "GPS restored"
+    VISION_MODE_CHANGED = "vision fallback switched mode"
+    NO_VISION_FALLBACK = "no vision fallback available"
+    LEADER_LOST = "leader lost"
+    LEADER_REACQUIRED = "leader re-acquired"
+    REACQUIRE_TIMEOUT = "leader not re-acquired in time"
+    PERCEPTION_STALL = "estimate stale: hovering"
+    PERCEPTION_RESUMED = "estimate fresh again"
+    STALL_TIMEOUT = "estimate stale too long"
+    GEOFENCE_BREACH = "geofence breached"
+    MODE_CHANGED_EXTERNALLY = "autopilot left offboard (pilot or failsafe)"
+    PX4_MODE_REFUSED = "autopilot refused the mode: landing"
+    TOUCHDOWN = "touchdown"
+    DISARMED = "disarmed"
+    SHUTDOWN_REQUESTED = "shutdown requested"
+    HOLD_TIMEOUT = "shutdown hold elapsed: landing"
+
+
+#: How each reason is reported to the ground station.
+REASON_SEVERITY: dict[Reason, Severity] = {
+    Reason.LINK_LOST: Severity.CRITICAL,
+    Reason.ARM_FAILED: Severity.ERROR,
+    Reason.TAKEOFF_FAILED: Severity.ERROR,
+    Reason.ACQUIRE_TIMEOUT: Severity.WARNING,
+    Reason.OFFBOARD_REJECTED: Severity.ERROR,
+    Reason.GPS_LOST: Severity.CRITICAL,
+    Reason.NO_VISION_FALLBACK: Severity.CRITICAL,
+    Reason.VISION_MODE_CHANGED: Severity.WARNING,
+    Reason.LEADER_LOST: Severity.WARNING,
+    Reason.REACQUIRE_TIMEOUT: Severity.ERROR,
+    Reason.PERCEPTION_STALL: Severity.WARNING,
+    Reason.STALL_TIMEOUT: Severity.ERROR,
+    Reason.GEOFENCE_BREACH: Severity.CRITICAL,
+    Reason.MODE_CHANGED_EXTERNALLY: Severity.WARNING,
+    Reason.PX4_MODE_REFUSED: Severity.ERROR,
+    Reason.SHUTDOWN_REQUESTED: Severity.NOTICE,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """One state change, with its reason and an optional detail (a mode name, a refusal text)."""
+
+    stamp_s: float
+    from_state: MissionState
+    to_state: MissionState
+    reason: Reason
+    detail: str = ""
+
+    @property
+    def severity(self) -> Severity:
+        return REASON_SEVERITY.get(self.reason, Severity.INFO)
+
+    def statustext(self) -> str:
+        """The STATUSTEXT line (MAVLink allows 50 characters): ``WM <state>: <reason>``."""
+        text = f"WM {self.to_state.value}: {self.reason.value}"
+        return text[:50]
+
+    def as_dict(self) -> dict[str, str | float]:
+        """The MQTT event payload."""
+        return {
+            "stamp_s": self.stamp_s,
+            "from": self.from_state.value,
+            "to": self.to_state.value,
+            "reason": self.reason.name,
+            "text": self.reason.value,
+            "detail": self.detail,
+            "severity": self.severity.value,
+        }
+
+
+class VisionMode(StrEnum):
+    """How FOLLOW_VISION flies: attitude+thrust on the relative estimate, or velocity on an external fix."""
+
+    ATTITUDE = "attitude"
+    EXTERNAL_POSITION = "external_position"
+
+
+@dataclass(frozen=True, slots=True)
+class StepOutput:
+    """What one step decided.
+
+    ``setpoint`` is the setpoint to stream this tick (computed from this tick's inputs; ``None`` means the
+    companion must not be streaming). ``commands`` are one-shot and go out in order. ``ready_to_exit`` says
+    a requested shutdown has reached a state where the service may exit.
+    """
+
+    state: MissionState
+    setpoint: Setpoint | None = None
+    commands: tuple[Command, ...] = ()
+    external_position: ExternalPosition | None = None
+    transitions: tuple[Transition, ...] = ()
+    ready_to_exit: bool = False
+    vision_mode: VisionMode | None = None
+    #: Formation error (leader relative position minus the slot) in NED when the law ran, m.
+    formation_error_ned_m: Vec3T | None = None
+    notes: dict[str, float] = field(default_factory=dict)

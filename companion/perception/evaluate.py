@@ -1,0 +1,161 @@
+"""Perception accuracy against ground truth: per-frame rows, RMSE by range bin, bearing RMSE. Pure.
+
+Used by ``companion replay`` on recordings that carry ground truth (rendered sequences). The truth is
+the leader's centre in the camera frame at the frame's stamp; the estimate is the tracker's output
+expressed in the camera frame with the follower's attitude at that stamp, so the two compare directly.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.frames import Vec3
+from companion.perception.types import Detection, DetectorResult, RgbdFrame, RgbImage
+
+#: Range bins (truth distance camera -> leader centre), m.
+RANGE_BINS_M: tuple[tuple[float, float], ...] = (
+    (0.0, 3.0),
+    (3.0, 6.0),
+    (6.0, 9.0),
+    (9.0, 12.0),
+    (12.0, math.inf),
+)
+#: The acceptance bands of issue 5.
+BANDS_M: tuple[tuple[float, float], ...] = ((0.0, 6.0), (6.0, 12.0))
+
+
+def angle_between_deg(a: Vec3, b: Vec3) -> float:
+    """Angle between two directions, deg (numerically safe near 0)."""
+    return math.degrees(math.atan2(float(np.linalg.norm(np.cross(a, b))), float(np.dot(a, b))))
+
+
+@dataclass(frozen=True, slots=True)
+class FrameError:
+    """Errors of one evaluated frame (estimate usable and truth present)."""
+
+    range_m: float
+    err_m: float
+    bearing_err_deg: float
+    #: Error of the raw pose measurement accepted this frame, and of the paper's centre-patch depth.
+    meas_err_m: float | None = None
+    paper_err_m: float | None = None
+
+
+def _rmse(values: Sequence[float]) -> float:
+    return math.sqrt(sum(v * v for v in values) / len(values)) if values else math.nan
+
+
+@dataclass
+class Summary:
+    """Accuracy and coverage over a replay."""
+
+    frames: int = 0
+    frames_with_truth: int = 0
+    frames_usable: int = 0
+    errors: list[FrameError] = field(default_factory=list)
+    stage_ms: dict[str, list[float]] = field(default_factory=dict)
+
+    def add_timing(self, stage: str, ms: float) -> None:
+        self.stage_ms.setdefault(stage, []).append(ms)
+
+    def rmse_in(self, lo_m: float, hi_m: float) -> tuple[float, float, float, float, int]:
+        """(position, bearing deg, raw-measurement, paper-method RMSE, n) over lo <= range < hi."""
+        sel = [e for e in self.errors if lo_m <= e.range_m < hi_m]
+        meas = [e.meas_err_m for e in sel if e.meas_err_m is not None]
+        paper = [e.paper_err_m for e in sel if e.paper_err_m is not None]
+        return (
+            _rmse([e.err_m for e in sel]),
+            _rmse([e.bearing_err_deg for e in sel]),
+            _rmse(meas),
+            _rmse(paper),
+            len(sel),
+        )
+
+    def as_dict(self) -> dict[str, object]:
+        """Machine-readable summary (JSON-able)."""
+
+        def band(lo: float, hi: float) -> dict[str, object]:
+            pos, brg, meas, paper, n = self.rmse_in(lo, hi)
+            return {
+                "range_m": [lo, hi if math.isfinite(hi) else None],
+                "n": n,
+                "rmse_m": pos,
+                "bearing_rmse_deg": brg,
+                "raw_rmse_m": meas,
+                "paper_method_rmse_m": paper,
+            }
+
+        pos, brg, _, _, n = self.rmse_in(0.0, math.inf)
+        return {
+            "frames": self.frames,
+            "frames_with_truth": self.frames_with_truth,
+            "frames_usable": self.frames_usable,
+            "coverage": self.frames_usable / self.frames_with_truth if self.frames_with_truth else math.nan,
+            "rmse_m": pos,
+            "bearing_rmse_deg": brg,
+            "bins": [band(lo, hi) for lo, hi in RANGE_BINS_M],
+            "bands": [band(lo, hi) for lo, hi in BANDS_M],
+            "stage_ms_p50": {k: float(np.percentile(v, 50)) for k, v in self.stage_ms.items() if v},
+            "stage_ms_p95": {k: float(np.percentile(v, 95)) for k, v in self.stage_ms.items() if v},
+            "n": n,
+        }
+
+    def lines(self) -> list[str]:
+        """A human-readable table."""
+        out = [
+            f"frames {self.frames}, with truth {self.frames_with_truth}, "
+            f"tracked (usable) {self.frames_usable}",
+            f"{'range m':>10} {'n':>6} {'rmse m':>8} {'bearing deg':>12} {'raw m':>8} {'paper m':>8}",
+        ]
+        for lo, hi in (*RANGE_BINS_M, *BANDS_M, (0.0, math.inf)):
+            pos, brg, meas, paper, n = self.rmse_in(lo, hi)
+            label = f"{lo:g}-{hi:g}" if math.isfinite(hi) else f">={lo:g}"
+            out.append(f"{label:>10} {n:>6} {pos:>8.3f} {brg:>12.3f} {meas:>8.3f} {paper:>8.3f}")
+        for stage, ms in self.stage_ms.items():
+            if ms:
+                out.append(
+                    f"{stage} ms: p50 {np.percentile(ms, 50):.3f}  p95 {np.percentile(ms, 95):.3f}"
+                    f"  max {max(ms):.3f}"
+                )
+        return out
+
+
+def paper_centre_depth_m(depth_m: np.ndarray, det: Detection, half_px: int = 2) -> float | None:
+    """The paper's depth: median of the valid pixels in a (2h+1)^2 patch at the box centre, m."""
+    u, v = det.center_px
+    h, w = depth_m.shape
+    x, y = round(u), round(v)
+    patch = depth_m[
+        max(0, y - half_px) : min(h, y + half_px + 1), max(0, x - half_px) : min(w, x + half_px + 1)
+    ]
+    valid = patch[patch > 0]
+    return float(np.median(valid)) if valid.size else None
+
+
+class TruthDetector:
+    """A :class:`Detector` that returns the ground-truth box (with optional jitter): isolates pose+tracker.
+
+    Detections need a frame with truth, so call :meth:`detect_frame`; ``detect(rgb)`` alone finds nothing.
+    """
+
+    def __init__(self, *, jitter_px: float = 0.0, min_visible: float = 0.3, seed: int = 0) -> None:
+        self.jitter_px = jitter_px
+        self.min_visible = min_visible
+        self._rng = np.random.default_rng(seed)
+
+    def detect(self, rgb: RgbImage) -> DetectorResult:
+        return DetectorResult()
+
+    def detect_frame(self, frame: RgbdFrame) -> DetectorResult:
+        t = frame.truth
+        if t is None or t.box_xyxy_px is None or t.visible_fraction < self.min_visible:
+            return DetectorResult()
+        box = np.asarray(t.box_xyxy_px, dtype=np.float64)
+        if self.jitter_px > 0:
+            box = box + self._rng.normal(scale=self.jitter_px, size=4)
+        x0, y0, x1, y1 = (float(c) for c in box)
+        return DetectorResult([Detection((x0, y0, max(x1, x0 + 1.0), max(y1, y0 + 1.0)), 0.9)])

@@ -1,0 +1,364 @@
+"""Pure pinhole pose of the leader from a detection box and the aligned depth image.
+
+The paper takes the depth at the box centre. A quadrotor's box centre often shows background between
+the arms, and stereo depth noise grows with Z^2, so instead:
+
+1. **Robust depth** (:func:`robust_depth`): among the valid depth pixels inside the box, find the nearest
+   dense cluster (the leader; background is behind it) and take a trimmed mean around it. The window
+   is the leader's depth extent plus +-2.5 sigma of the stereo noise at that range.
+2. **Surface to centre**: the cluster is the leader's visible surface; its centre lies
+   ``surface_to_centre_m`` further along the viewing ray.
+3. **Back-projection** of the box centre: ``p = K^-1 [u v 1]^T Z``.
+4. **Covariance** from first-order propagation of box-centre jitter (pixels) and the depth error
+   (``sigma_z = z^2 * subpixel / (f * baseline)`` per pixel, averaged over at most
+   ``independent_depth_px`` pixels since stereo noise is spatially correlated, plus a shape term).
+5. **Size prior**: ``size_ratio`` = box size / expected size of a leader of span ``span_m`` at that
+   depth; the tracker rejects boxes whose ratio is off by more than its tolerance.
+
+Everything here is pure: arrays and numbers in, a :class:`LeaderMeasurement` out; nothing copies the
+image (the box is a view; only its valid pixels are gathered).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.config import LeaderConfig, PoseConfig
+from companion.frames import Mat3, Vec3
+from companion.perception.types import DepthImage, Detection, Intrinsics
+
+#: Trim window half-width in stereo-noise sigmas around the cluster centre.
+_TRIM_SIGMAS = 2.5
+#: A depth window is a candidate for the leader once it holds this fraction of the box's valid pixels.
+_CLUSTER_FRACTION = 0.1
+#: Smallest box side used for ranging from size, px (a pixel of box error is then under 15 %).
+_MIN_SIZE_RANGE_PX = 7.0
+#: A cluster with less than this modelled fraction inside the valid range is too truncated to trust.
+_MIN_KEPT_FRACTION = 0.3
+#: Above this many valid pixels, the cluster search runs on an even subsample (the mean uses all).
+_SEARCH_SAMPLES = 2048
+
+
+@dataclass(frozen=True, slots=True)
+class DepthCluster:
+    """The leader's depth inside a box: trimmed mean of its near cluster (camera z, m)."""
+
+    z_m: float
+    #: Pixels in the trimmed window, and all valid pixels inside the box.
+    n_px: int
+    n_valid_px: int
+    #: Standard deviation of the pixels in the window, m (noise plus the leader's own depth extent).
+    spread_m: float
+    #: Modelled fraction of the leader's depth distribution inside the window and the valid range
+    #: (below 1 near ``depth_max_m``, where the far half of the noise is cut off and was corrected for).
+    kept_fraction: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderMeasurement:
+    """One measurement of the leader's centre in the camera frame (x right, y down, z forward)."""
+
+    stamp_s: float
+    p_cam_leader_m: Vec3
+    #: Covariance of ``p_cam_leader_m``, m^2 (symmetric positive definite).
+    cov_cam_m2: Mat3
+    #: Depth of the leader's visible surface (before the surface-to-centre correction), m.
+    depth_surface_m: float
+    n_depth_px: int
+    #: Box size over the size a leader of the configured span would have at this depth (1 = as expected).
+    size_ratio: float
+    #: Bearing of the centre: azimuth positive right, elevation positive up, rad.
+    azimuth_rad: float
+    elevation_rad: float
+    score: float
+    box_xyxy_px: tuple[float, float, float, float]
+    #: The box touches the image border: the leader may be cut off, its centre less certain.
+    truncated: bool
+    #: Where the range came from: "depth" (stereo) or "size" (box size, beyond the stereo range).
+    range_source: str = "depth"
+
+
+def back_project(u_px: float, v_px: float, z_m: float, intr: Intrinsics) -> Vec3:
+    """Camera-frame point at pixel (u, v) and depth z (along the optical axis): ``K^-1 [u v 1]^T z``."""
+    return np.array(
+        [(u_px - intr.cx_px) / intr.fx_px * z_m, (v_px - intr.cy_px) / intr.fy_px * z_m, z_m],
+        dtype=np.float64,
+    )
+
+
+def project(p_cam_m: Vec3, intr: Intrinsics) -> tuple[float, float]:
+    """Pixel (u, v) of a camera-frame point in front of the camera (z > 0)."""
+    x, y, z = (float(c) for c in p_cam_m)
+    return intr.fx_px * x / z + intr.cx_px, intr.fy_px * y / z + intr.cy_px
+
+
+def bearing(p_cam_m: Vec3) -> tuple[float, float]:
+    """(azimuth, elevation) in rad of a camera-frame point: azimuth positive right, elevation up."""
+    x, y, z = (float(c) for c in p_cam_m)
+    return math.atan2(x, z), math.atan2(-y, math.hypot(x, z))
+
+
+def depth_sigma_m(z_m: float, focal_px: float, cfg: PoseConfig) -> float:
+    """Per-pixel stereo depth noise at depth z: ``z^2 * subpixel / (f * baseline)``, m."""
+    return cfg.stereo_subpixel_px / (focal_px * cfg.stereo_baseline_m) * z_m * z_m
+
+
+def box_bounds(
+    box_xyxy_px: tuple[float, float, float, float], width_px: int, height_px: int
+) -> tuple[int, int, int, int]:
+    """Integer pixel bounds (x0, y0, x1, y1), end-exclusive, of a box clipped to the image."""
+    x0, y0, x1, y1 = box_xyxy_px
+    return (
+        max(0, math.floor(x0)),
+        max(0, math.floor(y0)),
+        min(width_px, math.ceil(x1)),
+        min(height_px, math.ceil(y1)),
+    )
+
+
+def robust_depth(
+    depth_m: DepthImage,
+    bounds: tuple[int, int, int, int],
+    *,
+    focal_px: float,
+    body_depth_m: float,
+    cfg: PoseConfig,
+) -> DepthCluster | None:
+    """Depth of the nearest dense cluster of valid pixels inside ``bounds`` (the leader), or None.
+
+    Background between the arms is farther than the leader, isolated near pixels are too few to form
+    a dense window, and the stereo noise sets how wide a window the leader occupies at its range.
+
+    Args:
+        depth_m: H x W depth along the optical axis, m, 0 = invalid (not copied).
+        bounds: (x0, y0, x1, y1) from :func:`box_bounds`.
+        focal_px: focal length for the noise model, px.
+        body_depth_m: the leader's own extent along the view, m.
+        cfg: valid range, noise model and minimum pixel count.
+    """
+    x0, y0, x1, y1 = bounds
+    if x1 <= x0 or y1 <= y0:
+        return None
+    roi = depth_m[y0:y1, x0:x1]
+    valid = roi[(roi > cfg.depth_min_m) & (roi < cfg.depth_max_m)]
+    n_valid = int(valid.size)
+    if n_valid < cfg.min_valid_px:
+        return None
+    step = 1 + n_valid // _SEARCH_SAMPLES
+    s = np.sort(valid[::step]).astype(np.float64)
+    k_noise = cfg.stereo_subpixel_px / (focal_px * cfg.stereo_baseline_m)
+    # Window starting at each sorted sample: the leader's extent plus the noise band at that depth.
+    width = body_depth_m + 2.0 * _TRIM_SIGMAS * k_noise * s * s
+    counts = np.searchsorted(s, s + width, side="right") - np.arange(s.size)
+    # The nearest window holding a fair share of the pixels starts on the leader's near tail (lone
+    # speckles in front are too few); the densest window starting inside it is the leader itself.
+    need = max(float(cfg.min_valid_px) / step, _CLUSTER_FRACTION * s.size)
+    dense = counts >= need
+    if not dense.any():
+        return None
+    i = int(np.argmax(dense))
+    i += int(np.argmax(counts[i : i + int(counts[i])]))
+    centre_m = float(s[i + (int(counts[i]) - 1) // 2])
+    # Refine in disparity (fB / z), where stereo noise is Gaussian with a constant sigma: the trimmed
+    # mean there is unbiased, and the range limit is a plain lower truncation that can be undone.
+    fb = focal_px * cfg.stereo_baseline_m
+    sigma_d = cfg.stereo_subpixel_px
+    d_min = fb / cfg.depth_max_m  # farther pixels were dropped: the window is cut below this
+    disp = fb / valid.astype(np.float64)
+    d_c = fb / centre_m
+    sel = disp
+    for _ in range(2):  # recentre twice: the first window starts on the cluster's near tail
+        extent_d = fb * 0.5 * body_depth_m / (fb / d_c) ** 2
+        half = extent_d + _TRIM_SIGMAS * sigma_d
+        sel = disp[np.abs(disp - d_c) <= half]
+        if sel.size == 0:
+            return None
+        d_c = float(sel.mean())
+    if sel.size < cfg.min_valid_px:
+        return None
+    # The leader's own depth extent adds to the spread (uniform over +-extent: std extent / sqrt 3).
+    sigma_eff = math.sqrt(sigma_d * sigma_d + (extent_d / math.sqrt(3.0)) ** 2)
+    mu, kept = _untruncated_mean(d_c, sigma_eff, max(d_c - half, d_min), d_c + half)
+    if kept < _MIN_KEPT_FRACTION or mu <= 0.0:
+        return None
+    z_sel = fb / sel
+    return DepthCluster(
+        z_m=fb / mu,
+        n_px=int(sel.size),
+        n_valid_px=n_valid,
+        spread_m=float(z_sel.std()),
+        kept_fraction=kept,
+    )
+
+
+def _phi(x: float) -> float:
+    return math.exp(-0.5 * x * x) / math.sqrt(2.0 * math.pi)
+
+
+def _Phi(x: float) -> float:
+    return 0.5 * (1.0 + math.erf(x / math.sqrt(2.0)))
+
+
+def _untruncated_mean(mean: float, sigma: float, lo: float, hi: float) -> tuple[float, float]:
+    """Mean ``mu`` of N(mu, sigma^2) whose part inside [lo, hi] has mean ``mean``; and that part's mass.
+
+    Fixed point ``mu <- mean - sigma (phi(a) - phi(b)) / (Phi(b) - Phi(a))``: it converges because the
+    truncated mean moves slower than ``mu``. With a symmetric window it returns ``mean`` at once.
+    """
+    mu = mean
+    kept = 1.0
+    for _ in range(30):
+        a, b = (lo - mu) / sigma, (hi - mu) / sigma
+        kept = _Phi(b) - _Phi(a)
+        if kept < 1e-6:
+            return mu, kept
+        new = mean - sigma * (_phi(a) - _phi(b)) / kept
+        if abs(new - mu) < 1e-6 * sigma:
+            return new, kept
+        mu = new
+    return mu, kept
+
+
+@dataclass(frozen=True, slots=True)
+class SizePrior:
+    """The leader's apparent size: the larger box side times depth over focal length, m."""
+
+    size_m: float
+    #: Relative standard deviation of that size (yaw, attitude and box fit make it vary).
+    rel_std: float
+
+
+class SizeCalibrator:
+    """Learns the leader's apparent size from depth measurements, for ranging where depth fails.
+
+    Beyond the stereo range (or in a depth hole) the box size still gives range: ``z = f * size / px``.
+    The apparent size depends on the airframe, on its yaw seen from here and on range (thin parts such as
+    propellers vanish at low resolution), so it is learnt online as an exponential average over recent
+    confirmed, untruncated depth measurements within ``max_depth_m`` (set it just inside the stereo
+    range: depth is still far more accurate than size there, and the resolution is closest to what
+    follows beyond it), starting from ``prior_ratio * span_m``.
+    """
+
+    def __init__(
+        self,
+        span_m: float,
+        *,
+        prior_ratio: float = 1.4,
+        prior_rel_std: float = 0.15,
+        max_depth_m: float = 9.5,
+        alpha: float = 0.05,
+        min_rel_std: float = 0.03,
+    ) -> None:
+        self.span_m = span_m
+        self.max_depth_m = max_depth_m
+        self.alpha = alpha
+        self.min_rel_std = min_rel_std
+        self._prior = SizePrior(prior_ratio * span_m, prior_rel_std)
+        self._mean_m = self._prior.size_m
+        self._rel_var = prior_rel_std**2
+        self.updates = 0
+
+    def update(self, m: LeaderMeasurement) -> None:
+        """Learn from a depth measurement the tracker accepted (others are ignored)."""
+        if m.range_source != "depth" or m.truncated or m.p_cam_leader_m[2] > self.max_depth_m:
+            return
+        size_m = m.size_ratio * self.span_m
+        # Early on average fast (1/n), then settle to the exponential window.
+        a = max(self.alpha, 1.0 / (self.updates + 1))
+        rel = size_m / self._mean_m - 1.0
+        self._mean_m += a * (size_m - self._mean_m)
+        w = max(self.alpha, 1.0 / (self.updates + 2))
+        self._rel_var = (1.0 - w) * self._rel_var + w * rel * rel
+        self.updates += 1
+
+    def prior(self) -> SizePrior:
+        """The current apparent-size estimate (the configured prior until enough updates)."""
+        if self.updates < 10:
+            return self._prior
+        return SizePrior(self._mean_m, max(self.min_rel_std, math.sqrt(self._rel_var)))
+
+
+def measure_leader(
+    depth_m: DepthImage,
+    intr: Intrinsics,
+    det: Detection,
+    stamp_s: float,
+    *,
+    leader: LeaderConfig,
+    cfg: PoseConfig,
+    size_prior: SizePrior | None = None,
+) -> LeaderMeasurement | None:
+    """The leader's centre in the camera frame from one detection, or None without a usable range.
+
+    Range comes from the box's depth cluster; without one (beyond the stereo range, a depth hole) and
+    with a ``size_prior``, from the box size, with the size's uncertainty.
+    """
+    w_px, h_px = det.size_px
+    x0, y0, x1, y1 = det.box_xyxy_px
+    truncated = x0 <= 0.5 or y0 <= 0.5 or x1 >= intr.width_px - 1.5 or y1 >= intr.height_px - 1.5
+    size_px = max(w_px, h_px)
+    jitter = cfg.box_jitter_px + cfg.box_jitter_frac * size_px
+    if truncated:  # the visible part's centre can be off by up to half the missing part
+        jitter = max(jitter, 0.25 * size_px)
+    u, v = det.center_px
+    a = (u - intr.cx_px) / intr.fx_px
+    b = (v - intr.cy_px) / intr.fy_px
+
+    bounds = box_bounds(det.box_xyxy_px, intr.width_px, intr.height_px)
+    # A quad's visible surface spans about its motor-to-motor span in depth at the worst yaw.
+    cluster = robust_depth(depth_m, bounds, focal_px=intr.fx_px, body_depth_m=leader.span_m, cfg=cfg)
+    if cluster is not None:
+        cos_ray = 1.0 / math.sqrt(1.0 + a * a + b * b)
+        # The centre is surface_to_centre_m further along the ray than the visible surface.
+        z = cluster.z_m + leader.surface_to_centre_m * cos_ray
+        # A truncated sample has fewer effective pixels for the same count.
+        n_eff = min(cluster.n_px, cfg.independent_depth_px) * cluster.kept_fraction
+        var_z = depth_sigma_m(z, intr.fx_px, cfg) ** 2 / n_eff + cfg.surface_model_std_m**2
+        source, surface_m, n_px = "depth", cluster.z_m, cluster.n_px
+    elif size_prior is not None and not truncated and size_px >= _MIN_SIZE_RANGE_PX:
+        z = intr.fx_px * size_prior.size_m / size_px
+        var_z = z * z * (size_prior.rel_std**2 + (jitter / size_px) ** 2)
+        source, surface_m, n_px = "size", math.nan, 0
+    else:
+        return None
+    p_cam = np.array([a * z, b * z, z], dtype=np.float64)
+    # p = (a z, b z, z) with a = (u - cx) / fx, b = (v - cy) / fy: Jacobian wrt (u, v, z).
+    J = np.array([[z / intr.fx_px, 0.0, a], [0.0, z / intr.fy_px, b], [0.0, 0.0, 1.0]])
+    cov = (J * np.array([jitter * jitter, jitter * jitter, var_z])) @ J.T
+    az, el = bearing(p_cam)
+    return LeaderMeasurement(
+        stamp_s=stamp_s,
+        p_cam_leader_m=p_cam,
+        cov_cam_m2=0.5 * (cov + cov.T),
+        depth_surface_m=surface_m,
+        n_depth_px=n_px,
+        size_ratio=size_px * z / (intr.fx_px * leader.span_m),
+        azimuth_rad=az,
+        elevation_rad=el,
+        score=det.score,
+        box_xyxy_px=det.box_xyxy_px,
+        truncated=truncated,
+        range_source=source,
+    )
+
+
+def measure_all(
+    depth_m: DepthImage,
+    intr: Intrinsics,
+    detections: list[Detection],
+    stamp_s: float,
+    *,
+    leader: LeaderConfig,
+    cfg: PoseConfig,
+    size_prior: SizePrior | None = None,
+) -> list[LeaderMeasurement]:
+    """:func:`measure_leader` for every detection of a frame; boxes without a usable range are dropped."""
+    out = []
+    for det in detections:
+        m = measure_leader(depth_m, intr, det, stamp_s, leader=leader, cfg=cfg, size_prior=size_prior)
+        if m is not None:
+            out.append(m)
+    return out

@@ -1,0 +1,53 @@
+"""Frame sources behind the :class:`~companion.perception.types.FrameSource` protocol.
+
+``open_source(cfg.camera)`` picks one from the config: ``file`` (a folder recording or a RealSense
+``.bag``), ``realsense`` (live) or ``sim`` (the simulator's rendered camera, owned by ``sitl``).
+Nothing is opened until ``async with``; modules with heavy imports load only when chosen.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any
+
+from companion.clock import Clock
+from companion.config import CameraConfig
+from companion.errors import CameraError
+from companion.perception.types import FrameSource
+
+
+def parse_source(spec: str, camera: CameraConfig) -> CameraConfig:
+    """Apply a command-line ``--source`` (``sim``, ``realsense`` or ``file:PATH``) to a camera config."""
+    if spec in ("sim", "realsense"):
+        return camera.model_copy(update={"source": spec})
+    if spec.startswith("file:") and len(spec) > len("file:"):
+        return camera.model_copy(update={"source": "file", "path": spec[len("file:") :]})
+    raise CameraError(f"--source {spec!r}: expected sim, realsense or file:PATH")
+
+
+def open_source(camera: CameraConfig, *, clock: Clock | None = None) -> FrameSource:
+    """The frame source the camera config names (not yet entered)."""
+    if camera.source == "file":
+        path = Path(camera.path)
+        if path.suffix.lower() == ".bag":
+            from companion.perception.sources.bag import BagSource  # noqa: PLC0415
+
+            return BagSource(path, realtime=camera.realtime, loop=camera.loop, clock=clock)
+        from companion.perception.sources.file import FolderSource  # noqa: PLC0415
+
+        return FolderSource(path, realtime=camera.realtime, loop=camera.loop, fps=camera.fps, clock=clock)
+    if camera.source == "realsense":
+        from companion.perception.sources.realsense import RealSenseSource  # noqa: PLC0415
+
+        return RealSenseSource(camera)
+    try:
+        sim: Any = importlib.import_module("companion.perception.sources.sim")
+    except ModuleNotFoundError as exc:
+        if exc.name != "companion.perception.sources.sim":
+            raise
+        raise CameraError(
+            "sim source: not available in this build (companion/perception/sources/sim.py)"
+        ) from None
+    source: FrameSource = sim.open_sim_source(camera, clock=clock)
+    return source

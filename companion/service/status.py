@@ -1,0 +1,169 @@
+"""The local status endpoint: a Unix socket (mode 0660) that answers one JSON line per request.
+
+Protocol: the client sends one request word and a newline (``status`` or ``health``); the server answers
+with one JSON object and a newline, then closes. The socket's mode and its directory's group decide who
+may ask (the unit makes ``/run/wingman`` owned by the service's group).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+import stat
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from companion.errors import CompanionError
+
+log = logging.getLogger(__name__)
+
+SOCKET_MODE = 0o660
+_MAX_REQUEST_BYTES = 256
+_REQUEST_TIMEOUT_S = 2.0
+
+Handler = Callable[[], Mapping[str, Any]]
+
+
+class ServiceNotRunningError(CompanionError):
+    """Nothing answers on the status socket."""
+
+    exit_code = 1
+
+
+class StatusSocketError(CompanionError):
+    """The status socket cannot be created (another instance holds it, or the path is wrong)."""
+
+    exit_code = 2
+
+
+class StatusServer:
+    """Serves snapshots from ``handlers`` (request word -> function returning a JSON-able mapping)."""
+
+    def __init__(self, path: Path, handlers: Mapping[str, Handler]) -> None:
+        self.path = path
+        self._handlers = dict(handlers)
+        self._server: asyncio.Server | None = None
+        self.requests_served = 0
+
+    async def __aenter__(self) -> Self:
+        sock = _bind_socket(self.path)
+        try:
+            self._server = await asyncio.start_unix_server(self._serve, sock=sock)
+        except BaseException:
+            sock.close()
+            raise
+        log.info("status endpoint on %s", self.path)
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._server is not None:
+            self._server.close()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(1.0):
+                    await self._server.wait_closed()
+            self._server = None
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            async with asyncio.timeout(_REQUEST_TIMEOUT_S):
+                line = await reader.readline()
+            request = line[:_MAX_REQUEST_BYTES].decode("utf-8", "replace").strip() or "status"
+            handler = self._handlers.get(request)
+            if handler is None:
+                reply: Mapping[str, Any] = {
+                    "error": f"unknown request {request!r}",
+                    "known": sorted(self._handlers),
+                }
+            else:
+                reply = handler()
+            writer.write(json.dumps(reply, default=_json_default).encode() + b"\n")
+            async with asyncio.timeout(_REQUEST_TIMEOUT_S):
+                await writer.drain()
+            self.requests_served += 1
+        except (TimeoutError, ConnectionError) as exc:
+            log.debug("status client dropped: %s", exc)
+        finally:
+            writer.close()
+            with contextlib.suppress(TimeoutError, ConnectionError):
+                async with asyncio.timeout(1.0):
+                    await writer.wait_closed()
+
+
+def _json_default(obj: object) -> object:
+    tolist = getattr(obj, "tolist", None)  # numpy arrays and scalars
+    if callable(tolist):
+        return tolist()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _bind_socket(path: Path) -> socket.socket:
+    """Bind and chmod before listen(): nobody can connect while the mode is still the umask's."""
+    path.parent.mkdir(mode=0o750, parents=True, exist_ok=True)
+    if path.exists() or path.is_symlink():
+        if not stat.S_ISSOCK(path.lstat().st_mode):
+            raise StatusSocketError(f"status.socket_path: {path} exists and is not a socket")
+        if _answers(path):
+            raise StatusSocketError(f"status.socket_path: {path} is in use (is another service running?)")
+        path.unlink()  # left by a process that died
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+    try:
+        sock.bind(str(path))
+        os.chmod(path, SOCKET_MODE)
+        sock.listen(8)
+        sock.setblocking(False)
+    except OSError as exc:
+        sock.close()
+        raise StatusSocketError(f"status.socket_path: cannot listen on {path}: {exc.strerror}") from None
+    return sock
+
+
+def _answers(path: Path) -> bool:
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(0.5)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            return False
+    return True
+
+
+def query_status(path: Path, request: str = "status", timeout_s: float = 3.0) -> dict[str, Any]:
+    """Ask the running service (blocking; for the CLI). Raises :class:`ServiceNotRunningError`."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC) as sock:
+        sock.settimeout(timeout_s)
+        try:
+            sock.connect(str(path))
+        except (FileNotFoundError, ConnectionRefusedError):
+            raise ServiceNotRunningError(f"service not running (nothing listens on {path})") from None
+        except PermissionError:
+            raise ServiceNotRunningError(
+                f"no permission to open {path} (run as the service's user or a member of its group)"
+            ) from None
+        try:
+            sock.sendall(request.encode() + b"\n")
+            chunks: list[bytes] = []
+            while chunk := sock.recv(65536):
+                chunks.append(chunk)
+        except TimeoutError:
+            raise ServiceNotRunningError(f"service did not answer on {path} within {timeout_s} s") from None
+    data = b"".join(chunks)
+    try:
+        reply = json.loads(data)
+    except json.JSONDecodeError:
+        raise ServiceNotRunningError(f"unreadable answer on {path} ({len(data)} bytes)") from None
+    if not isinstance(reply, dict):
+        raise ServiceNotRunningError(f"unexpected answer on {path}")
+    return reply

@@ -1,0 +1,95 @@
+"""``supervise()``: restart a non-critical component with jittered exponential backoff.
+
+Only non-critical parts (MQTT, metrics, optional sources) are supervised. A failure in the autopilot link
+or the mission is not: it propagates, ends the TaskGroup, and PX4's offboard-loss failsafe takes over.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+from collections.abc import Awaitable, Callable
+
+from companion.clock import Clock
+from companion.service.health import HealthBoard
+
+log = logging.getLogger(__name__)
+
+
+class Backoff:
+    """Exponential backoff with "equal jitter": delay n is uniform in [d/2, d], d = min(max, base * 2^n).
+
+    Half the delay is jitter so that several clients restarted together (e.g. after a broker restart) do
+    not reconnect in lockstep; the other half keeps a floor so a failing peer is never hammered.
+    """
+
+    def __init__(self, initial_s: float, max_s: float, rng: random.Random) -> None:
+        if not 0 < initial_s <= max_s:
+            raise ValueError(f"need 0 < initial_s <= max_s (got {initial_s}, {max_s})")
+        self.initial_s = initial_s
+        self.max_s = max_s
+        self._rng = rng
+        self._attempt = 0
+
+    @property
+    def attempt(self) -> int:
+        return self._attempt
+
+    def next_delay_s(self) -> float:
+        """The delay before the next attempt; grows until ``max_s``."""
+        cap_s = min(self.max_s, self.initial_s * 2.0 ** min(self._attempt, 30))
+        self._attempt += 1
+        return self._rng.uniform(cap_s / 2.0, cap_s)
+
+    def reset(self) -> None:
+        """Back to the initial delay (after a success)."""
+        self._attempt = 0
+
+
+async def supervise(
+    name: str,
+    run: Callable[[], Awaitable[None]],
+    health: HealthBoard,
+    clock: Clock,
+    backoff: Backoff,
+    *,
+    stable_after_s: float = 30.0,
+    sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
+) -> None:
+    """Run ``run()`` until it returns; restart it with backoff whenever it raises.
+
+    A run that lasted ``stable_after_s`` or more resets the backoff. ``CancelledError`` and
+    non-``Exception`` errors (KeyboardInterrupt, SystemExit) propagate untouched.
+
+    Args:
+        name: component name on the health board (registered by the caller).
+        run: a factory for one attempt (a fresh coroutine each time).
+        health: where failures and restarts are reported.
+        clock: measures how long an attempt lasted.
+        backoff: delay policy between attempts.
+        stable_after_s: an attempt this long counts as a success for the backoff.
+        sleep: how to wait (injectable for tests).
+    """
+    while True:
+        started_s = clock.now_s()
+        try:
+            await run()
+        except Exception as exc:  # a supervised component may fail in any way; that is the point
+            if clock.now_s() - started_s >= stable_after_s:
+                backoff.reset()
+            delay_s = backoff.next_delay_s()
+            health.fail(name, f"{type(exc).__name__}: {exc}")
+            log.warning(
+                "%s failed (%s: %s); restart %d in %.2f s",
+                name,
+                type(exc).__name__,
+                exc,
+                backoff.attempt,
+                delay_s,
+            )
+            await sleep(delay_s)
+            health.restarted(name)
+        else:
+            log.info("%s finished", name)
+            return

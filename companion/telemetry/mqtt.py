@@ -1,0 +1,438 @@
+"""``MqttReporter``: state, pose, health and events to an MQTT broker with aiomqtt 2.5.
+
+Producers never touch the network: samplers build messages at the configured rates and put them in an
+:class:`Outbox` (state and events, in order, bounded: the oldest are dropped and counted when the broker
+is away for long) or in one-slot mailboxes (pose and health: only the newest is worth sending). One
+connection loop drains them while connected and reconnects with jittered backoff when the broker goes
+away, so a dead broker can neither block nor crash the flight.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+import ssl
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import aiomqtt
+from pydantic import ValidationError
+
+from companion.clock import Clock
+from companion.config import MqttConfig
+from companion.errors import ConfigError
+from companion.service.supervise import Backoff
+from companion.telemetry.commands import Command, CommandRejectedError, CommandVerifier
+from companion.telemetry.payloads import (
+    EventMsg,
+    HealthMsg,
+    LeaderPositionMsg,
+    Payload,
+    PoseMsg,
+    Severity,
+    StateMsg,
+    Topics,
+    offline_state,
+)
+
+log = logging.getLogger(__name__)
+
+#: A QoS 1 publish not acknowledged within this is treated as a dead connection.
+_PUBLISH_TIMEOUT_S = 5.0
+#: Connecting (TCP + CONNACK) must finish within this.
+_CONNECT_TIMEOUT_S = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    """One message waiting to be published."""
+
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool
+
+
+class Outbox:
+    """A bounded FIFO: ``push`` drops the oldest when full; ``peek``/``ack`` lose nothing on a failed send."""
+
+    def __init__(self, max_messages: int) -> None:
+        if max_messages < 1:
+            raise ValueError("max_messages must be >= 1")
+        self.max_messages = max_messages
+        self._items: deque[Outgoing] = deque()
+        self.dropped = 0
+        self.pushed = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def push(self, item: Outgoing) -> None:
+        if len(self._items) >= self.max_messages:
+            self._items.popleft()
+            self.dropped += 1
+        self._items.append(item)
+        self.pushed += 1
+
+    def peek(self) -> Outgoing | None:
+        return self._items[0] if self._items else None
+
+    def ack(self, item: Outgoing) -> None:
+        """Remove ``item`` once published (unless it was already dropped to make room)."""
+        if self._items and self._items[0] is item:
+            self._items.popleft()
+
+
+@dataclass(frozen=True, slots=True)
+class TelemetrySources:
+    """Where the reporter samples from (the service's snapshot functions)."""
+
+    state: Callable[[], StateMsg]
+    pose: Callable[[], PoseMsg | None]
+    health: Callable[[], HealthMsg]
+
+
+@dataclass(frozen=True, slots=True)
+class MqttCredentials:
+    """Secrets and TLS, loaded once at start-up (see :func:`load_mqtt_credentials`)."""
+
+    password: str | None = None
+    tls_context: ssl.SSLContext | None = None
+    command_key: bytes | None = None
+
+
+class MqttReporter:
+    """Publishes telemetry; optionally receives authenticated commands and the leader's position.
+
+    Args:
+        cfg: the ``[mqtt]`` section.
+        vehicle_id: the topic level under the prefix.
+        sources: snapshot functions sampled at the configured rates.
+        clock: monotonic time (rates, uptime).
+        wall_time_s: wall-clock time for ``time_unix_s`` and command freshness.
+        credentials: password, TLS context and command key.
+        rng: jitter for the reconnect backoff.
+        on_command: called with each verified command; returns the text reported on ``events``.
+        on_leader_position: called with each valid leader position from ``cfg.leader_topic``.
+    """
+
+    def __init__(
+        self,
+        cfg: MqttConfig,
+        vehicle_id: str,
+        sources: TelemetrySources,
+        clock: Clock,
+        wall_time_s: Callable[[], float],
+        *,
+        credentials: MqttCredentials | None = None,
+        rng: random.Random | None = None,
+        on_command: Callable[[Command], str] | None = None,
+        on_leader_position: Callable[[LeaderPositionMsg], None] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.topics = Topics(cfg.topic_prefix, vehicle_id)
+        self._vehicle_id = vehicle_id
+        self._sources = sources
+        self._clock = clock
+        self._wall_time_s = wall_time_s
+        self._creds = credentials or MqttCredentials()
+        self._backoff = Backoff(cfg.reconnect_min_s, cfg.reconnect_max_s, rng or random.Random())  # noqa: S311 (jitter, not crypto)
+        self._on_command = on_command
+        self._on_leader_position = on_leader_position
+        self._verifier: CommandVerifier | None = None
+        if cfg.command_topic:
+            if self._creds.command_key is None:
+                raise ValueError("command_topic needs a command key")
+            self._verifier = CommandVerifier(self._creds.command_key, cfg.command_max_age_s)
+        self.outbox = Outbox(cfg.buffer_messages)
+        self._pose_slot: Outgoing | None = None
+        self._health_slot: Outgoing | None = None
+        self._wake = asyncio.Event()
+        self._seq: dict[str, int] = {}
+        self._start_s = clock.now_s()
+        self._stopping = False
+        self._drained = asyncio.Event()
+        self._session_started = False
+        self._offline_since_s: float | None = None
+        self.connected = False
+        self.connects = 0
+        self.published = 0
+        self.slot_overwrites = 0
+        self.commands_accepted = 0
+        self.commands_rejected = 0
+        self.leader_positions = 0
+
+    # ---- producers (never block, never touch the network) -------------------------------------------
+
+    def state_changed(self) -> None:
+        """Publish the state now (called on every mission transition), not only at the next tick."""
+        if not self._stopping:  # after stop() the last word is "offline"
+            self._push_state(self._sources.state())
+
+    def event(self, kind: str, text: str, severity: Severity = "info", **data: Any) -> None:
+        """Queue one event for ``events`` (QoS 1, kept while disconnected within the buffer bound)."""
+        msg = EventMsg(kind=kind, text=text, severity=severity, data=data)
+        self._push(self.topics.events, msg, qos=1, retain=False)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the health snapshot."""
+        return {
+            "enabled": True,
+            "connected": self.connected,
+            "connects": self.connects,
+            "published": self.published,
+            "buffered": len(self.outbox),
+            "buffer_max": self.outbox.max_messages,
+            "dropped": self.outbox.dropped,
+            "commands_accepted": self.commands_accepted,
+            "commands_rejected": self.commands_rejected,
+        }
+
+    def _push_state(self, msg: StateMsg) -> None:
+        self._push(self.topics.state, msg, qos=1, retain=True)
+
+    def _push(self, topic: str, msg: Payload, *, qos: int, retain: bool) -> None:
+        self.outbox.push(Outgoing(topic, self._stamp(topic, msg), qos, retain))
+        self._drained.clear()
+        self._wake.set()
+
+    def _stamp(self, topic: str, msg: Payload) -> bytes:
+        seq = self._seq.get(topic, 0)
+        self._seq[topic] = seq + 1
+        stamped = msg.model_copy(
+            update={
+                "vehicle_id": self._vehicle_id,
+                "seq": seq,
+                "time_unix_s": round(self._wall_time_s(), 3),
+                "uptime_s": round(self._clock.now_s() - self._start_s, 3),
+            }
+        )
+        return stamped.to_json_bytes()
+
+    # ---- the loops ------------------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Sample and publish until cancelled."""
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(
+                self._sample(self.cfg.state_rate_hz, self._tick_state), name="companion.mqtt.state"
+            )
+            tg.create_task(self._sample(self.cfg.pose_rate_hz, self._tick_pose), name="companion.mqtt.pose")
+            tg.create_task(
+                self._sample(self.cfg.health_rate_hz, self._tick_health), name="companion.mqtt.health"
+            )
+            tg.create_task(self._connection_loop(), name="companion.mqtt.connection")
+
+    async def stop(self, reason: str, timeout_s: float = 2.0) -> bool:
+        """Publish a last state and ``online: false`` and wait (bounded) until the outbox is flushed.
+
+        Returns True when everything queued reached the broker.
+        """
+        if not self._stopping:
+            self._stopping = True
+            self._push_state(self._sources.state())
+            self._push(self.topics.state, offline_state(self._vehicle_id, reason), qos=1, retain=True)
+        try:
+            async with asyncio.timeout(timeout_s):
+                await self._drained.wait()
+        except TimeoutError:
+            log.warning("MQTT: %d message(s) not delivered at stop", len(self.outbox))
+            return False
+        return True
+
+    async def _sample(self, rate_hz: float, tick: Callable[[], None]) -> None:
+        period_s = 1.0 / rate_hz
+        next_s = self._clock.now_s()
+        while True:
+            if not self._stopping:
+                tick()
+            next_s += period_s
+            now_s = self._clock.now_s()
+            if next_s < now_s:  # fell behind (suspended, overloaded): skip, do not burst
+                next_s = now_s + period_s
+            await self._clock.sleep_until(next_s)
+
+    def _tick_state(self) -> None:
+        self._push_state(self._sources.state())
+
+    def _tick_pose(self) -> None:
+        pose = self._sources.pose()
+        if pose is None:
+            return
+        if self._pose_slot is not None:
+            self.slot_overwrites += 1
+        self._pose_slot = Outgoing(self.topics.pose, self._stamp(self.topics.pose, pose), 0, False)
+        self._wake.set()
+
+    def _tick_health(self) -> None:
+        health = self._sources.health()
+        if self._health_slot is not None:
+            self.slot_overwrites += 1
+        self._health_slot = Outgoing(self.topics.health, self._stamp(self.topics.health, health), 0, False)
+        self._wake.set()
+
+    async def _connection_loop(self) -> None:
+        attempts = 0
+        while True:
+            self._session_started = False
+            attempts += 1
+            try:
+                await self._connect_and_serve()
+            except* (aiomqtt.MqttError, OSError, TimeoutError) as eg:
+                exc = eg.exceptions[0]
+                if self._session_started:
+                    self._offline_since_s = self._clock.now_s()
+                    log.warning(
+                        "MQTT: connection lost (%s); buffering up to %d", exc, self.cfg.buffer_messages
+                    )
+                elif attempts == 1:
+                    self._offline_since_s = self._offline_since_s or self._clock.now_s()
+                    log.warning(
+                        "MQTT: cannot connect to %s:%d (%s); retrying", self.cfg.host, self.cfg.port, exc
+                    )
+                else:
+                    log.debug("MQTT: connect attempt %d failed: %s", attempts, exc)
+            if self._session_started:
+                attempts = 0
+                self._backoff.reset()
+            await asyncio.sleep(self._backoff.next_delay_s())
+
+    async def _connect_and_serve(self) -> None:
+        client = self._client()
+        async with contextlib.AsyncExitStack() as stack:
+            async with asyncio.timeout(_CONNECT_TIMEOUT_S):
+                await stack.enter_async_context(client)
+            self._session_started = True
+            self.connected = True
+            self.connects += 1
+            stack.callback(setattr, self, "connected", False)
+            if self._offline_since_s is None:
+                log.info("MQTT: connected to %s:%d", self.cfg.host, self.cfg.port)
+            else:
+                log.info(
+                    "MQTT: reconnected after %.1f s; %d buffered, %d dropped in all",
+                    self._clock.now_s() - self._offline_since_s,
+                    len(self.outbox),
+                    self.outbox.dropped,
+                )
+                self._offline_since_s = None
+            await self._session(client)
+
+    def _client(self) -> aiomqtt.Client:
+        will = aiomqtt.Will(
+            self.topics.state,
+            offline_state(self._vehicle_id, "connection to the service lost").to_json_bytes(),
+            qos=1,
+            retain=True,
+        )
+        return aiomqtt.Client(
+            self.cfg.host,
+            self.cfg.port,
+            username=self.cfg.username or None,
+            password=self._creds.password,
+            identifier=f"wingman-{self._vehicle_id}",
+            will=will,
+            keepalive=self.cfg.keepalive_s,
+            timeout=_PUBLISH_TIMEOUT_S,
+            tls_context=self._creds.tls_context,
+            logger=logging.getLogger("aiomqtt"),
+        )
+
+    async def _session(self, client: aiomqtt.Client) -> None:
+        # A fresh retained state at once: it replaces the broker's last-will "offline" if one fired.
+        if not self._stopping:
+            self._push_state(self._sources.state())
+        self._wake.set()  # whatever is still buffered goes out now
+        if self._verifier is not None:
+            await client.subscribe(self.topics.cmd, qos=1)
+        if self._on_leader_position is not None:
+            await client.subscribe(self.cfg.leader_topic, qos=0)
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(self._drain(client), name="companion.mqtt.publish")
+            tg.create_task(self._receive(client), name="companion.mqtt.receive")
+
+    async def _drain(self, client: aiomqtt.Client) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            while (item := self.outbox.peek()) is not None:
+                await client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain)
+                self.outbox.ack(item)
+                self.published += 1
+            if len(self.outbox) == 0:
+                self._drained.set()
+            for slot in ("_pose_slot", "_health_slot"):
+                item = getattr(self, slot)
+                if item is not None:
+                    setattr(self, slot, None)
+                    await client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain)
+                    self.published += 1
+
+    async def _receive(self, client: aiomqtt.Client) -> None:
+        # Iterating also detects a lost connection (it raises MqttError), even when nothing is subscribed.
+        async for message in client.messages:
+            raw = message.payload if isinstance(message.payload, bytes) else str(message.payload).encode()
+            if message.topic.matches(self.topics.cmd):
+                self._handle_command(raw)
+            elif message.topic.matches(self.cfg.leader_topic) and self._on_leader_position is not None:
+                try:
+                    pos = LeaderPositionMsg.model_validate_json(raw)
+                except ValidationError as exc:
+                    log.debug("MQTT: bad leader position: %s", exc.errors()[0]["msg"])
+                    continue
+                self.leader_positions += 1
+                self._on_leader_position(pos)
+
+    def _handle_command(self, raw: bytes) -> None:
+        if self._verifier is None or self._on_command is None:
+            return
+        try:
+            cmd = self._verifier.verify(raw, self._wall_time_s())
+        except CommandRejectedError as exc:
+            self.commands_rejected += 1
+            log.warning("MQTT: command refused: %s", exc)
+            self.event("command_rejected", str(exc), "warning", reason=exc.reason.name)
+            return
+        self.commands_accepted += 1
+        result = self._on_command(cmd)
+        log.info("MQTT: command %s: %s", cmd.name.value, result)
+        self.event("command", result, "notice", cmd=cmd.name.value, nonce=cmd.nonce)
+
+
+def load_mqtt_credentials(cfg: MqttConfig) -> MqttCredentials:
+    """Read the password and command key files and build the TLS context; errors become ConfigError."""
+    problems: list[str] = []
+
+    def read(key: str, path: str) -> bytes | None:
+        if not path:
+            return None
+        try:
+            with open(path, "rb") as f:
+                return f.read().strip()
+        except OSError as exc:
+            problems.append(f"mqtt.{key}: cannot read {path}: {exc.strerror}")
+            return None
+
+    password = read("password_file", cfg.password_file)
+    key = read("command_key_file", cfg.command_key_file)
+    if cfg.command_topic and key is not None and len(key) < 16:
+        problems.append("mqtt.command_key_file: key shorter than 16 bytes")
+    tls: ssl.SSLContext | None = None
+    if cfg.tls:
+        try:
+            tls = ssl.create_default_context(cafile=cfg.ca_file or None)
+            if cfg.cert_file:
+                tls.load_cert_chain(cfg.cert_file, cfg.key_file)
+        except (OSError, ssl.SSLError) as exc:
+            problems.append(f"mqtt.tls: {exc}")
+    if problems:
+        raise ConfigError("[mqtt]", problems)
+    return MqttCredentials(
+        password=None if password is None else password.decode("utf-8", "replace"),
+        tls_context=tls,
+        command_key=key,
+    )

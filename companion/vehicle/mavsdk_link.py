@@ -1,0 +1,469 @@
+"""``MavsdkVehicleLink``: the :class:`~companion.vehicle.link.VehicleLink` over MAVSDK 4 (native, asyncio).
+
+The only module that imports mavsdk. Lifecycle::
+
+    async with MavsdkVehicleLink(cfg.link, clock) as link:      # MAVSDK instance + UDP/serial connection
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(link.run(), name="companion.vehicle")  # discovery, telemetry, setpoint guard
+            ...                                                   # snapshot() / commands from the mission
+
+MAVSDK quirks handled here:
+
+* **Its own 20 Hz resend.** Every ``set_*`` is resent by MAVSDK until replaced or stopped, so a dead mission
+  would keep the vehicle on its last setpoint. The mission refreshes every tick; the *setpoint guard* task
+  here stops offboard itself when no fresh setpoint came for ``LinkConfig.setpoint_timeout_s``.
+* **The offboard start race.** MAVSDK's watchdog kills the stream on a non-offboard heartbeat between
+  ``set_*`` and ``start()``, and ``start()`` then fails with NO_SETPOINT_SET: each start attempt sets the
+  setpoint right before ``start()`` and retries on that error.
+* **Its stdout logging.** MAVSDK's log lines go to the ``companion.vehicle.mavsdk`` logger instead.
+* **Link loss.** A lost link is a state (``VehicleState.connected``, stale stamps), never an exception from
+  telemetry; commands without a link raise :class:`~companion.errors.LinkLostError`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
+from dataclasses import replace
+from types import TracebackType
+from typing import Any, Self, TypeVar
+
+from mavsdk import LogLevel, log_subscribe, log_unsubscribe
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
+from mavsdk.asyncio.plugins.action import ActionAsync
+from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+from mavsdk.asyncio.plugins.mocap import (
+    AngleBody,
+    Covariance,
+    MocapAsync,
+    PositionBody,
+    VisionPositionEstimate,
+)
+from mavsdk.asyncio.plugins.offboard import (
+    Attitude,
+    OffboardAsync,
+    OffboardResult,
+    VelocityBodyYawspeed,
+    VelocityNedYaw,
+)
+from mavsdk.asyncio.plugins.param import ParamAsync
+from mavsdk.asyncio.plugins.server_utility import ServerUtilityAsync, StatusTextType
+from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+from companion.clock import Clock
+from companion.config import LinkConfig
+from companion.errors import CommandRejectedError, LinkLostError
+from companion.vehicle.types import (
+    AttitudeSetpoint,
+    ExternalPosition,
+    FlightMode,
+    LandedState,
+    Setpoint,
+    Severity,
+    StatusText,
+    VehicleState,
+    VelocityBodySetpoint,
+    VelocityNedSetpoint,
+)
+
+log = logging.getLogger("companion.vehicle")
+mavsdk_log = logging.getLogger("companion.vehicle.mavsdk")
+
+T = TypeVar("T")
+
+#: ESTIMATOR_STATUS flags PX4's offboard velocity/position checks depend on (VELOCITY_HORIZ | POS_HORIZ_REL).
+_EST_POS_VEL_FLAGS = 2 | 8
+#: How often the setpoint guard looks, s.
+_GUARD_PERIOD_S = 0.05
+_START_ATTEMPTS = 3
+_DISCOVERY_LOG_EVERY_S = 10.0
+
+_MAVSDK_LEVEL = {
+    LogLevel.DEBUG: logging.DEBUG,
+    LogLevel.INFO: logging.INFO,
+    LogLevel.WARN: logging.WARNING,
+    LogLevel.ERROR: logging.ERROR,
+}
+_STATUSTEXT_SEVERITY = {
+    Severity.EMERGENCY: StatusTextType.EMERGENCY,
+    Severity.ALERT: StatusTextType.ALERT,
+    Severity.CRITICAL: StatusTextType.CRITICAL,
+    Severity.ERROR: StatusTextType.ERROR,
+    Severity.WARNING: StatusTextType.WARNING,
+    Severity.NOTICE: StatusTextType.NOTICE,
+    Severity.INFO: StatusTextType.INFO,
+    Severity.DEBUG: StatusTextType.DEBUG,
+}
+_SEVERITY_BY_NAME = {s.name: s for s in Severity}
+
+
+def _route_mavsdk_log(level: Any, message: str, file: str | None, line: int) -> bool:
+    """MAVSDK log callback (runs on MAVSDK's threads): to Python logging, and nothing to stdout."""
+    del file, line
+    mavsdk_log.log(_MAVSDK_LEVEL.get(level, logging.INFO), "%s", message)
+    return True
+
+
+def _result_name(exc: MavsdkError) -> str:
+    result = getattr(exc, "result", None)
+    return getattr(result, "name", None) or str(exc)
+
+
+class MavsdkVehicleLink:
+    """The autopilot over MAVSDK 4. See the module docstring for the lifecycle and the quirks handled."""
+
+    def __init__(self, cfg: LinkConfig, clock: Clock) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self._sdk: Mavsdk | None = None
+        self._system: Any = None
+        self._telemetry: Any = None
+        self._action: Any = None
+        self._offboard: Any = None
+        self._mocap: Any = None
+        self._param: Any = None
+        self._server_utility: Any = None
+        self._direct: Any = None
+        self._state = VehicleState()
+        self._stream_active = False
+        self._last_setpoint_s = -math.inf
+        self._ready = asyncio.Event()
+        #: How many times the guard had to stop a stream the mission stopped refreshing.
+        self.guard_trips = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    async def __aenter__(self) -> Self:
+        mavsdk_log.setLevel(self.cfg.mavsdk_log_level)
+        log_subscribe(_route_mavsdk_log)  # before Mavsdk(): it logs its version on construction
+        cfg = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+        self._sdk = Mavsdk(cfg)
+        try:
+            await self._sdk.add_any_connection(self.cfg.url)
+        except MavsdkError as exc:
+            self._sdk.destroy()
+            self._sdk = None
+            log_unsubscribe()
+            raise LinkLostError(f"cannot open {self.cfg.url}: {exc}") from exc
+        log.info("vehicle link: listening on %s", self.cfg.url)
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        try:
+            if self._stream_active and self._offboard is not None:
+                # Deliberate end of the stream (PX4 Hold): never leave MAVSDK resending a last setpoint.
+                self._stream_active = False
+                with contextlib.suppress(MavsdkError, TimeoutError):
+                    async with asyncio.timeout(self.cfg.command_timeout_s):
+                        await self._offboard.stop()
+        finally:
+            if self._sdk is not None:
+                self._sdk.destroy()
+                self._sdk = None
+            log_unsubscribe()
+
+    async def run(self) -> None:
+        """Find the autopilot, then keep the telemetry snapshot current and guard the setpoint stream."""
+        system = await self._discover()
+        self._system = system
+        self._telemetry = TelemetryAsync(system)
+        self._action = ActionAsync(system)
+        self._offboard = OffboardAsync(system)
+        self._mocap = MocapAsync(system)
+        self._param = ParamAsync(system)
+        self._server_utility = ServerUtilityAsync(system)
+        self._direct = MavlinkDirectAsync(system)
+        self._update(connected=True, heartbeat_stamp_s=self.clock.now_s())
+        self._ready.set()
+        t = self._telemetry
+        streams: dict[str, Callable[[], Coroutine[Any, Any, None]]] = {
+            "connection": lambda: self._each(system.is_connected_state(), self._on_connected),
+            "flight_mode": lambda: self._each(t.subscribe_flight_mode(), self._on_flight_mode),
+            "armed": lambda: self._each(t.subscribe_armed(), self._on_armed),
+            "landed_state": lambda: self._each(t.subscribe_landed_state(), self._on_landed_state),
+            "attitude": lambda: self._each(t.subscribe_attitude_euler(), self._on_attitude),
+            "velocity": lambda: self._each(t.subscribe_velocity_ned(), self._on_velocity),
+            "position": lambda: self._each(t.subscribe_position(), self._on_position),
+            "local_position": lambda: self._each(
+                t.subscribe_position_velocity_ned(), self._on_local_position
+            ),
+            "gps": lambda: self._each(t.subscribe_gps_info(), self._on_gps),
+            "health": lambda: self._each(t.subscribe_health(), self._on_health),
+            "battery": lambda: self._each(t.subscribe_battery(), self._on_battery),
+            "status_text": lambda: self._each(t.subscribe_status_text(), self._on_status_text),
+            "estimator": lambda: self._each(
+                self._direct.subscribe_message("ESTIMATOR_STATUS"), self._on_estimator_status
+            ),
+        }
+        async with asyncio.TaskGroup() as tg:
+            for name, factory in streams.items():
+                tg.create_task(factory(), name=f"companion.vehicle.{name}")
+            tg.create_task(self._setpoint_guard(), name="companion.vehicle.setpoint_guard")
+            tg.create_task(self._read_hover_thrust(), name="companion.vehicle.hover_thrust")
+
+    async def wait_ready(self) -> None:
+        """Until the autopilot has been found (use with a timeout)."""
+        await self._ready.wait()
+
+    async def _discover(self) -> Any:
+        assert self._sdk is not None, "use MavsdkVehicleLink as an async context manager"  # noqa: S101
+        waited_s = 0.0
+        while True:
+            system = await self._sdk.first_autopilot(timeout_s=self.cfg.connect_timeout_s)
+            if system is not None:
+                log.info("vehicle link: autopilot found (sysid %d)", await system.get_system_id())
+                return system
+            waited_s += self.cfg.connect_timeout_s
+            if waited_s % _DISCOVERY_LOG_EVERY_S < self.cfg.connect_timeout_s:
+                log.warning("vehicle link: no autopilot on %s after %.0f s", self.cfg.url, waited_s)
+
+    # ------------------------------------------------------------------ telemetry
+    async def _each(self, stream: AsyncIterator[T], handle: Callable[[T], None]) -> None:
+        async with contextlib.aclosing(stream) as items:  # type: ignore[type-var]
+            async for item in items:
+                handle(item)
+
+    def _update(self, **fields: Any) -> None:
+        self._state = replace(self._state, **fields)
+
+    def _on_connected(self, connected: bool) -> None:
+        if connected != self._state.connected:
+            (log.info if connected else log.error)("vehicle link: %s", "connected" if connected else "LOST")
+        self._update(connected=connected)
+
+    def _on_flight_mode(self, mode: Any) -> None:
+        # MAVSDK re-emits the mode on every HEARTBEAT: this is also the heartbeat clock.
+        try:
+            fm = FlightMode[mode.name]
+        except KeyError:
+            fm = FlightMode.UNKNOWN
+        self._update(flight_mode=fm, heartbeat_stamp_s=self.clock.now_s())
+
+    def _on_armed(self, armed: bool) -> None:
+        self._update(armed=bool(armed))
+
+    def _on_landed_state(self, state: Any) -> None:
+        try:
+            ls = LandedState[state.name]
+        except KeyError:
+            ls = LandedState.UNKNOWN
+        self._update(landed_state=ls)
+
+    def _on_attitude(self, e: Any) -> None:
+        self._update(
+            roll_rad=math.radians(e.roll_deg),
+            pitch_rad=math.radians(e.pitch_deg),
+            yaw_rad=math.radians(e.yaw_deg),
+            attitude_stamp_s=self.clock.now_s(),
+        )
+
+    def _on_velocity(self, v: Any) -> None:
+        self._update(v_ned_m_s=(v.north_m_s, v.east_m_s, v.down_m_s), velocity_stamp_s=self.clock.now_s())
+
+    def _on_position(self, p: Any) -> None:
+        self._update(
+            lat_deg=p.latitude_deg,
+            lon_deg=p.longitude_deg,
+            alt_amsl_m=p.absolute_altitude_m,
+            alt_rel_m=p.relative_altitude_m,
+            global_position_stamp_s=self.clock.now_s(),
+        )
+
+    def _on_local_position(self, pv: Any) -> None:
+        p = pv.position
+        self._update(p_ned_m=(p.north_m, p.east_m, p.down_m), local_position_stamp_s=self.clock.now_s())
+
+    def _on_gps(self, g: Any) -> None:
+        self._update(
+            gps_fix_type=int(g.fix_type), gps_satellites=int(g.num_satellites), gps_stamp_s=self.clock.now_s()
+        )
+
+    def _on_health(self, h: Any) -> None:
+        self._update(
+            global_position_ok=bool(h.is_global_position_ok),
+            local_position_ok=bool(h.is_local_position_ok),
+            home_position_ok=bool(h.is_home_position_ok),
+            armable=bool(h.is_armable),
+            health_stamp_s=self.clock.now_s(),
+        )
+
+    def _on_battery(self, b: Any) -> None:
+        remaining = b.remaining_percent
+        frac = remaining / 100.0 if math.isfinite(remaining) else math.nan
+        self._update(battery_remaining_frac=frac, battery_voltage_v=b.voltage_v)
+
+    def _on_status_text(self, st: Any) -> None:
+        severity = _SEVERITY_BY_NAME.get(getattr(st.type, "name", ""), Severity.INFO)
+        text = StatusText(self.clock.now_s(), severity, str(st.text))
+        log.info("autopilot: [%s] %s", severity.value, text.text)
+        self._update(last_status_text=text, status_text_seq=self._state.status_text_seq + 1)
+
+    def _on_estimator_status(self, msg: Any) -> None:
+        try:
+            flags = int(json.loads(msg.fields_json)["flags"])
+        except (ValueError, KeyError, TypeError):
+            return
+        valid = (flags & _EST_POS_VEL_FLAGS) == _EST_POS_VEL_FLAGS
+        if self._state.position_valid is not None and valid != self._state.position_valid:
+            log.warning("vehicle link: PX4 horizontal position estimate %s", "valid" if valid else "INVALID")
+        self._update(position_valid=valid, estimator_stamp_s=self.clock.now_s())
+
+    async def _read_hover_thrust(self) -> None:
+        """PX4's MPC_THR_HOVER, to start the attitude law's thrust from; absent is fine."""
+        try:
+            async with asyncio.timeout(self.cfg.command_timeout_s):
+                value = float(await self._param.get_param_float("MPC_THR_HOVER"))
+        except (MavsdkError, TimeoutError) as exc:
+            log.info("vehicle link: MPC_THR_HOVER not readable (%s); using the configured default", exc)
+            return
+        if 0.05 < value < 0.95:
+            self._update(hover_thrust_norm=value)
+            log.info("vehicle link: hover thrust %.3f from MPC_THR_HOVER", value)
+
+    def snapshot(self) -> VehicleState:
+        """The latest telemetry; ``connected`` also requires a heartbeat within the telemetry timeout."""
+        now_s = self.clock.now_s()
+        st = self._state
+        alive = st.connected and now_s - st.heartbeat_stamp_s <= max(self.cfg.telemetry_timeout_s, 3.0)
+        return replace(st, stamp_s=now_s, connected=alive)
+
+    # ------------------------------------------------------------------ commands
+    def _require(self, plugin: Any) -> Any:
+        if plugin is None or not self._state.connected:
+            raise LinkLostError("no autopilot connected")
+        return plugin
+
+    async def _call(self, what: str, coro: Awaitable[Any]) -> Any:
+        try:
+            async with asyncio.timeout(self.cfg.command_timeout_s * 2):
+                return await coro
+        except MavsdkError as exc:
+            raise CommandRejectedError(what, _result_name(exc)) from exc
+        except TimeoutError as exc:
+            raise CommandRejectedError(what, "TIMEOUT") from exc
+
+    async def arm(self) -> None:
+        await self._call("arm", self._require(self._action).arm())
+
+    async def disarm(self) -> None:
+        await self._call("disarm", self._require(self._action).disarm())
+
+    async def takeoff(self, altitude_m: float) -> None:
+        action = self._require(self._action)
+        try:
+            await self._call("set_takeoff_altitude", action.set_takeoff_altitude(float(altitude_m)))
+        except CommandRejectedError as exc:
+            log.warning("vehicle link: takeoff altitude not set (%s); PX4 uses MIS_TAKEOFF_ALT", exc.result)
+        await self._call("takeoff", action.takeoff())
+
+    async def land(self) -> None:
+        await self._call("land", self._require(self._action).land())
+
+    async def hold(self) -> None:
+        await self._call("hold", self._require(self._action).hold())
+
+    async def return_to_launch(self) -> None:
+        await self._call("return_to_launch", self._require(self._action).return_to_launch())
+
+    # ------------------------------------------------------------------ offboard
+    async def set_setpoint(self, setpoint: Setpoint) -> None:
+        offboard = self._require(self._offboard)
+        if isinstance(setpoint, VelocityBodySetpoint):
+            f, r, d = setpoint.v_body_m_s
+            call = offboard.set_velocity_body(
+                VelocityBodyYawspeed(f, r, d, math.degrees(setpoint.yaw_rate_rad_s))
+            )
+        elif isinstance(setpoint, VelocityNedSetpoint):
+            n, e, d = setpoint.v_ned_m_s
+            call = offboard.set_velocity_ned(VelocityNedYaw(n, e, d, math.degrees(setpoint.yaw_rad)))
+        else:
+            a: AttitudeSetpoint = setpoint
+            call = offboard.set_attitude(
+                Attitude(
+                    math.degrees(a.roll_rad),
+                    math.degrees(a.pitch_rad),
+                    math.degrees(a.yaw_rad),
+                    a.thrust_norm,
+                )
+            )
+        await self._call("set_setpoint", call)
+        self._last_setpoint_s = self.clock.now_s()
+        self._stream_active = True
+
+    async def start_offboard(self, setpoint: Setpoint) -> None:
+        """Set ``setpoint``, then start; retry when MAVSDK lost the setpoint in the start race."""
+        offboard = self._require(self._offboard)
+        for attempt in range(1, _START_ATTEMPTS + 1):
+            await self.set_setpoint(setpoint)
+            try:
+                async with asyncio.timeout(self.cfg.command_timeout_s * 2):
+                    await offboard.start()
+            except MavsdkError as exc:
+                result = getattr(exc, "result", None)
+                if result == OffboardResult.NO_SETPOINT_SET and attempt < _START_ATTEMPTS:
+                    log.info("vehicle link: offboard start raced MAVSDK's watchdog; retrying (%d)", attempt)
+                    await asyncio.sleep(0.1)
+                    continue
+                raise CommandRejectedError("start_offboard", _result_name(exc)) from exc
+            except TimeoutError as exc:
+                raise CommandRejectedError("start_offboard", "TIMEOUT") from exc
+            return
+
+    async def stop_offboard(self) -> None:
+        """Stop MAVSDK's resend and ask for Hold.
+
+        Works with the link down too: stopping the local stream is what matters then (a one-way loss would
+        otherwise keep feeding PX4 the last setpoint).
+        """
+        self._stream_active = False
+        if self._offboard is None:
+            raise LinkLostError("no autopilot connected")
+        await self._call("stop_offboard", self._offboard.stop())
+
+    async def release_offboard(self) -> None:
+        self._stream_active = False
+
+    async def _setpoint_guard(self) -> None:
+        """Stop offboard when the mission stops refreshing (MAVSDK would resend the last one forever)."""
+        while True:
+            await asyncio.sleep(_GUARD_PERIOD_S)
+            if not self._stream_active:
+                continue
+            age_s = self.clock.now_s() - self._last_setpoint_s
+            if age_s <= self.cfg.setpoint_timeout_s:
+                continue
+            self._stream_active = False
+            self.guard_trips += 1
+            log.error("vehicle link: no fresh setpoint for %.2f s: stopping offboard (PX4 Hold)", age_s)
+            try:
+                async with asyncio.timeout(self.cfg.command_timeout_s):
+                    await self._offboard.stop()
+            except (MavsdkError, TimeoutError) as exc:
+                log.error("vehicle link: offboard stop failed: %s", exc)
+
+    # ------------------------------------------------------------------ estimator input, GCS text
+    async def send_external_position(self, fix: ExternalPosition) -> None:
+        mocap = self._require(self._mocap)
+        cov = [0.0] * 21
+        cov[0], cov[6], cov[11] = fix.variance_m2
+        cov[15] = cov[18] = cov[20] = 1.0  # angles come from PX4 itself: tell it not to trust ours
+        estimate = VisionPositionEstimate(
+            time_usec=0,  # 0: MAVSDK stamps it "now" in autopilot time (our fix is fresh)
+            position_body=PositionBody(*fix.p_ned_m),
+            angle_body=AngleBody(fix.roll_rad, fix.pitch_rad, fix.yaw_rad),
+            pose_covariance=Covariance(cov),
+            reset_counter=fix.reset_counter,
+        )
+        await self._call("vision_position_estimate", mocap.set_vision_position_estimate(estimate))
+
+    async def send_status_text(self, text: str, severity: Severity) -> None:
+        su = self._require(self._server_utility)
+        await self._call("status_text", su.send_status_text(_STATUSTEXT_SEVERITY[severity], text[:50]))

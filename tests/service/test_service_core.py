@@ -1,0 +1,209 @@
+"""Pure pieces of the service machinery: mailbox, backoff, supervise, health board, latency, commands."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import time
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from companion.clock import ManualClock
+from companion.service.health import HealthBoard
+from companion.service.latency import LatencyStats
+from companion.service.mailbox import Latest, MailboxClosedError
+from companion.service.supervise import Backoff, supervise
+from companion.telemetry.commands import (
+    CommandName,
+    CommandRejectedError,
+    CommandVerifier,
+    RejectReason,
+    sign_command,
+)
+from companion.telemetry.mqtt import Outbox, Outgoing
+
+KEY = b"k" * 32
+
+
+async def test_latest_drops_stale_values_and_counts_them() -> None:
+    box: Latest[int] = Latest()
+    for i in range(5):
+        box.put(i)
+    assert await box.take() == 4
+    assert box.dropped == 4
+    box.put(5)
+    assert await box.take() == 5
+    assert box.dropped == 4
+
+
+async def test_latest_take_waits_and_close_wakes() -> None:
+    box: Latest[str] = Latest()
+
+    async def later() -> None:
+        await asyncio.sleep(0.01)
+        box.put("frame")
+        await asyncio.sleep(0.01)
+        box.close()
+
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(later())
+        assert await box.take() == "frame"
+        with pytest.raises(MailboxClosedError):
+            await box.take()
+
+
+async def test_latest_observers_see_newer_values() -> None:
+    box: Latest[int] = Latest()
+    box.put(1)
+    seq, v = await box.wait_newer(0)
+    assert (seq, v) == (1, 1)
+    with pytest.raises(TimeoutError):
+        async with asyncio.timeout(0.02):
+            await box.wait_newer(seq)
+    assert box.peek() == 1
+
+
+@given(st.integers(0, 40), st.floats(0.01, 5), st.floats(1, 100))
+def test_backoff_stays_within_bounds_and_grows(attempts: int, initial_s: float, max_s: float) -> None:
+    max_s = max(max_s, initial_s)
+    b = Backoff(initial_s, max_s, random.Random(attempts))
+    for n in range(attempts):
+        cap = min(max_s, initial_s * 2**n)
+        d = b.next_delay_s()
+        assert cap / 2 <= d <= cap
+    b.reset()
+    assert b.next_delay_s() <= initial_s
+
+
+async def test_supervise_restarts_with_backoff_and_reports() -> None:
+    clock = ManualClock()
+    health = HealthBoard(clock)
+    health.register("mqtt", critical=False)
+    delays: list[float] = []
+    runs = 0
+
+    async def flaky() -> None:
+        nonlocal runs
+        runs += 1
+        if runs < 4:
+            raise ConnectionError(f"broker gone {runs}")
+
+    async def fake_sleep(d: float) -> None:
+        delays.append(d)
+
+    await supervise("mqtt", flaky, health, clock, Backoff(1.0, 8.0, random.Random(0)), sleep=fake_sleep)
+    assert runs == 4
+    assert len(delays) == 3
+    assert 0.5 <= delays[0] <= 1.0
+    assert 1.0 <= delays[1] <= 2.0
+    assert 2.0 <= delays[2] <= 4.0
+    c = health.component("mqtt")
+    assert c.failures == 3
+    assert c.restarts == 3
+    assert "broker gone 3" in c.detail
+
+
+async def test_supervise_never_swallows_cancellation() -> None:
+    clock = ManualClock()
+    health = HealthBoard(clock)
+    health.register("x", critical=False)
+
+    async def forever() -> None:
+        await asyncio.sleep(3600)
+
+    task = asyncio.create_task(supervise("x", forever, health, clock, Backoff(1, 2, random.Random())))
+    await asyncio.sleep(0)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert health.component("x").failures == 0
+
+
+def test_health_board_staleness() -> None:
+    clock = ManualClock()
+    hb = HealthBoard(clock)
+    hb.register("mission", critical=True, stale_after_s=2.0)
+    hb.register("mqtt", critical=False)
+    assert not hb.critical_alive()
+    hb.beat("mission", detail="FOLLOW")
+    hb.beat("mqtt", ok=False, detail="disconnected")
+    assert hb.critical_alive()
+    assert not hb.all_ok()
+    clock.advance(2.5)
+    m = hb.component("mission")
+    assert not m.alive
+    assert not m.ok
+    assert "no beat for 2.5 s" in m.detail
+    assert not hb.critical_alive()
+    with pytest.raises(KeyError, match="not registered"):
+        hb.beat("nope")
+
+
+def test_latency_percentiles_over_window() -> None:
+    lat = LatencyStats(window=100)
+    for i in range(1000):
+        lat.record("detect", float(i % 100))
+    s = lat.summary()["detect"]
+    assert s["count"] == 1000
+    assert s["p50_ms"] == pytest.approx(49.5)
+    assert s["p99_ms"] == pytest.approx(98.01)
+    assert s["max_ms"] == 99.0
+
+
+def test_outbox_drops_oldest_and_ack_is_safe() -> None:
+    box = Outbox(2)
+    items = [Outgoing("t", bytes([i]), 1, False) for i in range(3)]
+    box.push(items[0])
+    head = box.peek()
+    box.push(items[1])
+    box.push(items[2])  # items[0] dropped while it was being "published"
+    assert box.dropped == 1
+    assert len(box) == 2
+    assert head is not None
+    box.ack(head)  # must not remove items[1]
+    assert box.peek() is items[1]
+
+
+def _cmd(**kw: object) -> dict[str, object]:
+    return {"cmd": "land", "time_unix_s": 1000.0, "nonce": "a", **kw}
+
+
+def test_command_verifier_accepts_signed_and_refuses_the_rest() -> None:
+    v = CommandVerifier(KEY, max_age_s=30)
+    cmd = v.verify(sign_command(KEY, _cmd()), now_unix_s=1010.0)
+    assert cmd.name is CommandName.LAND
+    cases = [
+        (sign_command(KEY, _cmd()), RejectReason.REPLAYED),
+        (sign_command(b"z" * 32, _cmd(nonce="b")), RejectReason.BAD_MAC),
+        (sign_command(KEY, _cmd(nonce="c", time_unix_s=900.0)), RejectReason.EXPIRED),
+        (sign_command(KEY, _cmd(nonce="d", cmd="self_destruct")), RejectReason.UNKNOWN_COMMAND),
+        (
+            sign_command(KEY, _cmd(nonce="e", cmd="set_offset", offset_cam_m=[0, 0, -1])),
+            RejectReason.BAD_ARGUMENTS,
+        ),
+        (b"[1, 2]", RejectReason.MALFORMED),
+        (b"\xff\xfe", RejectReason.MALFORMED),
+    ]
+    for raw, reason in cases:
+        with pytest.raises(CommandRejectedError) as exc:
+            v.verify(raw, now_unix_s=1010.0)
+        assert exc.value.reason is reason, raw
+    # Tampering with a signed field breaks the MAC.
+    tampered = sign_command(KEY, _cmd(nonce="f", cmd="hold")).replace(b'"hold"', b'"land"')
+    with pytest.raises(CommandRejectedError, match="authentication"):
+        v.verify(tampered, now_unix_s=1010.0)
+    ok = v.verify(sign_command(KEY, _cmd(nonce="g", cmd="set_offset", offset_cam_m=[0.5, 0, 6])), 1010.0)
+    assert ok.offset_cam_m == (0.5, 0.0, 6.0)
+
+
+def test_command_key_must_not_be_short() -> None:
+    with pytest.raises(ValueError, match="at least 16 bytes"):
+        CommandVerifier(b"short", 30)
+
+
+def test_command_verifier_uses_real_time_scale() -> None:
+    v = CommandVerifier(KEY, max_age_s=30)
+    now = time.time()
+    assert v.verify(sign_command(KEY, _cmd(time_unix_s=now)), now).name is CommandName.LAND

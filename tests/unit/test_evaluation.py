@@ -1,0 +1,145 @@
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.evaluation.log import FlightRecorder
+from companion.evaluation.metrics import compute_metrics, monte_carlo_summary
+from companion.evaluation.plots import Snapshot, desired_follower_ned, write_plots
+from companion.evaluation.report import build_report, missing_keys, summary_markdown, write_report
+
+OFFSET = (0.0, 0.0, 5.0)
+
+
+def circle_flight(
+    *, lateral_error_m: float = 0.0, est_error_m: tuple[float, float, float] = (0.0, 0.0, 0.0), n: int = 400
+) -> FlightRecorder:
+    """Leader on a 15 m circle; follower exactly 5 m behind it along its heading, plus a lateral error."""
+    rec = FlightRecorder()
+    for i in range(n):
+        t = i * 0.05
+        ang = t * 3.0 / 15.0
+        leader = (15 * math.cos(ang), 15 * math.sin(ang), -5.0)
+        yaw = ang + math.pi / 2  # tangent direction
+        fwd = (math.cos(yaw), math.sin(yaw))
+        right = (-math.sin(yaw), math.cos(yaw))
+        follower = (
+            leader[0] - 5 * fwd[0] + lateral_error_m * right[0],
+            leader[1] - 5 * fwd[1] + lateral_error_m * right[1],
+            -5.0,
+        )
+        rel = tuple(a - b for a, b in zip(leader, follower, strict=True))
+        est = tuple(r + e for r, e in zip(rel, est_error_m, strict=True))
+        rec.tick(t, follower, leader, yaw, est, formation=True, gps_ok=t < 10.0, state="FOLLOW")
+        rec.frame(
+            t, leader_visible=True, detected=i % 10 != 0, false_positive=i % 100 == 0, latency_ms=8.0 + i % 3
+        )
+    rec.gps_loss_t_s = 10.0
+    return rec
+
+
+def test_perfect_formation_has_zero_errors() -> None:
+    m = compute_metrics(circle_flight().freeze(), OFFSET)
+    assert m.formation_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert m.formation_max_deviation_m == pytest.approx(0.0, abs=1e-9)
+    assert m.relative_position_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert m.min_separation_m == pytest.approx(5.0)
+    assert m.outcome == "completed"
+
+
+def test_lateral_offset_shows_in_formation_error() -> None:
+    m = compute_metrics(circle_flight(lateral_error_m=0.3).freeze(), OFFSET)
+    assert m.formation_rmse_m == pytest.approx(0.3, rel=1e-6)
+    assert m.formation_max_deviation_m == pytest.approx(0.3, rel=1e-6)
+
+
+def test_estimate_error_and_bearing() -> None:
+    # constant 0.1 m east error: the bearing error depends on heading, bounded by atan(0.1/5)
+    m = compute_metrics(circle_flight(est_error_m=(0.0, 0.1, 0.0)).freeze(), OFFSET)
+    assert m.relative_position_rmse_m == pytest.approx(0.1, rel=1e-6)
+    assert 0.0 < m.relative_yaw_rmse_deg < math.degrees(math.atan(0.1 / 5)) + 1e-6
+
+
+def test_detection_rates_and_latency() -> None:
+    m = compute_metrics(circle_flight().freeze(), OFFSET)
+    assert m.detection_recall == pytest.approx(0.9)
+    assert m.false_positive_rate == pytest.approx(0.01)
+    assert m.perception_latency_ms["p50"] == pytest.approx(9.0)
+    assert m.frames == 400
+
+
+def test_no_estimate_is_not_zero_error() -> None:
+    rec = FlightRecorder()
+    for i in range(10):
+        rec.tick(i * 0.1, (0, 0, -5), (5, 0, -5), 0.0, None, formation=True, gps_ok=True, state="REACQUIRE")
+    m = compute_metrics(rec.freeze(), OFFSET)
+    assert m.relative_position_rmse_m is None
+    assert m.detection_recall is None
+    assert m.outcome == "aborted"
+
+
+def test_outcomes() -> None:
+    rec = circle_flight(n=20)
+    rec.landed = True
+    assert compute_metrics(rec.freeze(), OFFSET).outcome == "landed_safely"
+    rec.crashed = True
+    assert compute_metrics(rec.freeze(), OFFSET).outcome == "crashed"
+
+
+def test_desired_slot_is_consistent_with_formation_error() -> None:
+    log = circle_flight(lateral_error_m=0.2).freeze()
+    d = np.linalg.norm(log.p_ned_follower_m - desired_follower_ned(log, OFFSET), axis=1)
+    assert np.allclose(d, 0.2)
+
+
+def test_report_contract_and_files(tmp_path: Path) -> None:
+    rec = circle_flight()
+    rec.transition(1.0, "ACQUIRE", "FOLLOW", "LEADER_CONFIRMED")
+    log = rec.freeze()
+    report = build_report("circle", 7, log, compute_metrics(log, OFFSET), wall_s=12.5)
+    assert missing_keys(report) == []
+    assert report["meets_targets"] is True
+    assert report["transitions"] == [[1.0, "ACQUIRE", "FOLLOW", "LEADER_CONFIRMED"]]
+    snaps = [Snapshot(1.0, np.zeros((48, 64, 3), np.uint8), (10, 10, 20, 20), (11, 11, 21, 21), 0.9)]
+    report["plots"] = write_plots(log, OFFSET, snaps, tmp_path / "plots", "circle")
+    write_report(tmp_path, report)
+    back = json.loads((tmp_path / "report.json").read_text())
+    assert back["scenario"] == "circle"
+    assert back["gps_loss_s"] == 10.0
+    for p in report["plots"]:
+        assert (tmp_path / p).stat().st_size > 5000
+    assert "| relative position RMSE (m) | 0.000 | 0.320 |" in (tmp_path / "report.md").read_text()
+
+
+def test_missing_target_figure_fails_targets() -> None:
+    rec = FlightRecorder()
+    rec.tick(0.0, (0, 0, -5), (5, 0, -5), 0.0, None, formation=True, gps_ok=True, state="FOLLOW")
+    log = rec.freeze()
+    assert (
+        build_report("straight", 1, log, compute_metrics(log, OFFSET), wall_s=1.0)["meets_targets"] is False
+    )
+
+
+def test_summary_markdown_has_paper_rows() -> None:
+    log = circle_flight().freeze()
+    r = build_report("circle", 1, log, compute_metrics(log, OFFSET), wall_s=1.0)
+    md = summary_markdown({"circle": r})
+    assert "| Circular path | 0.32 / 0.000 | 3.1 / 0.00 | 0.75 / 0.000 | completed | yes |" in md
+    assert "| Straight line | 0.25 / not run |" in md
+
+
+def test_monte_carlo_summary() -> None:
+    runs = [
+        {"outcome": "completed", "relative_position_rmse_m": float(i), "relative_yaw_rmse_deg": None}
+        for i in range(1, 101)
+    ]
+    runs.append({"outcome": "crashed", "relative_position_rmse_m": None})
+    s = monte_carlo_summary(runs)
+    assert s["runs"] == 101
+    assert s["outcomes"]["crashed"] == 1
+    assert s["relative_position_rmse_m"]["p50"] == pytest.approx(50.5)
+    assert s["relative_yaw_rmse_deg"] is None

@@ -1,0 +1,324 @@
+"""The formation law and the safety limits: hand-computed cases, properties, and a point-mass closed loop."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.config import FormationConfig, SafetyConfig
+from companion.mission.formation import (
+    FollowerState,
+    FormationLaw,
+    Slot,
+    heading_to_ned,
+    ned_to_heading,
+    slot_error,
+    tilt_from_accel,
+)
+from companion.mission.safety import (
+    G_M_S2,
+    SafetyLimits,
+    altitude_limit,
+    barrier_speed_m_s,
+    clamp_speed,
+    geofence_limit,
+    separation_limit,
+    separation_limit_accel,
+)
+
+from .pointmass import Leader, PointMass
+
+LIM = SafetyLimits.from_config(SafetyConfig(), FormationConfig().max_accel_m_s2)
+vec = st.tuples(st.floats(-30, 30), st.floats(-30, 30), st.floats(-10, 10)).map(np.array)
+vel = st.tuples(st.floats(-8, 8), st.floats(-8, 8), st.floats(-3, 3)).map(np.array)
+
+
+def law(**kw: object) -> FormationLaw:
+    return FormationLaw(FormationConfig(**kw), LIM)  # type: ignore[arg-type]
+
+
+def hover(
+    yaw: float = 0.0, v: tuple[float, float, float] = (0.0, 0.0, 0.0), alt: float = 10.0
+) -> FollowerState:
+    return FollowerState(
+        yaw_rad=yaw, v_ned_m_s=np.array(v), v_down_m_s=v[2], alt_rel_m=alt, p_ned_m=np.zeros(3)
+    )
+
+
+# ---------------------------------------------------------------------- geometry
+def test_default_slot_is_five_metres_ahead_level() -> None:
+    slot = Slot.from_offset_cam(FormationConfig().offset_cam_m)
+    assert (slot.forward_m, slot.right_m, slot.down_m) == (5.0, 0.0, 0.0)
+    assert slot.p_ned_m(math.pi / 2) == pytest.approx([0.0, 5.0, 0.0], abs=1e-12)
+
+
+def test_slot_error_is_zero_at_the_slot_and_radial_otherwise() -> None:
+    slot = Slot(5.0, 0.0, 0.0)
+    e = slot_error(slot, np.array([0.0, 5.0, 0.0]), np.zeros(3), math.pi / 2)
+    assert e.e_range_m == pytest.approx(0.0)
+    assert e.yaw_des_rad == pytest.approx(math.pi / 2)
+    assert np.linalg.norm(e.error_ned_m) == pytest.approx(0.0, abs=1e-12)
+    e = slot_error(slot, np.array([7.0, 0.0, 1.0]), np.array([0.5, 0.0, 0.0]), 0.0)
+    assert e.e_range_m == pytest.approx(2.0)
+    assert e.e_range_rate_m_s == pytest.approx(0.5)
+    assert e.e_down_m == pytest.approx(1.0)
+
+
+def test_slot_with_lateral_offset_turns_the_desired_yaw() -> None:
+    slot = Slot.from_offset_cam((1.0, 0.0, 5.0))  # leader 1 m right of the axis
+    e = slot_error(slot, np.array([5.0, 1.0, 0.0]), np.zeros(3), 0.0)
+    assert e.yaw_des_rad == pytest.approx(0.0, abs=1e-12)
+    assert e.e_range_m == pytest.approx(0.0, abs=1e-12)
+
+
+def test_bearing_rate_from_relative_velocity() -> None:
+    e = slot_error(Slot(5.0, 0.0, 0.0), np.array([5.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 0.0)
+    assert e.bearing_rate_rad_s == pytest.approx(0.2)
+
+
+@given(st.floats(-4, 4), vec)
+def test_heading_rotation_round_trip(yaw: float, v: np.ndarray) -> None:
+    assert heading_to_ned(ned_to_heading(v, yaw), yaw) == pytest.approx(v, abs=1e-9)
+
+
+def test_tilt_from_accel_signs() -> None:
+    roll, pitch = tilt_from_accel(np.array([1.0, 0.0, 0.0]), 0.0)
+    assert pitch < 0.0  # nose down to accelerate forward
+    assert roll == pytest.approx(0.0)
+    roll, pitch = tilt_from_accel(np.array([0.0, 1.0, 0.0]), 0.0)
+    assert roll > 0.0  # right wing down to accelerate right
+    roll, pitch = tilt_from_accel(np.array([0.0, 1.0, 0.0]), math.pi / 2)  # facing east: east is forward
+    assert pitch < 0.0
+    assert abs(roll) < 1e-12
+
+
+# ---------------------------------------------------------------------- velocity law
+def test_velocity_law_moves_toward_a_far_leader_and_away_from_a_near_one() -> None:
+    lw = law(leader_velocity_ff=0.0)
+    far = lw.velocity(np.array([8.0, 0.0, 0.0]), np.zeros(3), hover(), 0.0)
+    assert far.v_ned_m_s[0] > 0.0
+    lw.reset()
+    near = lw.velocity(np.array([3.5, 0.0, 0.0]), np.zeros(3), hover(), 0.0)
+    assert near.v_ned_m_s[0] < 0.0
+
+
+def test_velocity_law_feeds_the_leader_velocity_forward() -> None:
+    lw = law()
+    cmd = lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=(2.0, 0.5, 0.0)), 0.0)
+    assert cmd.v_ned_m_s == pytest.approx((2.0, 0.5, 0.0))
+    body = cmd.setpoint.v_body_m_s
+    assert body == pytest.approx((2.0, 0.5, 0.0))  # yaw 0: body = NED
+    assert cmd.yaw_rate_rad_s == pytest.approx(0.0)
+
+
+def test_velocity_law_yaws_toward_the_leader_with_bearing_rate_feed_forward() -> None:
+    lw = law()
+    cmd = lw.velocity(np.array([5.0, 0.5, 0.0]), np.array([0.0, 1.0, 0.0]), hover(), 0.0)
+    bearing = math.atan2(0.5, 5.0)
+    expected = 1.5 * bearing + (5.0 * 1.0) / (5.0**2 + 0.5**2)
+    assert cmd.yaw_rate_rad_s == pytest.approx(expected)
+
+
+def test_yaw_rate_is_limited() -> None:
+    lw = law()
+    cmd = lw.velocity(np.array([0.0, -5.0, 0.0]), np.zeros(3), hover(yaw=math.pi / 2), 0.0)
+    assert abs(cmd.yaw_rate_rad_s) == pytest.approx(math.radians(60.0))
+
+
+def test_acceleration_slew_limits_command_changes() -> None:
+    lw = law()
+    lw.seed_velocity(np.zeros(3))
+    lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(), 0.0)
+    cmd = lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=(4.0, 0.0, 0.0)), 0.05)
+    assert np.linalg.norm(cmd.v_ned_m_s) <= 3.0 * 0.05 + 1e-9
+
+
+def test_integrators_are_bounded_and_reset() -> None:
+    lw = law(kp_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, ki_xy=1.0, i_limit_xy_m_s=0.3)
+    out = None
+    for k in range(200):
+        out = lw.velocity(np.array([9.0, 0.0, 0.0]), np.zeros(3), hover(), k * 0.05)
+    assert out is not None
+    assert out.v_ned_m_s[0] == pytest.approx(0.3)
+    lw.reset()
+    out = lw.velocity(np.array([9.0, 0.0, 0.0]), np.zeros(3), hover(), 100.0)
+    assert out.v_ned_m_s[0] == pytest.approx(0.0)
+
+
+def test_integrator_does_not_wind_up_while_saturated() -> None:
+    lw = law(kp_xy=10.0, ki_xy=1.0, i_limit_xy_m_s=2.0, leader_velocity_ff=0.0, max_accel_m_s2=100.0)
+    for k in range(100):
+        lw.velocity(np.array([30.0, 0.0, 0.0]), np.zeros(3), hover(), k * 0.05)  # saturated at max speed
+    assert lw._i_range_m_s == pytest.approx(0.0)
+
+
+def test_a_long_gap_restarts_the_integrators() -> None:
+    lw = law(ki_xy=1.0, i_limit_xy_m_s=1.0)
+    for k in range(20):
+        lw.velocity(np.array([6.0, 0.0, 0.0]), np.zeros(3), hover(), k * 0.05)
+    assert lw._i_range_m_s > 0.0
+    lw.velocity(np.array([6.0, 0.0, 0.0]), np.zeros(3), hover(), 10.0)
+    assert lw._i_range_m_s == 0.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(p_rel=vec, v_rel=vel, v_f=vel, yaw=st.floats(-3.2, 3.2))
+def test_velocity_law_never_exceeds_speed_or_closes_inside_the_barrier(
+    p_rel: np.ndarray, v_rel: np.ndarray, v_f: np.ndarray, yaw: float
+) -> None:
+    if np.linalg.norm(p_rel) < 0.05:
+        return
+    lw = law(kp_xy=3.0, leader_velocity_ff=1.0)
+    fol = hover(yaw=yaw, v=(float(v_f[0]), float(v_f[1]), float(v_f[2])))
+    cmd = lw.velocity(p_rel, v_rel, fol, 0.0)
+    v = np.array(cmd.v_ned_m_s)
+    d = float(np.linalg.norm(p_rel))
+    u = p_rel / d
+    v_leader = v_f + v_rel
+    closing = float(np.dot(v, u) - np.dot(v_leader, u))
+    assert closing <= barrier_speed_m_s(d - LIM.min_separation_m, LIM.brake_m_s2) + 1e-6
+    if closing < barrier_speed_m_s(d - LIM.min_separation_m, LIM.brake_m_s2) - 1e-6:
+        # The barrier did not act, so the speed limits hold.
+        assert math.hypot(v[0], v[1]) <= LIM.max_speed_m_s + 1e-6
+        assert abs(v[2]) <= LIM.max_vertical_speed_m_s + 1e-6
+
+
+# ---------------------------------------------------------------------- attitude law
+@settings(max_examples=300, deadline=None)
+@given(p_rel=vec, v_rel=vel, yaw=st.floats(-3.2, 3.2), vz=st.floats(-3, 3), alt=st.floats(0, 50))
+def test_attitude_law_respects_tilt_and_thrust_bounds(
+    p_rel: np.ndarray, v_rel: np.ndarray, yaw: float, vz: float, alt: float
+) -> None:
+    lw = law()
+    fol = FollowerState(yaw_rad=yaw, v_ned_m_s=None, v_down_m_s=vz, alt_rel_m=alt)
+    for k in range(3):
+        cmd = lw.attitude(p_rel, v_rel, fol, k * 0.05)
+        sp = cmd.setpoint
+        tilt = math.acos(math.cos(sp.roll_rad) * math.cos(sp.pitch_rad))
+        assert tilt <= LIM.max_tilt_rad + 1e-6
+        assert 0.05 <= sp.thrust_norm <= 0.95
+        assert abs(math.remainder(sp.yaw_rad - yaw, 2 * math.pi)) <= math.radians(60.0) / 1.5 + 1e-9
+
+
+def test_attitude_law_brakes_when_closing_inside_the_barrier() -> None:
+    lw = law()
+    fol = FollowerState(yaw_rad=0.0, v_ned_m_s=None, v_down_m_s=0.0, alt_rel_m=10.0)
+    # Leader 2.5 m ahead, we close at 3 m/s: the law must pitch up (brake), whatever the PID says.
+    cmd = lw.attitude(np.array([2.5, 0.0, 0.0]), np.array([-3.0, 0.0, 0.0]), fol, 0.0)
+    assert cmd.setpoint.pitch_rad > 0.05
+
+
+def test_hover_attitude_is_level_without_velocity_and_brakes_with_it() -> None:
+    lw = law()
+    lvl = lw.hover_attitude(FollowerState(0.0, None, 0.0, 10.0), 0.0, 0.0)
+    assert (lvl.setpoint.roll_rad, lvl.setpoint.pitch_rad) == (0.0, 0.0)
+    brake = lw.hover_attitude(FollowerState(0.0, np.array([3.0, 0.0, 0.0]), 0.0, 10.0), 0.0, 0.05)
+    assert brake.setpoint.pitch_rad > 0.0
+
+
+def test_thrust_controller_learns_the_hover_thrust() -> None:
+    lw = law()
+    pm = PointMass(p=np.array([0.0, 0.0, -10.0]), hover_thrust=0.62)
+    for k in range(400):
+        cmd = lw.hover_attitude(pm.follower(velocity_valid=False), 0.0, k * 0.02)
+        pm.step_attitude(cmd.setpoint, 0.02)
+    assert lw.thrust.hover_thrust_norm == pytest.approx(0.62, abs=0.02)
+    assert abs(pm.v[2]) < 0.05
+
+
+# ---------------------------------------------------------------------- safety
+@given(vel)
+def test_clamp_speed(v: np.ndarray) -> None:
+    out = clamp_speed(v, LIM)
+    assert math.hypot(out[0], out[1]) <= LIM.max_speed_m_s + 1e-9
+    assert abs(out[2]) <= LIM.max_vertical_speed_m_s + 1e-9
+
+
+@given(vel, vec, st.one_of(st.none(), vel))
+def test_separation_barrier_property(v: np.ndarray, p_rel: np.ndarray, v_l: np.ndarray | None) -> None:
+    d = float(np.linalg.norm(p_rel))
+    if d < 1e-3:
+        return
+    out = separation_limit(v, p_rel, v_l, LIM)
+    u = p_rel / d
+    closing = float(np.dot(out, u)) - (float(np.dot(v_l, u)) if v_l is not None else 0.0)
+    assert closing <= barrier_speed_m_s(d - LIM.min_separation_m, LIM.brake_m_s2) + 1e-9
+    # Only the line-of-sight component is touched.
+    assert np.cross(out - v, u) == pytest.approx(np.zeros(3), abs=1e-9)
+
+
+def test_separation_pushes_out_when_inside() -> None:
+    out = separation_limit(np.zeros(3), np.array([1.0, 0.0, 0.0]), np.zeros(3), LIM)
+    assert out[0] == pytest.approx(-1.0)  # 1 m inside the 2 m bubble: back off at 1 m/s
+
+
+def test_separation_accel_barrier_only_brakes() -> None:
+    a = separation_limit_accel(np.zeros(3), np.array([10.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), LIM)
+    assert a == pytest.approx(np.zeros(3))  # far and slow: untouched
+
+
+def test_altitude_barrier() -> None:
+    assert altitude_limit(1.0, LIM.min_altitude_m, LIM) == pytest.approx(0.0)
+    assert altitude_limit(1.0, LIM.min_altitude_m - 1.0, LIM) == pytest.approx(-1.0)
+    assert altitude_limit(-1.0, LIM.max_altitude_m, LIM) == pytest.approx(0.0)
+    assert altitude_limit(0.5, 20.0, LIM) == pytest.approx(0.5)
+    assert altitude_limit(0.5, math.nan, LIM) == 0.5
+
+
+def test_geofence_barrier() -> None:
+    r = LIM.geofence_radius_m
+    out = geofence_limit(np.array([3.0, 1.0, 0.0]), np.array([r, 0.0, -5.0]), LIM)
+    assert out == pytest.approx([0.0, 1.0, 0.0])
+    assert geofence_limit(np.array([3.0, 0.0, 0.0]), None, LIM) == pytest.approx([3.0, 0.0, 0.0])
+
+
+def test_tilt_limit_from_config() -> None:
+    assert LIM.max_horizontal_accel_m_s2 == pytest.approx(G_M_S2 * math.tan(math.radians(25.0)))
+
+
+# ---------------------------------------------------------------------- closed loop (point mass, TEST-ONLY)
+def _circle_run(mode: str, seconds: float = 60.0, dt: float = 0.02) -> tuple[float, float, float]:
+    leader = Leader()
+    p_l, v_l = leader.state(0.0)
+    heading = math.atan2(v_l[1], v_l[0])
+    start = p_l - 5.0 * np.array([math.cos(heading), math.sin(heading), 0.0])
+    pm = PointMass(p=start.copy(), v=v_l.copy(), yaw_rad=heading)
+    lw = law()
+    lw.seed_velocity(pm.v)
+    errs, min_sep = [], math.inf
+    for k in range(int(seconds / dt)):
+        t = k * dt
+        p_l, v_l = leader.state(t)
+        p_rel, v_rel = p_l - pm.p, v_l - pm.v
+        min_sep = min(min_sep, float(np.linalg.norm(p_rel)))
+        if mode == "velocity":
+            cmd = lw.velocity(p_rel, v_rel, pm.follower(), t)
+            pm.step_velocity(cmd.setpoint, dt)
+            err = cmd.error.error_ned_m
+        else:
+            acmd = lw.attitude(p_rel, v_rel, pm.follower(velocity_valid=False), t)
+            pm.step_attitude(acmd.setpoint, dt)
+            assert acmd.error is not None
+            err = acmd.error.error_ned_m
+        if t > 10.0:
+            errs.append(float(np.linalg.norm(err)))
+    e = np.array(errs)
+    return float(np.sqrt(np.mean(e**2))), float(e.max()), min_sep
+
+
+def test_point_mass_circle_velocity_law() -> None:
+    rmse, worst, min_sep = _circle_run("velocity")
+    assert rmse < 0.2
+    assert worst < 0.4
+    assert min_sep > 2.0
+
+
+def test_point_mass_circle_attitude_law() -> None:
+    rmse, worst, min_sep = _circle_run("attitude")
+    assert rmse < 0.3
+    assert worst < 0.6
+    assert min_sep > 2.0

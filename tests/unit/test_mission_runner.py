@@ -1,0 +1,173 @@
+"""The runner's own logic (tick, command queue, exit) with a recording fake link: pure asyncio, no sockets.
+
+The real link is exercised against the simulator in tests/sitl; this checks what the runner adds on top.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+
+from companion.clock import MonotonicClock
+from companion.config import Config, MissionConfig
+from companion.errors import CommandRejectedError
+from companion.mission.machine import MissionMachine
+from companion.mission.runner import MissionRunner
+from companion.mission.types import Command, CommandKind, MissionState, Transition
+from companion.vehicle.types import ExternalPosition, Setpoint, Severity, VehicleState
+
+from .mission_harness import FakeAutopilot, leader
+
+
+class RecordingLink:
+    """A VehicleLink whose vehicle is the harness's FakeAutopilot; records setpoints with their times."""
+
+    def __init__(self, ap: FakeAutopilot, clock: MonotonicClock, arm_delay_s: float = 0.0) -> None:
+        self.ap = ap
+        self.clock = clock
+        self.arm_delay_s = arm_delay_s
+        self.setpoints: list[tuple[float, Setpoint]] = []
+        self.calls: list[tuple[float, str]] = []
+
+    def snapshot(self) -> VehicleState:
+        self.ap.advance(0.0)
+        return self.ap.state(self.clock.now_s())
+
+    async def _cmd(self, kind: CommandKind, altitude_m: float | None = None) -> None:
+        self.calls.append((self.clock.now_s(), kind.value))
+        r = self.ap.apply(Command(kind, altitude_m))
+        if r is not None and not r.ok:
+            raise CommandRejectedError(kind.value, r.detail)
+
+    async def arm(self) -> None:
+        await asyncio.sleep(self.arm_delay_s)
+        await self._cmd(CommandKind.ARM)
+
+    async def disarm(self) -> None:
+        await self._cmd(CommandKind.DISARM)
+
+    async def takeoff(self, altitude_m: float) -> None:
+        await self._cmd(CommandKind.TAKEOFF, altitude_m)
+        self.ap.alt_rel_m = altitude_m
+        self.ap.mode = self.ap.mode.HOLD
+        self.ap.landed = self.ap.landed.IN_AIR
+
+    async def land(self) -> None:
+        await self._cmd(CommandKind.LAND)
+
+    async def hold(self) -> None:
+        await self._cmd(CommandKind.HOLD)
+
+    async def return_to_launch(self) -> None:
+        await self._cmd(CommandKind.RTL)
+
+    async def set_setpoint(self, setpoint: Setpoint) -> None:
+        self.setpoints.append((self.clock.now_s(), setpoint))
+
+    async def start_offboard(self, setpoint: Setpoint) -> None:
+        await self.set_setpoint(setpoint)
+        await self._cmd(CommandKind.START_OFFBOARD)
+
+    async def stop_offboard(self) -> None:
+        await self._cmd(CommandKind.STOP_OFFBOARD)
+
+    async def release_offboard(self) -> None:
+        await self._cmd(CommandKind.RELEASE_OFFBOARD)
+
+    async def send_external_position(self, fix: ExternalPosition) -> None:
+        del fix
+
+    async def send_status_text(self, text: str, severity: Severity) -> None:
+        del text, severity
+
+
+async def _feed(runner: MissionRunner, clock: MonotonicClock, stop: asyncio.Event) -> None:
+    while not stop.is_set():
+        runner.submit_leader(leader(clock.now_s()))
+        await asyncio.sleep(0.02)
+
+
+async def test_runner_flies_to_follow_streams_every_tick_and_exits_on_shutdown() -> None:
+    clock = MonotonicClock()
+    cfg = Config(mission=MissionConfig(gps_restore_s=0.2, shutdown_action="land"))
+    ap = FakeAutopilot()
+    link = RecordingLink(ap, clock, arm_delay_s=0.3)
+    events: list[Transition] = []
+    following = asyncio.Event()
+
+    def on_transition(tr: Transition) -> None:
+        events.append(tr)
+        if tr.to_state == MissionState.FOLLOW:
+            following.set()
+
+    runner = MissionRunner(link, MissionMachine(cfg), clock, rate_hz=50.0, on_transition=on_transition)
+    runner.request_start()
+    stop = asyncio.Event()
+
+    async def pilot() -> None:
+        await following.wait()
+        await asyncio.sleep(0.5)
+        runner.request_shutdown()
+
+    async with asyncio.timeout(10):
+        async with asyncio.TaskGroup() as tg:
+            feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
+            tg.create_task(pilot(), name="test.pilot")
+            await runner.run()
+            stop.set()
+            await feeder
+
+    assert [e.reason.name for e in events][:5] == [
+        "LINK_UP",
+        "PREFLIGHT_OK",
+        "ARMED",
+        "TAKEOFF_DONE",
+        "LEADER_ACQUIRED",
+    ]
+    assert events[-1].reason.name == "SHUTDOWN_REQUESTED"
+    kinds = [k for _, k in link.calls]
+    assert kinds[-2:] == ["stop_offboard", "land"]
+    # Setpoints were refreshed every tick while following (no gap longer than a few ticks).
+    times = [t for t, _ in link.setpoints]
+    assert len(times) > 10
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert max(gaps) < 0.1
+
+
+async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
+    clock = MonotonicClock()
+    cfg = Config(mission=MissionConfig(gps_restore_s=0.1, shutdown_action="hold"))
+    ap = FakeAutopilot()
+    ap.fly()
+    link = RecordingLink(ap, clock)
+    following = asyncio.Event()
+
+    def on_transition(tr: Transition) -> None:
+        if tr.to_state == MissionState.FOLLOW:
+            following.set()
+
+    runner = MissionRunner(link, MissionMachine(cfg), clock, rate_hz=50.0, on_transition=on_transition)
+    stop = asyncio.Event()
+
+    async def slow_land() -> None:
+        await asyncio.sleep(1.0)
+        await link._cmd(CommandKind.LAND)
+
+    link.land = slow_land  # type: ignore[method-assign]
+
+    async def scenario() -> None:
+        await following.wait()
+        # Queue a slow command by hand, then watch the stream keep going while it runs.
+        runner._commands.put_nowait(Command(CommandKind.LAND))
+        n0 = len(link.setpoints)
+        await asyncio.sleep(0.5)
+        assert len(link.setpoints) - n0 >= 15
+        runner.request_shutdown()
+
+    async with asyncio.timeout(10):
+        async with asyncio.TaskGroup() as tg:
+            feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
+            tg.create_task(scenario(), name="test.scenario")
+            await runner.run()
+            stop.set()
+            await feeder

@@ -1,0 +1,197 @@
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.config import MountConfig, TrackerConfig
+from companion.estimation.tracker import TargetTracker, TrackStatus
+from companion.frames import R_from_euler
+from companion.perception.pose import LeaderMeasurement, bearing
+from companion.perception.transform import CameraGeometry
+
+CAM = CameraGeometry.from_mount(MountConfig())
+LEVEL = np.eye(3)
+DT = 1.0 / 30.0
+
+
+def meas(
+    p_cam: np.ndarray,
+    stamp_s: float,
+    *,
+    sigma_xy: float = 0.02,
+    sigma_z: float = 0.05,
+    score: float = 0.9,
+    size_ratio: float = 1.0,
+) -> LeaderMeasurement:
+    az, el = bearing(p_cam)
+    return LeaderMeasurement(
+        stamp_s=stamp_s,
+        p_cam_leader_m=p_cam,
+        cov_cam_m2=np.diag([sigma_xy**2, sigma_xy**2, sigma_z**2]),
+        depth_surface_m=float(p_cam[2]),
+        n_depth_px=50,
+        size_ratio=size_ratio,
+        azimuth_rad=az,
+        elevation_rad=el,
+        score=score,
+        box_xyxy_px=(0.0, 0.0, 1.0, 1.0),
+        truncated=False,
+    )
+
+
+def leader_ned(t_s: float) -> np.ndarray:
+    """Leader relative to a hovering follower: 6 m ahead, crossing east at 1.5 m/s, slowly descending."""
+    return np.array([6.0 + 0.3 * t_s, -3.0 + 1.5 * t_s, 0.2 * t_s])
+
+
+def noisy_cam(p_ned: np.ndarray, R_ned_body: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    p_cam = CAM.ned_rel_to_cam(p_ned, R_ned_body)
+    return p_cam + rng.normal(size=3) * np.array([0.02, 0.02, 0.05])
+
+
+def test_confirms_after_n_of_m_and_tracks_constant_velocity() -> None:
+    tracker = TargetTracker(TrackerConfig(), CAM)
+    rng = np.random.default_rng(1)
+    statuses = []
+    for k in range(120):
+        t = k * DT
+        st_ = tracker.step(t, [meas(noisy_cam(leader_ned(t), LEVEL, rng), t)], LEVEL)
+        statuses.append(st_.status)
+    assert statuses[:2] == [TrackStatus.TENTATIVE, TrackStatus.TENTATIVE]
+    assert statuses[2] == TrackStatus.CONFIRMED
+    assert st_.estimate is not None
+    assert np.linalg.norm(st_.estimate.p_ned_rel_m - leader_ned(t)) < 0.05
+    assert np.allclose(st_.estimate.v_ned_rel_m_s, [0.3, 1.5, 0.2], atol=0.2)
+    assert st_.hits == 120
+    assert st_.track_id == 1
+
+
+def test_one_second_dropout_coasts_and_reacquires_without_a_jump() -> None:
+    cfg = TrackerConfig()
+    tracker = TargetTracker(cfg, CAM)
+    rng = np.random.default_rng(2)
+    prev = None
+    max_jump = 0.0
+    seen = []
+    for k in range(int(5.0 / DT)):
+        t = k * DT
+        dropout = 2.0 <= t < 3.0
+        ms = [] if dropout else [meas(noisy_cam(leader_ned(t), LEVEL, rng), t)]
+        st_ = tracker.step(t, ms, LEVEL)
+        seen.append((t, st_.status))
+        assert st_.estimate is not None
+        p = st_.estimate.p_ned_rel_m
+        if prev is not None and t > 1.0:
+            # Beyond the leader's own motion in one frame, the estimate must not jump.
+            max_jump = max(max_jump, float(np.linalg.norm(p - prev - (leader_ned(t) - leader_ned(t - DT)))))
+        prev = p
+        if t > 1.0:
+            assert np.linalg.norm(p - leader_ned(t)) < 0.3
+    assert max_jump < 0.3
+    assert {s for t, s in seen if 2.05 < t < 2.95} == {TrackStatus.COASTING}
+    assert all(s == TrackStatus.CONFIRMED for t, s in seen if t > 3.0)
+    assert st_.track_id == 1  # the same track, re-acquired
+
+
+def test_coasting_covariance_grows_then_lost_then_dropped() -> None:
+    cfg = TrackerConfig(coast_timeout_s=1.0, lost_timeout_s=2.0)
+    tracker = TargetTracker(cfg, CAM)
+    rng = np.random.default_rng(3)
+    for k in range(30):
+        st_ = tracker.step(k * DT, [meas(noisy_cam(leader_ned(k * DT), LEVEL, rng), k * DT)], LEVEL)
+    t_last = 29 * DT
+    traces = []
+    for t, want in [(0.5, TrackStatus.COASTING), (1.5, TrackStatus.LOST), (1.9, TrackStatus.LOST)]:
+        st_ = tracker.step(t_last + t, [], LEVEL)
+        assert st_.status == want
+        assert st_.estimate is not None
+        traces.append(np.trace(st_.estimate.cov_ned_m2))
+        assert st_.since_measurement_s == pytest.approx(t)
+    assert traces[0] < traces[1] < traces[2]
+    st_ = tracker.step(t_last + 2.1, [], LEVEL)
+    assert st_.status == TrackStatus.LOST
+    assert st_.estimate is None
+    assert not tracker.has_track
+
+
+def test_sporadic_false_detections_never_confirm() -> None:
+    tracker = TargetTracker(TrackerConfig(confirm_hits=3, confirm_window=5), CAM)
+    rng = np.random.default_rng(4)
+    for k in range(100):
+        t = k * DT
+        ms = []
+        if k % 4 == 0:  # clutter at random places, one frame in four
+            ms = [meas(np.array([rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(3, 12)]), t)]
+        st_ = tracker.step(t, ms, LEVEL)
+        assert st_.status in (TrackStatus.TENTATIVE, TrackStatus.LOST)
+
+
+def test_size_prior_rejects_and_gating_selects_the_leader() -> None:
+    tracker = TargetTracker(TrackerConfig(), CAM)
+    rng = np.random.default_rng(5)
+    for k in range(30):
+        tracker.step(k * DT, [meas(noisy_cam(leader_ned(k * DT), LEVEL, rng), k * DT)], LEVEL)
+    t = 30 * DT
+    truth = CAM.ned_rel_to_cam(leader_ned(t), LEVEL)
+    bird = meas(truth + np.array([0.3, 0.0, 0.0]), t, score=0.99, size_ratio=0.1)  # tiny for its depth
+    far_clutter = meas(truth + np.array([2.0, 1.0, 3.0]), t, score=0.99)
+    leader = meas(truth, t, score=0.4)
+    st_ = tracker.step(t, [bird, far_clutter, leader], LEVEL)
+    assert st_.status == TrackStatus.CONFIRMED
+    assert st_.measurement is leader
+    assert st_.n_candidates == 3
+    assert st_.n_size_rejected == 1
+
+
+def test_yawing_follower_keeps_a_steady_ned_track() -> None:
+    # The follower yaws at 30 deg/s while the leader hangs still in NED: the camera sees it sweep, the
+    # NED estimate must not move, and the camera-frame output must follow the sweep.
+    tracker = TargetTracker(TrackerConfig(), CAM)
+    rng = np.random.default_rng(6)
+    p_ned = np.array([5.0, 1.0, 0.0])
+    for k in range(60):
+        t = k * DT
+        R = R_from_euler(0.0, 0.0, math.radians(30.0) * t - 0.4)
+        st_ = tracker.step(t, [meas(noisy_cam(p_ned, R, rng), t)], R)
+    assert st_.estimate is not None
+    assert np.linalg.norm(st_.estimate.p_ned_rel_m - p_ned) < 0.05
+    assert np.linalg.norm(st_.estimate.v_ned_rel_m_s) < 0.2
+    assert np.allclose(st_.estimate.p_cam_leader_m, CAM.ned_rel_to_cam(p_ned, R), atol=0.05)
+    assert np.allclose(st_.estimate.p_body_leader_m, R.T @ p_ned, atol=0.05)
+
+
+def test_reacquires_somewhere_else_after_losing_the_track() -> None:
+    cfg = TrackerConfig(coast_timeout_s=0.5, lost_timeout_s=3.0, confirm_hits=2, confirm_window=3)
+    tracker = TargetTracker(cfg, CAM)
+    for k in range(10):
+        tracker.step(k * DT, [meas(np.array([0.0, 0.0, 6.0]), k * DT)], LEVEL)
+    t = 10 * DT + 1.0  # lost for a second, then seen 8 m to the side: outside the gate
+    st_ = tracker.step(t, [meas(np.array([8.0, 0.0, 6.0]), t)], LEVEL)
+    assert st_.status == TrackStatus.TENTATIVE
+    assert st_.track_id == 2
+    st_ = tracker.step(t + DT, [meas(np.array([8.0, 0.0, 6.0]), t + DT)], LEVEL)
+    assert st_.status == TrackStatus.CONFIRMED
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(0.001, 0.5), st.booleans(), st.floats(2.0, 15.0)), min_size=1, max_size=40)
+)
+def test_covariance_stays_symmetric_psd(steps: list[tuple[float, bool, float]]) -> None:
+    tracker = TargetTracker(TrackerConfig(confirm_hits=1), CAM)
+    t = 0.0
+    for dt, seen, z in steps:
+        t += dt
+        ms = [meas(np.array([0.1 * z, 0.0, z]), t, sigma_z=0.01 * z * z)] if seen else []
+        st_ = tracker.step(t, ms, LEVEL)
+        if st_.estimate is not None:
+            P = st_.estimate.cov_ned
+            assert np.allclose(P, P.T)
+            assert np.linalg.eigvalsh(P).min() > -1e-12
+            Pc = st_.estimate.cov_cam_m2
+            assert np.allclose(Pc, Pc.T)
+            assert np.linalg.eigvalsh(Pc).min() > -1e-12
