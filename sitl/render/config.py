@@ -11,7 +11,7 @@ import math
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import AliasChoices, ConfigDict, Field, ValidationError, model_validator
 
 from companion.config import Section, format_validation_error
 from companion.errors import ConfigError
@@ -90,15 +90,45 @@ class LeaderLook(Section):
 
 
 class OccluderSpec(Section):
-    """One structure placed on purpose (a scenario's occluder), standing on the ground at ``p_ned_m``."""
+    """One structure placed on purpose (a scenario's occluder).
 
-    kind: Literal["building", "tree", "conifer", "pole", "wall"]
-    #: Base centre in local NED, m (z is normally 0: the ground).
-    p_ned_m: tuple[float, float, float]
-    #: Width (east-west before yaw), depth, height, m; for trees width is the crown diameter.
-    size_m: tuple[float, float, float] = (6.0, 6.0, 10.0)
+    Buildings, trees, poles and walls stand on the ground below ``p_ned_m``; a ``branch`` is a box
+    floating where ``p_ned_m`` says (z up is negative). Size either as ``size_m`` (x north, y east, z
+    height before yaw; for trees x is the crown diameter, for poles the radius) or, for trees and
+    poles, as ``radius_m`` + ``height_m`` (the scenario files' shorthand).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", populate_by_name=True)
+
+    kind: Literal["building", "tree", "conifer", "pole", "wall", "branch"]
+    #: Position in local NED, m (alias ``ned_m``).
+    p_ned_m: tuple[float, float, float] = Field(validation_alias=AliasChoices("p_ned_m", "ned_m"))
+    size_m: tuple[float, float, float] | None = None
+    radius_m: float | None = Field(None, gt=0)
+    height_m: float | None = Field(None, gt=0)
     yaw_deg: float = 0.0
     rgb: RGB | None = None
+
+    @model_validator(mode="after")
+    def _one_size(self) -> OccluderSpec:
+        shorthand = self.radius_m is not None or self.height_m is not None
+        if self.size_m is not None and shorthand:
+            raise ValueError("give size_m or radius_m + height_m, not both")
+        if self.size_m is None and (self.radius_m is None or self.height_m is None):
+            raise ValueError("needs size_m, or radius_m and height_m")
+        if shorthand and self.kind not in ("tree", "conifer", "pole"):
+            raise ValueError(f"radius_m + height_m describe trees and poles, not a {self.kind}")
+        return self
+
+    @property
+    def resolved_size_m(self) -> tuple[float, float, float]:
+        if self.size_m is not None:
+            return self.size_m
+        assert self.radius_m is not None  # noqa: S101 (validated)
+        assert self.height_m is not None  # noqa: S101
+        if self.kind == "pole":
+            return (self.radius_m, 1.6, self.height_m)
+        return (2.0 * self.radius_m, 2.0 * self.radius_m, self.height_m)
 
 
 class VisualConfig(Section):
@@ -116,8 +146,12 @@ class VisualConfig(Section):
     sun_azimuth_deg: float = 135.0
     #: Fraction of the sky covered by cloud: 0 clear, 1 overcast.
     cloud_cover: float = Field(0.3, ge=0.0, le=1.0)
-    #: Extinction of the fog, 1/m (meteorological visibility is about 3 / density).
-    fog_density_per_m: float = Field(0.0008, ge=0.0, le=0.2)
+    #: Extinction of the fog, 1/m (meteorological visibility is about 3 / density); alias fog_density.
+    fog_density_per_m: float = Field(
+        0.0008, ge=0.0, le=0.2, validation_alias=AliasChoices("fog_density_per_m", "fog_density")
+    )
+    #: Colour of the fog (linear RGB); None takes the horizon's. Alias fog_color.
+    fog_rgb: RGB | None = Field(None, validation_alias=AliasChoices("fog_rgb", "fog_color"))
     #: Ground materials in use, mixed in large patches.
     ground_materials: tuple[Literal["grass", "field", "dirt", "asphalt", "gravel", "snow"], ...] = (
         "grass",
@@ -143,6 +177,12 @@ class VisualConfig(Section):
     #: Display contrast around mid-grey (the sensor's tone curve is gamma 2).
     contrast: float = Field(1.0, ge=0.5, le=1.6)
     leader: LeaderLook = LeaderLook()
+    #: For the evaluation harness (the follower's standoff band in this scenario); not used in rendering.
+    leader_distance_m: tuple[float, float] | None = None
+    #: Scenario metadata: its occluders cross the line of sight only partly. No rendering effect.
+    partial_occlusion: bool = False
+
+    model_config = ConfigDict(frozen=True, extra="forbid", populate_by_name=True)
 
     @model_validator(mode="after")
     def _radii_ordered(self) -> VisualConfig:

@@ -100,13 +100,15 @@ def projection_matrix(intr: Intrinsics, near_m: float, far_m: float, scale: int 
 
 
 def shifted_intrinsics(intr: Intrinsics, u_px: float, v_px: float, size_px: int) -> Intrinsics:
-    """Same focal length, principal point moved so that pixel (u, v) lands at a square canvas's centre.
+    """Same focal length, principal point moved so that pixel (u, v) lands near a square canvas's centre.
 
     Shifting the principal point translates the image plane: silhouettes keep their exact pixel shape,
     which lets a leader-only pass count the pixels a clipped or occluded leader would have covered.
     """
+    # Shift by whole pixels only, so both images sample the silhouette at the same sub-pixel phase.
     c = (size_px - 1) / 2.0
-    return Intrinsics(intr.fx_px, intr.fy_px, intr.cx_px - u_px + c, intr.cy_px - v_px + c, size_px, size_px)
+    du, dv = round(c - u_px), round(c - v_px)
+    return Intrinsics(intr.fx_px, intr.fy_px, intr.cx_px + du, intr.cy_px + dv, size_px, size_px)
 
 
 def view_matrix(pose: CameraPose) -> Mat4:

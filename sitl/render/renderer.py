@@ -354,7 +354,8 @@ class Renderer:
         self._wb = white_balance_gains(visual.white_balance_k)
         self._log2_gain = None
         self._near_occluders = np.array(
-            [[*o.p_ned_m, max(o.size_m[0], o.size_m[1])] for o in visual.occluders], dtype=np.float64
+            [[*o.p_ned_m, max(o.resolved_size_m[0], o.resolved_size_m[1])] for o in visual.occluders],
+            dtype=np.float64,
         ).reshape(-1, 4)
 
     def _bake_ground(self) -> None:
@@ -389,6 +390,8 @@ class Renderer:
         face = self._sky_face_px
         self._set(kp, "u_face_px", float(face))
         self._set(kp, "u_sky_scale", SKY_SCALE)
+        self._set(kp, "u_fog_rgb", L.fog_rgb)
+        self._set(kp, "u_fog_density", self.visual.fog_density_per_m)
         self._ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
         self._pattern.use(4)
         faces = np.empty((6, face, face, 4), dtype=np.uint8)
@@ -506,7 +509,9 @@ class Renderer:
             "u_ground_lod",
             (base - math.log2(GROUND_PERIOD_M / GROUND_TEX_PX), base - math.log2(0.04)),
         )
+        glare = self._glare_rgb(cam)
         for prog in self._scene_progs:
+            self._set(prog, "u_glare_rgb", glare)
             self._set(prog, "u_clip_from_ned", clip_from_ned)
             self._set(prog, "u_ned_from_model", identity)
             self._set(prog, "u_cam_ned", cam_ned)
@@ -535,6 +540,7 @@ class Renderer:
         fbo.depth_mask = False
         self._set(self._sky_prog, "u_ned_from_pix", _mat_bytes(cam.R_ned_cam @ self._Kinv_fb))
         self._set(self._sky_prog, "u_gain_rgb", tuple(g * SKY_SCALE for g in gain_rgb))
+        self._set(self._sky_prog, "u_glare_rgb", tuple(g / SKY_SCALE for g in glare))
         self._sky_vao.render(moderngl.TRIANGLES)
         if leader is not None:
             # Rotor discs: blend colour, mark the mask (aux alpha), leave depth and texturedness alone.
@@ -614,6 +620,13 @@ class Renderer:
                 full = self._full_leader_px(cam, leader, clip_from_ned)
                 full = max(full, visible)
         return RenderedView(rgb, depth, mask, box, visible, full, exposure_s)
+
+    def _glare_rgb(self, cam: CameraPose) -> tuple[float, float, float]:
+        """Veiling glare: light a sun in or near the view scatters over the whole image (linear)."""
+        L = self.world.lighting
+        c = float(np.dot(cam.R_ned_cam[:, 2], np.asarray(L.sun_dir_ned)))
+        k = 0.06 * max(c, 0.0) ** 6
+        return (L.sun_rgb[0] * k, L.sun_rgb[1] * k, L.sun_rgb[2] * k)
 
     def _rotor_state(self, t_s: float, exposure_s: float) -> tuple[float, float]:
         """Blade angle (two-blade pattern, period pi) and how visible blades are through the smear."""

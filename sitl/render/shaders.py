@@ -63,6 +63,7 @@ uniform vec3 u_bounce_rgb;
 uniform vec3 u_fog_rgb;
 uniform float u_fog_density;
 uniform vec3 u_gain_rgb;
+uniform vec3 u_glare_rgb;   // veiling glare from a sun near the view (scattered in the lens)
 uniform float u_leader;
 uniform float u_fB;   // focal length * baseline at output resolution, px m
 in vec3 v_p;
@@ -93,7 +94,7 @@ float spec32(float x) {
 
 void emit(vec3 col, float alpha, float textured, float dist) {
     float fog = exp(-u_fog_density * dist);
-    col = mix(u_fog_rgb, col, fog);
+    col = mix(u_fog_rgb, col, fog) + u_glare_rgb;
     o_col = vec4(sqrt(clamp(col * u_gain_rgb, 0.0, 1.0)), alpha);
     o_aux = vec4(pack_disparity(u_fB * gl_FragCoord.w), 0.5 * u_leader + 0.49 * textured * fog);
 }
@@ -267,6 +268,9 @@ uniform vec2 u_cloud_off;  // texels
 uniform mat3 u_dir_from_st;   // cube face (s, t, 1) in [-1, 1] -> direction (GL cube-map convention)
 uniform float u_face_px;
 uniform float u_sky_scale;
+uniform vec3 u_fog_rgb;
+uniform float u_fog_density;
+const float FOG_LAYER_M = 300.0;   // fog thickness for upward rays
 layout(location = 0) out vec4 o_sky;
 void main() {
     vec2 st = 2.0 * gl_FragCoord.xy / u_face_px - 1.0;
@@ -287,6 +291,8 @@ void main() {
     cl += u_sun_rgb * 0.15 * exp(8.0 * (mu - 1.0)) * (1.0 - thick);
     c = mix(c, cl, cov);
     c = mix(u_haze_rgb, c, exp(60.0 * min(el, 0.0)));
+    // Fog veils the sky too: the path through a FOG_LAYER_M-deep layer, long towards the horizon.
+    c = mix(u_fog_rgb, c, exp(-u_fog_density * min(FOG_LAYER_M / max(el, 0.01), 20000.0)));
     o_sky = vec4(sqrt(clamp(c / u_sky_scale, 0.0, 1.0)), 1.0);
 }
 """
@@ -298,12 +304,13 @@ SKY_FS = """
 uniform samplerCube u_sky;
 uniform mat3 u_ned_from_pix;   // R_ned_cam * K^-1 at the framebuffer's scale
 uniform vec3 u_gain_rgb;       // exposure * white balance * SKY_SCALE
+uniform vec3 u_glare_rgb;      // veiling glare, divided by SKY_SCALE
 layout(location = 0) out vec4 o_col;
 layout(location = 1) out vec4 o_aux;
 void main() {
     // Level 0: face texels are about a pixel wide; implicit LOD on a cube costs ~3x the lookup here.
     vec3 s = textureLod(u_sky, u_ned_from_pix * vec3(gl_FragCoord.xy - 0.5, 1.0), 0.0).rgb;
-    o_col = vec4(sqrt(min(s * s * u_gain_rgb, 1.0)), 1.0);
+    o_col = vec4(sqrt(min((s * s + u_glare_rgb) * u_gain_rgb, 1.0)), 1.0);
     o_aux = vec4(0.0);
 }
 """
@@ -365,8 +372,9 @@ void main() {
     float z = u_fB / max(dn, 1e-6);
     float leader = step(0.5, aux.a);
     float textured = (aux.a - 0.5 * leader) / 0.49;
+    // Range limits act on the true disparity (a matcher's search range), so noise is never truncated.
     // Low texture: clumps of failed matches, more where the surface is plain.
-    bool valid = d > 0.0 && dn > 0.0 && z >= u_zrange.x && z <= u_zrange.y
+    bool valid = d >= u_fB / u_zrange.y && d <= u_fB / u_zrange.x && dn > 0.0
         && nz.a >= u_hole_p.x + u_hole_p.y * (1.0 - textured);
 #if EDGES
     // Stereo shadow: the right imager sits at +x, so a surface k px to the right with k px more

@@ -104,7 +104,7 @@ def lighting(visual: VisualConfig) -> Lighting:
     lit = _mix(lit, _scale((0.85, 0.86, 0.9), 0.25 + 0.75 * day), overcast)
     dark = _mix(_scale((0.35, 0.32, 0.38), 0.6), (0.58, 0.60, 0.66), day)
     dark = _mix(dark, _scale((0.5, 0.52, 0.57), 0.25 + 0.75 * day), overcast)
-    fog = _mix(horizon, glow, 0.15)
+    fog = visual.fog_rgb or _mix(horizon, glow, 0.15)
     typical = 0.5 * (zenith[1] + horizon[1]) * 0.7 + 0.3 * 0.15 * (sun_i * 0.6 + sky[1])
     return Lighting(
         sun_dir_ned=visual.sun_dir_ned,
@@ -202,7 +202,11 @@ def add_structure(b: MeshBuilder, spec: OccluderSpec, rng: np.random.Generator) 
     """One building, tree, pole or wall standing at ``spec.p_ned_m``."""
     R = Rz(math.radians(spec.yaw_deg))
     t = np.asarray(spec.p_ned_m, dtype=np.float64)
-    w, d, h = spec.size_m
+    w, d, h = spec.resolved_size_m
+    if spec.kind == "branch":
+        b.add(box((w, d, h)).transformed(R, t), spec.rgb or (0.09, 0.07, 0.05), Kind.BARK)
+        return
+    t[2] = 0.0  # everything else stands on the ground
     if spec.kind in ("building", "wall"):
         wall = spec.rgb or _WALL_RGB[int(rng.integers(len(_WALL_RGB)))]
         kind = Kind.WALL if spec.kind == "building" else Kind.PLAIN

@@ -33,15 +33,15 @@ def _run(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     repo = Path(__file__).resolve().parents[2]
     out = tmp_path_factory.mktemp("ds")
-    r = _run(repo, "dataset", "--out", str(out), "--count", "30", "--seq-len", "3", "--seed", "5")
+    r = _run(repo, "dataset", "--out", str(out), "--count", "20", "--seq-len", "2", "--seed", "5")
     assert r.returncode == 0, r.stderr[-2000:]
-    assert "wrote 30 frames" in r.stdout
+    assert "wrote 20 frames" in r.stdout
     return out
 
 
 def test_layout_and_labels(dataset: Path) -> None:
     rows = list(csv.DictReader((dataset / "manifest.csv").open()))
-    assert len(rows) == 30
+    assert len(rows) == 20
     for row in rows:
         img = cv2.imread(str(dataset / row["image"]))
         assert img is not None
@@ -51,7 +51,7 @@ def test_layout_and_labels(dataset: Path) -> None:
         assert depth is not None
         assert depth.dtype == np.uint16
         assert depth.shape == (480, 640)
-        assert depth.max() <= 10_000  # mm: nothing valid beyond the 10 m range
+        assert depth.max() <= 15_000  # mm: nothing whose true depth exceeds 10 m, plus noise
         lines = (dataset / "labels" / split / f"{stem}.txt").read_text().splitlines()
         assert len(lines) == int(row["labelled"])
         for line in lines:
@@ -75,7 +75,7 @@ def test_splits_by_sequence_and_leader_free_frames(dataset: Path) -> None:
     assert all(len(s) == 1 for s in split_of_seq.values())
     assert {s for ss in split_of_seq.values() for s in ss} == {"train", "val", "test"}
     unlabelled = sum(row["labelled"] == "0" for row in rows)
-    assert unlabelled >= 3  # at least 10 % of frames show no (labellable) leader
+    assert unlabelled >= 2  # at least 10 % of frames show no (labellable) leader
 
 
 def test_coco_matches_yolo(dataset: Path) -> None:
