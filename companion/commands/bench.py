@@ -28,10 +28,10 @@ def register(sub: Any) -> None:
 
 def _bench(args: argparse.Namespace) -> int:
     cfg = load(args)
-    import importlib.util  # noqa: PLC0415
+    import importlib.util
 
-    from companion.perception.bench import format_bench, run_bench  # noqa: PLC0415
-    from companion.perception.detector import load_detector  # noqa: PLC0415
+    from companion.perception.bench import format_bench, run_bench
+    from companion.perception.detector import load_detector
 
     wanted = [r.strip() for r in args.runtimes.split(",") if r.strip()]
     detectors: dict[str, Any] = {}
@@ -42,12 +42,12 @@ def _bench(args: argparse.Namespace) -> int:
         key = "onnxruntime" if name == "onnx" else "torch"
         detectors[f"{key}-cpu"] = load_detector(cfg.detector, runtime=name)
     if "torch" in wanted and importlib.util.find_spec("torch") is not None:
-        import torch  # noqa: PLC0415
+        import torch
 
         if torch.cuda.is_available():
             detectors["torch-cuda"] = load_detector(cfg.detector, runtime="torch", device="cuda")
     if "onnx" in wanted:
-        import onnxruntime as ort  # noqa: PLC0415
+        import onnxruntime as ort
 
         if "CUDAExecutionProvider" in ort.get_available_providers():
             detectors["onnxruntime-cuda"] = load_detector(cfg.detector, runtime="onnx", device="cuda")
@@ -61,14 +61,14 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _frames(args: argparse.Namespace, cfg: Any) -> list[Any]:
-    from companion.perception.bench import synthetic_frames  # noqa: PLC0415
+    from companion.perception.bench import synthetic_frames
 
     if args.data is None:
         return synthetic_frames(args.frames)
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
-    from companion.perception.detector.dataset import IMAGE_SUFFIXES, read_rgb  # noqa: PLC0415
-    from companion.perception.types import Intrinsics, RgbdFrame  # noqa: PLC0415
+    from companion.perception.detector.dataset import IMAGE_SUFFIXES, read_rgb
+    from companion.perception.types import Intrinsics, RgbdFrame
 
     paths = sorted(p for p in Path(args.data).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)[: args.frames]
     synth = synthetic_frames(len(paths))

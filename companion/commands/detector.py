@@ -67,7 +67,7 @@ def register(sub: Any) -> None:
 
 def _train(args: argparse.Namespace) -> int:
     load(args)
-    from companion.perception.detector.train import TrainConfig, train  # noqa: PLC0415
+    from companion.perception.detector.train import TrainConfig, train
 
     if args.crop > args.input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
@@ -97,9 +97,9 @@ def _train(args: argparse.Namespace) -> int:
 
 def _eval(args: argparse.Namespace) -> int:
     cfg = load(args)
-    from companion.perception.detector.dataset import find_samples, list_splits  # noqa: PLC0415
-    from companion.perception.detector.evaluate import evaluate  # noqa: PLC0415
-    from companion.perception.detector.metrics import format_summary  # noqa: PLC0415
+    from companion.perception.detector.dataset import find_samples, list_splits
+    from companion.perception.detector.evaluate import evaluate
+    from companion.perception.detector.metrics import format_summary
 
     det_cfg = cfg.detector
     updates: dict[str, Any] = {}
@@ -140,8 +140,8 @@ def _eval(args: argparse.Namespace) -> int:
 
 def _load_unverified_ok(det_cfg: Any) -> Any:
     """Load through the checksum check; a run's own weights (no sidecar yet) are loaded with a warning."""
-    from companion.perception.detector import load_detector  # noqa: PLC0415
-    from companion.perception.detector.weights import sha256_file  # noqa: PLC0415
+    from companion.perception.detector import load_detector
+    from companion.perception.detector.weights import sha256_file
 
     try:
         return load_detector(det_cfg)
@@ -168,7 +168,7 @@ def _json_ready(v: Any) -> Any:
 
 def _export(args: argparse.Namespace) -> int:
     cfg = load(args)
-    from companion.perception.detector.export import export_and_sign  # noqa: PLC0415
+    from companion.perception.detector.export import export_and_sign
 
     weights = Path(args.weights or Path(cfg.detector.model_path).with_suffix(".pt"))
     onnx_path, side = export_and_sign(weights, Path(args.out) if args.out else None, args.opset)
