@@ -69,3 +69,18 @@ def test_percentiles() -> None:
     assert p["p50_ms"] == pytest.approx(50.5)
     assert p["p99_ms"] == pytest.approx(99.01)
     assert p["n"] == 100
+
+
+def test_manifest_facts_reach_the_samples(tmp_path: Path) -> None:
+    from companion.perception.detector.dataset import find_samples
+
+    (tmp_path / "images" / "test").mkdir(parents=True)
+    for n in ("a", "b", "c"):
+        (tmp_path / "images" / "test" / f"{n}.jpg").write_bytes(b"")
+    (tmp_path / "manifest.csv").write_text(
+        "image,split,has_leader,range_m\nimages/test/a.jpg,test,1,7.5\nimages/test/b.jpg,test,0,\n"
+    )
+    s = {x.key: x for x in find_samples(tmp_path, "test")}
+    assert (s["a"].range_m, s["a"].has_leader) == (7.5, True)
+    assert (s["b"].range_m, s["b"].has_leader) == (None, False)
+    assert (s["c"].range_m, s["c"].has_leader, s["c"].label_path) == (None, None, None)
