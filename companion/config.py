@@ -93,6 +93,9 @@ class LeaderConfig(Section):
     span_m: float = Field(0.45, gt=0.05, le=3.0)
     #: Half the body depth seen by the camera: depth measured on the front surface + this = centre.
     surface_to_centre_m: float = Field(0.05, ge=0.0, le=1.0)
+    #: How far the middle of the leader's silhouette sits below its centre (landing legs hang below,
+    #: propellers sit above), m: the box centre is shifted up by this before it is used.
+    box_centre_below_m: float = Field(0.04, ge=-0.5, le=0.5)
     #: Where the leader's own position comes from when it is shared (vision-external-position fallback).
     shared_position: Literal["none", "mavlink", "mqtt"] = "none"
     mavlink_system_id: int = Field(1, ge=1, le=255)
