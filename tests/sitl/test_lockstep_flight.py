@@ -241,3 +241,27 @@ def test_scenario_leader_flies_its_straight_line() -> None:
     assert w.autopilot("leader").nav_state is NavState.OFFBOARD
     assert w.truth("leader").p_ned_m[0] - n0 == pytest.approx(20.0, abs=1.5)
     assert w.truth("leader").p_ned_m[2] == pytest.approx(-5.09, abs=0.3)
+
+
+def test_wrong_gps_is_rejected_as_a_glitch_then_position_fails() -> None:
+    world = world_with(seed=8)
+    c = Client(world)
+    c.take_off(5.0)
+    assert c.command(mavlink.MAV_CMD_INJECT_FAILURE, 4.0, 4.0, 0.0) == 0  # GPS wrong (120 m off)
+    t0 = world.t_s
+    c.log.clear()
+    c.run(6.5)
+    glitch = [t for t, m in c.log if m.get_type() == "ESTIMATOR_STATUS" and m.flags & 1024]
+    assert glitch
+    assert glitch[0] - t0 <= 1.05  # ESTIMATOR_STATUS comes at 1 Hz
+    assert c.ap.nav_state is NavState.DESCEND  # the fix is never fused: dead reckoning times out
+    # The vehicle did not follow the wrong fix while it was rejected.
+    off = world.origin_offset_ned_m("follower")
+    est = c.ap.position_ned()
+    truth = world.truth("follower").p_ned_m
+    assert math.hypot(est[0] + off[0] - truth[0], est[1] + off[1] - truth[1]) < 2.0
+    # SYS_STATUS reports the GPS unhealthy while it glitches (present, not healthy).
+    last = [m for _, m in c.log if m.get_type() == "SYS_STATUS"][-1]
+    assert last.onboard_control_sensors_present & GPS_BIT
+    assert not last.onboard_control_sensors_health & GPS_BIT
+    assert c.command(mavlink.MAV_CMD_INJECT_FAILURE, 4.0, 0.0, 0.0) == 0  # GPS ok again
