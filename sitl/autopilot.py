@@ -646,7 +646,7 @@ class Autopilot:
             sp = self.offboard_sp
             if sp.kind is SetpointKind.TRAJECTORY:
                 traj = sp.trajectory
-                if not traj.is_valid():
+                if not sp.valid:
                     # PX4: invalid position-control input -> hold level and stop vertically.
                     traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, 0.0))
             else:
