@@ -7,6 +7,7 @@ control allocation needs (PX4 has them as CA_* parameters).
 
 Speed matters here: a physics tick is one ``FGFDMExec.run()`` plus a handful of property reads through
 pre-fetched property nodes (about 12 us), and everything else in this module is plain-float Python.
+The JSBSim step is whatever ``dt_s`` the world passes (``[world] physics_rate_hz``, 200 Hz by default).
 """
 
 from __future__ import annotations
