@@ -7,7 +7,8 @@ objects through :meth:`Autopilot.handle_message` and collect what it sends from 
 
 Loops (PX4's, at the rates PX4 SITL runs them):
 
-* every physics tick (250 Hz): :meth:`inner_update` - attitude and rate control and the mixer;
+* every physics tick (200 Hz, PX4's IMU_INTEG_RATE): :meth:`inner_update` - attitude and rate
+  control and the mixer;
 * 50 Hz: :meth:`outer_update` - sensors (GPS 10 Hz), the estimator, the commander (arming, modes,
   failsafes, auto-disarm), the navigator or offboard setpoint, the position controller;
 * streams: :meth:`service_links` sends each link's default streams at PX4's rates, but only for
@@ -646,7 +647,7 @@ class Autopilot:
             sp = self.offboard_sp
             if sp.kind is SetpointKind.TRAJECTORY:
                 traj = sp.trajectory
-                if not traj.is_valid():
+                if not sp.valid:
                     # PX4: invalid position-control input -> hold level and stop vertically.
                     traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, 0.0))
             else:

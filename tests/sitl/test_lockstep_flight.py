@@ -241,3 +241,61 @@ def test_scenario_leader_flies_its_straight_line() -> None:
     assert w.autopilot("leader").nav_state is NavState.OFFBOARD
     assert w.truth("leader").p_ned_m[0] - n0 == pytest.approx(20.0, abs=1.5)
     assert w.truth("leader").p_ned_m[2] == pytest.approx(-5.09, abs=0.3)
+
+
+def test_wrong_gps_is_rejected_as_a_glitch_then_position_fails() -> None:
+    world = world_with(seed=8)
+    c = Client(world)
+    c.take_off(5.0)
+    assert c.command(mavlink.MAV_CMD_INJECT_FAILURE, 4.0, 4.0, 0.0) == 0  # GPS wrong (120 m off)
+    t0 = world.t_s
+    c.log.clear()
+    c.run(6.5)
+    glitch = [t for t, m in c.log if m.get_type() == "ESTIMATOR_STATUS" and m.flags & 1024]
+    assert glitch
+    assert glitch[0] - t0 <= 1.05  # ESTIMATOR_STATUS comes at 1 Hz
+    assert c.ap.nav_state is NavState.DESCEND  # the fix is never fused: dead reckoning times out
+    # The vehicle did not follow the wrong fix while it was rejected.
+    off = world.origin_offset_ned_m("follower")
+    est = c.ap.position_ned()
+    truth = world.truth("follower").p_ned_m
+    assert math.hypot(est[0] + off[0] - truth[0], est[1] + off[1] - truth[1]) < 2.0
+    # SYS_STATUS reports the GPS unhealthy while it glitches (present, not healthy).
+    last = [m for _, m in c.log if m.get_type() == "SYS_STATUS"][-1]
+    assert last.onboard_control_sensors_present & GPS_BIT
+    assert not last.onboard_control_sensors_health & GPS_BIT
+    assert c.command(mavlink.MAV_CMD_INJECT_FAILURE, 4.0, 0.0, 0.0) == 0  # GPS ok again
+
+
+def test_default_streams_at_px4_onboard_rates_and_set_message_interval() -> None:
+    world = world_with(seed=9)
+    c = Client(world)
+    c.run(12.0)  # past the GPS checks: global position and home exist
+    c.log.clear()
+    c.run(10.0)
+    counts: dict[str, int] = {}
+    for _, m in c.log:
+        counts[m.get_type()] = counts.get(m.get_type(), 0) + 1
+    expected_hz = {
+        "HEARTBEAT": 1, "ATTITUDE": 100, "ATTITUDE_QUATERNION": 50, "LOCAL_POSITION_NED": 30,
+        "GLOBAL_POSITION_INT": 50, "ODOMETRY": 30, "HIGHRES_IMU": 50, "GPS_RAW_INT": 10,
+        "SYS_STATUS": 5, "EXTENDED_SYS_STATE": 5, "ALTITUDE": 10, "VFR_HUD": 10,
+        "ESTIMATOR_STATUS": 1, "SYSTEM_TIME": 1, "TIMESYNC": 10, "HOME_POSITION": 0.5, "BATTERY_STATUS": 0.5,
+    }  # fmt: skip
+    for name, hz in expected_hz.items():
+        assert counts.get(name, 0) / 10.0 == pytest.approx(hz, rel=0.12, abs=0.11), name
+    # SET_MESSAGE_INTERVAL (per link, in microseconds) and REQUEST_MESSAGE.
+    assert c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 30.0, 1e6 / 20.0) == 0
+    assert c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0) == 0
+    assert c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 999.0, 1e5) == 4  # FAILED: no such stream
+    c.log.clear()
+    c.run(5.0)
+    att = sum(1 for _, m in c.log if m.get_type() == "ATTITUDE")
+    assert att / 5.0 == pytest.approx(20.0, rel=0.1)
+    assert not any(m.get_type() == "HIGHRES_IMU" for _, m in c.log)
+    assert c.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 242.0) == 0  # HOME_POSITION
+    assert c.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 397.0) == 2  # COMPONENT_METADATA: DENIED
+    # time_boot_ms and SYSTEM_TIME follow sim time.
+    st = [m for _, m in c.log if m.get_type() == "SYSTEM_TIME"][-1]
+    assert st.time_boot_ms / 1000.0 == pytest.approx(world.t_s, abs=1.05)
+    assert st.time_unix_usec == pytest.approx((1_767_225_600.0 + st.time_boot_ms / 1000.0) * 1e6, abs=2e3)
