@@ -208,6 +208,11 @@ class Renderer:
             ctx.release()
             self._ctx = None  # type: ignore[assignment]
 
+    @property
+    def gl_renderer(self) -> str:
+        """The OpenGL renderer string (llvmpipe on CPU machines, the GPU's name otherwise)."""
+        return str(self._ctx.info.get("GL_RENDERER", "?"))
+
     # ---- set-up ----------------------------------------------------------------------------------------
 
     def _init_gl(self, seed: int) -> None:
