@@ -224,7 +224,7 @@ class Renderer:
         self._pattern.build_mipmaps()
         self._pattern.filter = (moderngl.NEAREST_MIPMAP_NEAREST, moderngl.NEAREST)
         p = pattern[::4, ::4].astype(np.float32) / 255.0
-        dens = 0.55 * p[..., 0] + 0.3 * p[..., 1] + 0.15 * p[..., 2]
+        dens = 0.8 * p[..., 0] + 0.12 * p[..., 1] + 0.08 * p[..., 1]
         self._cloud_quantiles = np.percentile(dens, np.linspace(0, 100, 101))
         noise = sensor_noise_field(seed + 1, self.camera.depth_noise_corr_px)
         self._noise = ctx.texture((FIELD_PX, FIELD_PX), 4, noise.tobytes())

@@ -100,7 +100,7 @@ void emit(vec3 col, float alpha, float textured, float dist) {
 }
 """
 
-#: Ground, per frame: the baked material texture (512 m period) times fine detail, lit as flat.
+#: Ground, per frame: the baked material texture (1024 m period) times fine detail, lit as flat.
 SCENE_GROUND_FS = (
     _SCENE_HEAD
     + """
@@ -113,7 +113,7 @@ void main() {
     // A flat ground seen from height h: a pixel's footprint along the view is dist^2 / (f h), so the
     // mip level is 2 log2(dist) + const (implicit derivatives cost more than the fetch on llvmpipe).
     float l = 2.0 * log2(dist);
-    vec4 g = textureLod(u_ground, v_p.xy * (1.0 / 512.0), l + u_ground_lod.x);
+    vec4 g = textureLod(u_ground, v_p.xy * (1.0 / 1024.0), l + u_ground_lod.x);
     float det = textureLod(u_tex, v_p.xy * (25.0 / 1024.0), l + u_ground_lod.y).b;
     emit(g.rgb * g.rgb * (0.7 + 0.6 * det) * u_ground_light, 1.0, g.a, dist);
 }
@@ -121,7 +121,7 @@ void main() {
 )
 
 #: Bakes the ground material texture once per world: large patches of up to four materials, field
-#: rows and a road, all periodic over 512 m so the texture tiles without seams.
+#: rows and a road, all periodic over 1024 m so the texture tiles without seams.
 GROUND_BAKE_FS = (
     """
 #version 330
@@ -136,8 +136,8 @@ uniform vec2 u_rows;       // field rows: (axis, rows per period)
 uniform float u_texel_m;
 layout(location = 0) out vec4 o_ground;
 void main() {
-    vec2 p = (gl_FragCoord.xy - 0.5) * u_texel_m;   // metres over one 512 m period
-    vec4 macro = tex_lod(p * 2.0);                   // 1024 texels per 512 m: seamless
+    vec2 p = (gl_FragCoord.xy - 0.5) * u_texel_m;   // metres over one 1024 m period
+    vec4 macro = tex_lod(p);                         // 1024 texels per 1024 m: seamless
     float s = macro.r * float(u_ground_n) - 0.5;
     int i0 = clamp(int(floor(s)), 0, u_ground_n - 1);
     int i1 = min(i0 + 1, u_ground_n - 1);
@@ -146,7 +146,7 @@ void main() {
     float textured = mix(u_ground_texture[i0], u_ground_texture[i1], w);
     albedo *= 0.8 + 0.4 * macro.g;
     float across = u_rows.x < 0.5 ? p.y : p.x;
-    float rc = across * u_rows.y / 512.0;
+    float rc = across * u_rows.y / 1024.0;
     albedo *= 1.0 - 0.25 * smoothstep(0.55, 0.75, macro.g) * step(0.5, fract(rc));
     float rdist = abs((u_road.x < 0.5 ? p.y : p.x) - u_road.y);
     float on_road = 1.0 - smoothstep(u_road.z - u_texel_m, u_road.z + u_texel_m, rdist);
@@ -209,7 +209,10 @@ void main() {
     float leaf = 0.5 * t1.b + 0.5 * t2.g;
     float rim = 1.0 - abs(dot(n, view));
     float crown_cut = leaf - (v_param * 0.9 + 0.55 * rim * rim);
-    float band_cut = 0.55 + 0.45 * t2.r + 0.1 * t1.b - v_uv.y;
+    // Horizon forest: crowns a few metres wide cut into the top third of the band (coarse noise
+    // along the ring, so it survives the distance).
+    vec4 t3 = tex_lod(vec2(v_uv.x / 2.5, 40.0 + 0.3 * v_uv.y));
+    float band_cut = 0.62 + 0.38 * t3.b - v_uv.y;
     if ((v_kind == 9 ? band_cut : crown_cut) < 0.0) discard;
     vec3 albedo = v_rgb * (0.55 + 0.9 * leaf);
     vec3 col = albedo * (u_sun_rgb * max(dot(n, u_sun_dir), 0.0) + ambient(n)) * (0.75 + 0.25 * leaf);
@@ -283,10 +286,13 @@ void main() {
     c += u_sun_rgb * (0.02 * exp(30.0 * (mu - 1.0)) + 0.25 * exp(800.0 * (mu - 1.0)));
     c += u_sun_rgb * 30.0 * step(u_sun_cos, mu);
     float t = u_cloud.x / max(el, 0.004);
-    vec4 nz = tex_lod(d.xy * t / u_cloud.y + u_cloud_off);
-    float dens = 0.55 * nz.r + 0.3 * nz.g + 0.15 * nz.b;
-    float cov = smoothstep(u_cloud.z, u_cloud.w, dens) * smoothstep(0.0, 0.08, el);
-    float thick = clamp((dens - u_cloud.z) / max(1.0 - u_cloud.z, 0.05), 0.0, 1.0);
+    vec2 q = d.xy * t / u_cloud.y + u_cloud_off;
+    vec4 nz = tex_lod(q);
+    vec4 fine = tex_lod(q * 3.7 + 17.0);
+    // Shape from the large scales, a little fine detail on the edges; thins out towards the horizon.
+    float dens = 0.8 * nz.r + 0.12 * nz.g + 0.08 * fine.g;
+    float cov = smoothstep(u_cloud.z, u_cloud.w, dens) * smoothstep(0.0, 0.12, el);
+    float thick = clamp((dens - u_cloud.z) / max(1.0 - u_cloud.z, 0.05), 0.0, 1.0) * (0.7 + 0.3 * fine.r);
     vec3 cl = mix(u_cloud_lit_rgb, u_cloud_dark_rgb, thick);
     cl += u_sun_rgb * 0.15 * exp(8.0 * (mu - 1.0)) * (1.0 - thick);
     c = mix(c, cl, cov);
