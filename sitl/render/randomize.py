@@ -340,8 +340,13 @@ def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> S
         yaw_rate = rng.normal(0.0, 0.4)
         tilt = np.clip(rng.normal(0.0, math.radians(12.0), 2), -0.6, 0.6)
         leaders = []
-        for t in times:
+        for t, cam in zip(times, cameras, strict=True):
             p = p_leader0 + v_leader * t
+            p[2] = min(p[2], -0.4)
+            # Both move during the sequence: keep the range within 1-20 m in every frame.
+            rel = p - cam.p_ned_cam_m
+            dist = float(np.linalg.norm(rel))
+            p = cam.p_ned_cam_m + rel * (min(max(dist, 1.0), 20.0) / max(dist, 1e-9))
             p[2] = min(p[2], -0.4)
             leaders.append((R_from_euler(float(tilt[0]), float(tilt[1]), yaw0 + yaw_rate * t), p))
         if rng.random() < 0.15:
