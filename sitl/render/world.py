@@ -152,7 +152,7 @@ def ground_style(visual: VisualConfig, rng: np.random.Generator) -> GroundStyle:
     if visual.road:
         off = rng.uniform(visual.clear_radius_m * 0.5, max(visual.clear_radius_m, 60.0))
         road = (float(rng.integers(2)), float(off % GROUND_PERIOD_M), float(rng.uniform(2.5, 4.0)), 0.0)
-    rows_per_period = float(round(GROUND_PERIOD_M / rng.uniform(0.6, 1.5)))
+    rows_per_period = float(round(GROUND_PERIOD_M / rng.uniform(2.5, 5.0)))  # > 2 texels: no moire
     return GroundStyle(
         (rgb[0], rgb[1], rgb[2], rgb[3]),
         (tex[0], tex[1], tex[2], tex[3]),
