@@ -1,6 +1,6 @@
 """TEST-ONLY ``sitl serve`` component: streams ground truth of every vehicle to the test over UDP.
 
-Loaded inside the simulator process with ``--component tests.sitl.truth_component:serve_truth``; the
+Loaded inside the simulator process with ``--component tests.flight.truth_component:serve_truth``; the
 destination port comes from ``WINGMAN_TEST_TRUTH_PORT``. One JSON datagram every 20 ms of sim time:
 ``{"t_s": ..., "vehicles": {name: {"p": [n, e, d], "v": [...], "q": [w, x, y, z]}}}`` in the world NED frame.
 It exists so flight tests can drive the formation law from the true relative state until the perception
