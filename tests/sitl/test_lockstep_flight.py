@@ -91,7 +91,8 @@ def test_gps_loss_in_offboard_velocity_follows_px4_timeline() -> None:
     assert world.truth("follower").p_ned_m[2] > -0.2
 
 
-def test_external_vision_keeps_position_valid_after_gps_loss() -> None:
+@pytest.mark.parametrize("message", ["VISION_POSITION_ESTIMATE", "ODOMETRY"])
+def test_external_vision_keeps_position_valid_after_gps_loss(message: str) -> None:
     world = world_with(seed=4)
     c = Client(world)
     c.take_off(5.0)
@@ -103,7 +104,33 @@ def test_external_vision_keeps_position_valid_after_gps_loss() -> None:
         p = world.truth("follower").p_ned_m
         n, e = p[0] - off[0] + rng.normal(0, 0.05), p[1] - off[1] + rng.normal(0, 0.05)
         cov = [0.01] + [0.0] * 5 + [0.01] + [0.0] * 14
-        c.send(mavlink.MAVLink_vision_position_estimate_message(int(t * 1e6), n, e, p[2], 0, 0, 0, cov, 0))
+        if message == "ODOMETRY":
+            c.send(
+                mavlink.MAVLink_odometry_message(
+                    int(t * 1e6),
+                    mavlink.MAV_FRAME_LOCAL_NED,
+                    mavlink.MAV_FRAME_BODY_FRD,
+                    n,
+                    e,
+                    p[2],
+                    [1.0, 0.0, 0.0, 0.0],
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    cov,
+                    [NAN] * 21,
+                    0,
+                    0,
+                    100,
+                )
+            )
+        else:
+            c.send(
+                mavlink.MAVLink_vision_position_estimate_message(int(t * 1e6), n, e, p[2], 0, 0, 0, cov, 0)
+            )
 
     c.run(1.0, each=stream)
     assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
@@ -299,3 +326,22 @@ def test_default_streams_at_px4_onboard_rates_and_set_message_interval() -> None
     st = [m for _, m in c.log if m.get_type() == "SYSTEM_TIME"][-1]
     assert st.time_boot_ms / 1000.0 == pytest.approx(world.t_s, abs=1.05)
     assert st.time_unix_usec == pytest.approx((1_767_225_600.0 + st.time_boot_ms / 1000.0) * 1e6, abs=2e3)
+
+
+def test_every_handled_message_type_with_random_values_is_harmless() -> None:
+    import random
+
+    from tests.fuzz_messages import random_message
+
+    world = world_with(seed=10)
+    c = Client(world)
+    handled = set(c.ap._handlers)
+    classes = [cls for cls in mavlink.mavlink_map.values() if cls.msgname in handled]
+    assert len(classes) == len(handled)
+    rng = random.Random(5)
+    for _ in range(200):
+        for _ in range(100):
+            c.link.send(random_message(rng, classes), rng.randint(0, 255), rng.randint(0, 255))
+        c.run(0.1)
+    assert c.ap.counters["messages_in"] == 20_000
+    assert c.ap.counters["handler_errors"] == 0
