@@ -345,3 +345,65 @@ def test_every_handled_message_type_with_random_values_is_harmless() -> None:
         c.run(0.1)
     assert c.ap.counters["messages_in"] == 20_000
     assert c.ap.counters["handler_errors"] == 0
+
+
+def test_command_int_reposition_and_global_setpoints_fly_to_lat_lon() -> None:
+    world = world_with(seed=12)
+    c = Client(world)
+    c.take_off(5.0)
+    ap = c.ap
+    off = world.origin_offset_ned_m("follower")
+    lat, lon, _ = ap.origin.to_geodetic(10.0, 0.0, 0.0)
+    c.send(
+        mavlink.MAVLink_command_int_message(
+            c.sysid,
+            1,
+            mavlink.MAV_FRAME_GLOBAL,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            0,
+            0,
+            NAN,
+            int(lat * 1e7),
+            int(lon * 1e7),
+            ap.home.alt_m + 6.0,
+        )
+    )
+    c.run(12.0)
+    p = world.truth("follower").p_ned_m
+    assert ap.nav_state is NavState.AUTO_LOITER
+    assert p[0] - off[0] == pytest.approx(10.0, abs=0.6)
+    assert -p[2] == pytest.approx(6.0 + 0.09, abs=0.4)
+    # SET_POSITION_TARGET_GLOBAL_INT (MAVSDK's set_position_global) in offboard.
+    lat2, lon2, _ = ap.origin.to_geodetic(10.0, 8.0, 0.0)
+
+    def stream(_t: float) -> None:
+        c.send(
+            mavlink.MAVLink_set_position_target_global_int_message(
+                0,
+                c.sysid,
+                1,
+                mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                0b110111111000,
+                int(lat2 * 1e7),
+                int(lon2 * 1e7),
+                5.0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+        )
+
+    c.run(1.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
+    c.run(10.0, each=stream)
+    p = world.truth("follower").p_ned_m
+    assert (p[0] - off[0], p[1] - off[1]) == pytest.approx((10.0, 8.0), abs=0.6)
+    assert -p[2] == pytest.approx(5.0 + 0.09, abs=0.4)
