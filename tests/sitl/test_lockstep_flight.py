@@ -407,3 +407,31 @@ def test_command_int_reposition_and_global_setpoints_fly_to_lat_lon() -> None:
     p = world.truth("follower").p_ned_m
     assert (p[0] - off[0], p[1] - off[1]) == pytest.approx((10.0, 8.0), abs=0.6)
     assert -p[2] == pytest.approx(5.0 + 0.09, abs=0.4)
+
+
+def test_return_climbs_flies_home_lands_and_disarms() -> None:
+    world = world_with(seed=13)
+    c = Client(world)
+    c.take_off(5.0)
+
+    def stream(_t: float) -> None:
+        c.position_setpoint(20.0, 10.0, -5.0)
+
+    stream(0.0)
+    c.run(1.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
+    c.run(12.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH) == 0
+    peak = [0.0]
+
+    def watch(_t: float) -> None:
+        peak[0] = max(peak[0], -world.truth("follower").p_ned_m[2])
+
+    c.run_until(lambda: not c.ap.armed, 120.0, each=watch)
+    p = world.truth("follower").p_ned_m
+    off = world.origin_offset_ned_m("follower")
+    # PX4 defaults: climb to at least RTL_DESCEND_ALT (30 m), return, descend, land at home.
+    assert peak[0] == pytest.approx(30.0, abs=1.5)
+    assert math.hypot(p[0] - off[0], p[1] - off[1]) < 1.0
+    assert p[2] > -0.2
+    assert "Disarmed by landing" in [x for _, x in c.texts()]
