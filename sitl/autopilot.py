@@ -7,7 +7,8 @@ objects through :meth:`Autopilot.handle_message` and collect what it sends from 
 
 Loops (PX4's, at the rates PX4 SITL runs them):
 
-* every physics tick (250 Hz): :meth:`inner_update` - attitude and rate control and the mixer;
+* every physics tick (200 Hz, PX4's IMU_INTEG_RATE): :meth:`inner_update` - attitude and rate
+  control and the mixer;
 * 50 Hz: :meth:`outer_update` - sensors (GPS 10 Hz), the estimator, the commander (arming, modes,
   failsafes, auto-disarm), the navigator or offboard setpoint, the position controller;
 * streams: :meth:`service_links` sends each link's default streams at PX4's rates, but only for
@@ -87,6 +88,9 @@ _MOTORS_OFF = (0.0, 0.0, 0.0, 0.0)
 #: Armed on the ground, PX4 spins the motors at idle.
 _MOTORS_IDLE = (0.03, 0.03, 0.03, 0.03)
 _STATUSTEXT_REPEAT_S = 1.0
+#: Frames PX4 accepts external-vision poses in: LOCAL_NED 1, LOCAL_FRD 20, and the deprecated
+#: MOCAP_NED 14 / VISION_NED 16 that older clients still send (gone from pymavlink's common).
+_EV_FRAMES = frozenset({1, 20, 14, 16})
 
 
 @dataclass(slots=True)
@@ -234,6 +238,8 @@ class Autopilot:
         lat, lon, alt = world.to_geodetic(spawn_ned_m[0], spawn_ned_m[1], 0.0)
         self.origin = LocalProjection(lat, lon, alt)
         self.params = ParamStore({"MAV_SYS_ID": float(sysid), **(params or {})})
+        #: The store's live value dict (a plain dict lookup: these are read many times a tick).
+        self._pv = self.params.values
         self._params_version = -1
         self.est = Estimator(self.origin, rng)
         self.validity = ValidityChecks()
@@ -244,6 +250,7 @@ class Autopilot:
         self.model = model
         self.links = [LinkOutput(telemetry.ONBOARD_RATES_HZ), LinkOutput(telemetry.NORMAL_RATES_HZ)]
         self.battery = Battery()
+        self._battery_dt_s = 0.0
         self.counters: Counter[str] = Counter()
         # Commander state.
         self.t_s = 0.0
@@ -252,6 +259,7 @@ class Autopilot:
         self.nav_state = NavState.AUTO_LOITER
         self.failsafe_action = Action.NONE
         self.flags = Flags()
+        self._flags_key: tuple[bool, ...] = ()
         self.home: Home | None = None
         self.gps_last: GpsSample | None = None
         self.landed = True
@@ -325,7 +333,7 @@ class Autopilot:
         gps = self.gps.sample(t_s, (n, e, d), (vn, ve, vd))
         if gps is not None:
             self.gps_last = gps
-        vision = self._vision if int(self.params["EKF2_EV_CTRL"]) & 1 else None
+        vision = self._vision if int(self._pv["EKF2_EV_CTRL"]) & 1 else None
         events = self.est.update(
             t_s,
             dt_s,
@@ -342,12 +350,15 @@ class Autopilot:
         self._update_mode()
         self._control(dt_s)
         if self.disarm_timer.update(
-            t_s, self.armed, self.landed, self.params["COM_DISARM_LAND"], self.params["COM_DISARM_PRFLT"]
+            t_s, self.armed, self.landed, self._pv["COM_DISARM_LAND"], self._pv["COM_DISARM_PRFLT"]
         ):
             self._disarm(
                 "Disarmed by landing" if self.disarm_timer.flown else "Disarmed by auto preflight disarming"
             )
-        self.battery.update(dt_s, self.thrust_sp if self.armed else 0.0)
+        self._battery_dt_s += dt_s
+        if self._battery_dt_s >= 0.1:
+            self.battery.update(self._battery_dt_s, self.thrust_sp if self.armed else 0.0)
+            self._battery_dt_s = 0.0
 
     def _apply_params(self) -> None:
         p = self.params
@@ -449,22 +460,25 @@ class Autopilot:
             com_pos_fs_eph_m=p["COM_POS_FS_EPH"],
             com_vel_fs_evh_m_s=p["COM_VEL_FS_EVH"],
         )
-        self.flags = Flags(
-            attitude_valid=True,
-            local_position_valid=lp,
-            local_position_relaxed_valid=lr,
-            local_velocity_valid=lv,
-            global_position_valid=gp,
-            local_altitude_valid=True,
-            home_valid=self.home is not None,
-            offboard_signal=self._offboard_available(lp, lv),
-        )
+        key = (lp, lr, lv, gp, self.home is not None, self._offboard_available(lp, lv))
+        if key != self._flags_key:  # Flags is immutable; rebuild only when something changed
+            self._flags_key = key
+            self.flags = Flags(
+                attitude_valid=True,
+                local_position_valid=lp,
+                local_position_relaxed_valid=lr,
+                local_velocity_valid=lv,
+                global_position_valid=gp,
+                local_altitude_valid=True,
+                home_valid=key[4],
+                offboard_signal=key[5],
+            )
 
     def _offboard_available(self, local_pos_valid: bool, local_vel_valid: bool) -> bool:
         sp = self.offboard_sp
         if sp is None:
             return False
-        if self.t_s - sp.t_s >= self.params["COM_OF_LOSS_T"] * self.speed_factor:
+        if self.t_s - sp.t_s >= self._pv["COM_OF_LOSS_T"] * self.speed_factor:
             return False
         if sp.position and not local_pos_valid:
             return False
@@ -535,7 +549,7 @@ class Autopilot:
         if math.isfinite(alt_amsl_m):
             target_d = self.origin.alt0_m - alt_amsl_m
         else:
-            target_d = home_d - self.params["MIS_TAKEOFF_ALT"]
+            target_d = home_d - self._pv["MIS_TAKEOFF_ALT"]
         # Never take off downwards: PX4 holds when already above the takeoff altitude.
         return min(target_d, self.est.d_m)
 
@@ -586,7 +600,7 @@ class Autopilot:
                 return True
             return bool(not math.isnan(sp.z) and sp.z > self.est.d_m + 0.3)
         # Attitude/rate offboard: low thrust is the only hint, as for PX4's land detector.
-        return self.thrust_sp < 0.6 * self.params["MPC_THR_HOVER"]
+        return self.thrust_sp < 0.6 * self._pv["MPC_THR_HOVER"]
 
     def _update_land_detector(self) -> None:
         if not self.armed:
@@ -600,7 +614,7 @@ class Autopilot:
                 self._ground_contact_since_s = None
             return
         slow = abs(e.vd_m_s) < 0.25 and math.hypot(e.vn_m_s, e.ve_m_s) < 1.5
-        low_thrust = self.thrust_sp < 0.9 * self.params["MPC_THR_HOVER"]
+        low_thrust = self.thrust_sp < 0.9 * self._pv["MPC_THR_HOVER"]
         if slow and low_thrust and self._descent_commanded():
             if self._ground_contact_since_s is None:
                 self._ground_contact_since_s = self.t_s
@@ -636,7 +650,7 @@ class Autopilot:
             sp = self.offboard_sp
             if sp.kind is SetpointKind.TRAJECTORY:
                 traj = sp.trajectory
-                if not traj.is_valid():
+                if not sp.valid:
                     # PX4: invalid position-control input -> hold level and stop vertically.
                     traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, 0.0))
             else:
@@ -648,9 +662,7 @@ class Autopilot:
             home_ned = (home.n_m, home.e_m, home.d_m) if home is not None else (0.0, 0.0, 0.0)
             traj = self.navigator.update(self.t_s, dt_s, self.position_ned(), home_ned)
         else:
-            traj = TrajectorySetpoint().set(
-                acc=(0.0, 0.0, NAN), vel=(NAN, NAN, self.params["MPC_LAND_SPEED"])
-            )
+            traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, self._pv["MPC_LAND_SPEED"]))
         self._traj = traj
         if self.landed and not self._climb_demanded(traj):
             self._idle_on_ground()
@@ -683,7 +695,7 @@ class Autopilot:
                 r[1] if r[1] == r[1] else 0.0,
                 r[2] if r[2] == r[2] else 0.0,
             )
-        if self.landed and sp.thrust < 0.5 * self.params["MPC_THR_HOVER"]:
+        if self.landed and sp.thrust < 0.5 * self._pv["MPC_THR_HOVER"]:
             self._idle_on_ground()
             return
         self._motors = None
@@ -948,7 +960,7 @@ class Autopilot:
         speed = p[1]
         if math.isnan(speed):
             return DENIED
-        self.navigator.set_cruise_speed(min(speed, self.params["MPC_XY_VEL_MAX"]) if speed > 0 else None)
+        self.navigator.set_cruise_speed(min(speed, self._pv["MPC_XY_VEL_MAX"]) if speed > 0 else None)
         return ACCEPTED
 
     def _cmd_set_home(self, p: tuple[float, ...], link: int | None) -> int:
@@ -1000,7 +1012,7 @@ class Autopilot:
         return self._send_requested(mavlink.MAVLINK_MSG_ID_HOME_POSITION, link)
 
     def _cmd_inject_failure(self, p: tuple[float, ...], link: int | None) -> int:
-        if int(self.params["SYS_FAILURE_EN"]) != 1:
+        if int(self._pv["SYS_FAILURE_EN"]) != 1:
             self.statustext(SEV_WARNING, "Failure injection disabled")
             return DENIED
         unit = int(p[0]) if p[0] == p[0] else -1
@@ -1068,10 +1080,7 @@ class Autopilot:
         self.counters["vision"] += 1
 
     def _on_odometry(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
-        if int(msg.frame_id) not in (
-            mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_VISION_NED,
-            mavlink.MAV_FRAME_MOCAP_NED,
-        ):  # fmt: skip
+        if int(msg.frame_id) not in _EV_FRAMES:
             self.counters["vision_refused"] += 1
             return
         x, y, z = _fin(msg.x), _fin(msg.y), _fin(msg.z)
@@ -1169,9 +1178,7 @@ class Autopilot:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         mission_type = int(getattr(msg, "mission_type", 0) or 0)
-        self._reply(
-            link, mavlink.MAVLink_mission_count_message(src_system, src_component, 0, mission_type, 0)
-        )
+        self._reply(link, mavlink.MAVLink_mission_count_message(src_system, src_component, 0, mission_type))
 
     def _on_mission_count(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
@@ -1180,7 +1187,7 @@ class Autopilot:
         self._reply(
             link,
             mavlink.MAVLink_mission_ack_message(
-                src_system, src_component, mavlink.MAV_MISSION_UNSUPPORTED, mission_type, 0
+                src_system, src_component, mavlink.MAV_MISSION_UNSUPPORTED, mission_type
             ),
         )
 

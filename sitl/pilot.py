@@ -52,6 +52,7 @@ class TrajectoryPilot:
         self.phase = PilotPhase.WAIT_READY
         self._next_cmd_s = 0.0
         self._next_sp_s = 0.0
+        self._next_tick_s = 0.0
         self._stream_since_s: float | None = None
         self._anchor: tuple[float, float, float] | None = None
 
@@ -61,7 +62,10 @@ class TrajectoryPilot:
         self.ap.handle_message(msg, None, self.ap.sysid, COMP_ONBOARD)
 
     def update(self, t_s: float) -> None:
-        """Advance the pilot at sim time ``t_s`` (call at the outer-loop rate)."""
+        """Advance the pilot at sim time ``t_s`` (call at the outer-loop rate; it acts at 20 Hz)."""
+        if t_s < self._next_tick_s:
+            return
+        self._next_tick_s = t_s + SETPOINT_PERIOD_S - 1e-9
         st = self.ap.status()
         spec = self.spec
         if self.phase is PilotPhase.WAIT_READY:
@@ -101,7 +105,7 @@ class TrajectoryPilot:
     def _stream(self, t_s: float, nav: NavState) -> None:
         if t_s < self._next_sp_s:
             return
-        self._next_sp_s = t_s + SETPOINT_PERIOD_S
+        self._next_sp_s = t_s + SETPOINT_PERIOD_S - 1e-9
         if self._anchor is None:
             return
         n, e, vn, ve, heading = self.trajectory.sample(t_s - self.spec.start_s)

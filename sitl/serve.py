@@ -52,6 +52,8 @@ MAX_PEERS = 8
 #: If the host cannot keep up, give up on catching up beyond this much sim time (then slip).
 MAX_CATCH_UP_S = 0.1
 LOOP_PERIOD_S = 0.002
+#: UDP payload budget per packet (below a 1500-byte MTU, as PX4's network buffer).
+DATAGRAM_BYTES = 1400
 
 Component = Callable[["SimHandle"], Awaitable[None]]
 
@@ -118,14 +120,18 @@ class UdpLink(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         self.counters["datagrams_in"] += 1
-        parser = mavlink.MAVLink(None)
-        parser.robust_parsing = True
-        try:
-            msgs = parser.parse_buffer(data) or []
-        except Exception:
-            # Hostile input boundary: pymavlink can raise on odd bytes; a datagram never kills a link.
-            self.counters["bad_datagrams"] += 1
-            return
+        frames, junk = split_frames(data)
+        if junk:
+            self.counters["junk_bytes"] += junk
+        msgs: list[Any] = []
+        for frame in frames:
+            parser = mavlink.MAVLink(None)
+            parser.robust_parsing = True
+            try:
+                msgs.extend(parser.parse_buffer(frame) or [])
+            except Exception:
+                # Hostile input boundary: pymavlink can raise on odd bytes; never let it kill a link.
+                self.counters["bad_messages"] += 1
         good = 0
         for msg in msgs:
             if isinstance(msg, mavlink.MAVLink_bad_data) or msg.get_type() in ("BAD_DATA", "UNKNOWN"):
@@ -160,6 +166,9 @@ class UdpLink(asyncio.DatagramProtocol):
             return
         dests = self.destinations()
         sendto = self.transport.sendto
+        # PX4 fills each UDP packet with as many MAVLink messages as fit (mavlink_main's network
+        # buffer); so do we: a tenth of the syscalls, and every MAVLink parser reads them fine.
+        chunk = bytearray()
         for msg in msgs:
             try:
                 buf = msg.pack(self._packer)
@@ -167,9 +176,51 @@ class UdpLink(asyncio.DatagramProtocol):
                 self.counters["pack_errors"] += 1
                 log.exception("%s: cannot pack %s", self.label, msg.get_type())
                 continue
-            for addr in dests:
-                sendto(buf, addr)
+            if len(chunk) + len(buf) > DATAGRAM_BYTES and chunk:
+                for addr in dests:
+                    sendto(bytes(chunk), addr)
+                chunk.clear()
+            chunk += buf
             self.counters["messages_out"] += 1
+        if chunk:
+            for addr in dests:
+                sendto(bytes(chunk), addr)
+
+
+_MAGIC_V2 = 0xFD
+_MAGIC_V1 = 0xFE
+
+
+def split_frames(data: bytes) -> tuple[list[bytes], int]:
+    """Cut a datagram into candidate MAVLink frames by their headers; returns (frames, junk bytes).
+
+    Bytes before a start marker are skipped (counted as junk) and an incomplete frame at the end is
+    dropped, so each frame goes to the CRC check on its own. This is much cheaper than letting
+    pymavlink's robust parser resynchronise byte by byte through garbage, which matters when someone
+    floods the port.
+    """
+    frames: list[bytes] = []
+    junk = 0
+    i, n = 0, len(data)
+    while i < n:
+        b = data[i]
+        if b == _MAGIC_V2 and i + 10 <= n:
+            size = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+        elif b == _MAGIC_V1 and i + 6 <= n:
+            size = 8 + data[i + 1]
+        else:
+            nxt = min(
+                (p for p in (data.find(b"\xfd", i + 1), data.find(b"\xfe", i + 1)) if p >= 0), default=n
+            )
+            junk += nxt - i
+            i = nxt
+            continue
+        if i + size > n:
+            junk += n - i
+            break
+        frames.append(data[i : i + size])
+        i += size
+    return frames, junk
 
 
 @dataclass(frozen=True, slots=True)
@@ -233,9 +284,8 @@ class Server:
     async def _open(self) -> None:
         loop = asyncio.get_running_loop()
         for ep in endpoints(self.cfg):
-            vehicle = self.world.vehicle(ep.vehicle)
             index = LINK_API if ep.kind == "api" else LINK_GCS
-            link = vehicle.links[index].open()
+            link = self.world.link(ep.vehicle, index)
             proto = UdpLink(link, ep.sysid, ep.remote, f"{ep.vehicle}/{ep.kind}")
             try:
                 await loop.create_datagram_endpoint(lambda p=proto: p, local_addr=ep.bind)  # type: ignore[misc]
@@ -285,8 +335,12 @@ class Server:
                 wall0 = now
                 target = world.t_s + dt
             n = int((target - world.t_s) / dt + 1e-9)
-            for _ in range(n):
+            for i in range(n):
                 world.step()
+                if i & 1:
+                    # Let waiting datagrams in between ticks: asyncio hands a datagram protocol
+                    # one packet per loop iteration, so a long batch would starve the sockets.
+                    await asyncio.sleep(0)
             if n:
                 for proto in self.udp:
                     proto.flush()

@@ -2,9 +2,10 @@
 
 Gusts are MIL-F-8785C "1 - cosine" shapes: each rises and falls smoothly over its duration, peaks at
 an amplitude drawn up to ``gust_max_m_s``, and blows within +-30 deg of the mean direction. They
-arrive as a Poisson process with mean spacing ``gust_interval_s``. Turbulence is a first-order
-Gauss-Markov process per axis. The field is uniform in space (vehicles metres apart feel the same
-air), which is what matters for a formation.
+arrive as a Poisson process with mean spacing ``gust_interval_s``; overlapping gusts are capped at
+``gust_max_m_s`` together, so the wind never exceeds mean + gust_max (plus turbulence). Turbulence
+is a first-order Gauss-Markov process per axis. The field is uniform in space (vehicles metres
+apart feel the same air), which is what matters for a formation.
 """
 
 from __future__ import annotations
@@ -69,16 +70,21 @@ class WindModel:
         while t_s >= self._next_gust_s:
             self._spawn(self._next_gust_s)
             self._next_gust_s += self._draw_gap()
-        vn, ve = self._mean
+        gn = ge = 0.0
         alive = []
         for g in self._gusts:
             x = (t_s - g.start_s) / g.duration_s
             if x < 1.0:
                 alive.append(g)
                 shape = 0.5 * (1.0 - math.cos(2.0 * math.pi * x))
-                vn += shape * g.vn_m_s
-                ve += shape * g.ve_m_s
+                gn += shape * g.vn_m_s
+                ge += shape * g.ve_m_s
         self._gusts = alive
+        # Overlapping gusts must not add up past the configured peak.
+        g_abs = math.hypot(gn, ge)
+        if g_abs > p.gust_max_m_s > 0:
+            gn, ge = gn * p.gust_max_m_s / g_abs, ge * p.gust_max_m_s / g_abs
+        vn, ve = self._mean[0] + gn, self._mean[1] + ge
         vd = 0.0
         if p.turbulence_m_s > 0 and dt > 0:
             a = math.exp(-dt / p.turbulence_tau_s)

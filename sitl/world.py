@@ -144,6 +144,10 @@ class World:
             if traj is not None and leader is not None:
                 self.pilots.append(TrajectoryPilot(leader.autopilot, scenario.leader, traj))
         self.wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        # Flat lists for the per-tick loop (attribute chains cost as much as the work here).
+        self._pairs = [(v.autopilot, v.dyn) for v in self.vehicles]
+        self._links = [link for v in self.vehicles for link in v.links]
+        self._links_open = False
 
     def _now(self) -> float:
         return self._tick * self.dt_s
@@ -168,6 +172,7 @@ class World:
 
     def link(self, name: str, index: int = LINK_API) -> MessageLink:
         """The vehicle's MAVLink link ``index`` (0 API, 1 GCS), opened: its streams start."""
+        self._links_open = True
         return self.vehicle(name).links[index].open()
 
     def truth(self, name: str) -> VehicleTruth:
@@ -184,13 +189,13 @@ class World:
         k = self._tick + 1
         t = k * self.dt_s
         dt = self.dt_s
-        for v in self.vehicles:
-            for link in v.links:
+        if self._links_open:
+            for link in self._links:
                 if link._inbound:
                     link.deliver_due(t)
-            ap = v.autopilot
+        for ap, dyn in self._pairs:
             ap.t_s = t
-            v.dyn.step(*ap.inner_update(dt))
+            dyn.step(*ap.inner_update(dt))
         self._tick = k
         if k % self._outer_every == 0:
             if self._wind_active:
@@ -201,13 +206,14 @@ class World:
                 v.autopilot.outer_update(t, self._outer_dt_s)
             for p in self.pilots:
                 p.update(t)
-        for v in self.vehicles:
-            ap = v.autopilot
-            if ap.any_link_active:
-                ap.service_links(t)
-                for link in v.links:
-                    if link.active:
-                        link.collect(t)
+        if self._links_open:
+            for v in self.vehicles:
+                ap = v.autopilot
+                if ap.any_link_active:
+                    ap.service_links(t)
+                    for link in v.links:
+                        if link.active:
+                            link.collect(t)
 
     def run_until(self, t_s: float) -> None:
         """Step until sim time reaches ``t_s``."""

@@ -802,7 +802,13 @@ class MissionMachine:
         if not veh.armed:
             self._go(MissionState.DISARMED, Reason.DISARMED)
             return None
-        if not self._in_flight(CommandKind.DISARM) and self._now_s - self._last_attempt_s >= DISARM_RETRY_S:
+        # PX4 refuses to disarm before its land detector agrees; give it a moment before insisting.
+        on_ground = veh.landed_state == LandedState.ON_GROUND or self._t_in_state() > DISARM_RETRY_S
+        if (
+            on_ground
+            and not self._in_flight(CommandKind.DISARM)
+            and self._now_s - self._last_attempt_s >= DISARM_RETRY_S
+        ):
             self._last_attempt_s = self._now_s
             self._send(CommandKind.DISARM)
         if self._streaming:

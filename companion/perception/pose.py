@@ -4,16 +4,22 @@ The paper takes the depth at the box centre. A quadrotor's box centre often show
 the arms, and stereo depth noise grows with Z^2, so instead:
 
 1. **Robust depth** (:func:`robust_depth`): among the valid depth pixels inside the box, find the nearest
-   dense cluster (the leader; background is behind it) and take a trimmed mean around it. The window
-   is the leader's depth extent plus +-2.5 sigma of the stereo noise at that range.
+   dense cluster (the leader; background is behind it), then take a trimmed mean in *disparity*
+   (``f * baseline / z``), where stereo noise is Gaussian with a constant sigma, so the mean is unbiased.
+   Near ``depth_max_m`` the far half of the noise falls out of range; that truncation is undone
+   (truncated-normal mean), instead of reading the leader up to 0.2 m short at 10 m.
 2. **Surface to centre**: the cluster is the leader's visible surface; its centre lies
-   ``surface_to_centre_m`` further along the viewing ray.
+   ``surface_to_centre_m`` further along the viewing ray. The box's middle sits ``box_centre_below_m``
+   below the leader's centre (legs hang below, props sit above): moved up along gravity.
 3. **Back-projection** of the box centre: ``p = K^-1 [u v 1]^T Z``.
 4. **Covariance** from first-order propagation of box-centre jitter (pixels) and the depth error
    (``sigma_z = z^2 * subpixel / (f * baseline)`` per pixel, averaged over at most
    ``independent_depth_px`` pixels since stereo noise is spatially correlated, plus a shape term).
 5. **Size prior**: ``size_ratio`` = box size / expected size of a leader of span ``span_m`` at that
    depth; the tracker rejects boxes whose ratio is off by more than its tolerance.
+6. **Beyond the stereo range** (or in a depth hole) the range comes from the box's width and height
+   (:func:`range_from_size`) with the leader's apparent size learnt online from depth
+   (:class:`SizeCalibrator`). It is coarse (about 10 % of range) and its covariance says so.
 
 Everything here is pure: arrays and numbers in, a :class:`LeaderMeasurement` out; nothing copies the
 image (the box is a view; only its valid pixels are gathered).
@@ -34,6 +40,9 @@ from companion.perception.types import DepthImage, Detection, Intrinsics
 _TRIM_SIGMAS = 2.5
 #: A depth window is a candidate for the leader once it holds this fraction of the box's valid pixels.
 _CLUSTER_FRACTION = 0.1
+_CAM_DOWN = np.array([0.0, 1.0, 0.0])
+#: Variance inflation of size-ranged measurements, whose errors are correlated over many frames.
+_SIZE_ERROR_PERSISTENCE = 4.0
 #: Smallest box side used for ranging from size, px (a pixel of box error is then under 15 %).
 _MIN_SIZE_RANGE_PX = 7.0
 #: A cluster with less than this modelled fraction inside the valid range is too truncated to trust.
@@ -79,6 +88,9 @@ class LeaderMeasurement:
     truncated: bool
     #: Where the range came from: "depth" (stereo) or "size" (box size, beyond the stereo range).
     range_source: str = "depth"
+    #: The box's width and height at the measured range, m (what the size calibration learns from).
+    width_m: float = math.nan
+    height_m: float = math.nan
 
 
 def back_project(u_px: float, v_px: float, z_m: float, intr: Intrinsics) -> Vec3:
@@ -224,61 +236,92 @@ def _untruncated_mean(mean: float, sigma: float, lo: float, hi: float) -> tuple[
 
 @dataclass(frozen=True, slots=True)
 class SizePrior:
-    """The leader's apparent size: the larger box side times depth over focal length, m."""
+    """The leader's apparent width and height (box side times depth over focal length), m.
 
-    size_m: float
-    #: Relative standard deviation of that size (yaw, attitude and box fit make it vary).
-    rel_std: float
+    Height barely depends on the leader's yaw (it is level: props above, legs below); width does, by
+    up to +-20 % for a quad-X. Each comes with its relative standard deviation.
+    """
+
+    width_m: float
+    width_rel_std: float
+    height_m: float
+    height_rel_std: float
 
 
 class SizeCalibrator:
     """Learns the leader's apparent size from depth measurements, for ranging where depth fails.
 
-    Beyond the stereo range (or in a depth hole) the box size still gives range: ``z = f * size / px``.
-    The apparent size depends on the airframe, on its yaw seen from here and on range (thin parts such as
-    propellers vanish at low resolution), so it is learnt online as an exponential average over recent
-    confirmed, untruncated depth measurements within ``max_depth_m`` (set it just inside the stereo
-    range: depth is still far more accurate than size there, and the resolution is closest to what
-    follows beyond it), starting from ``prior_ratio * span_m``.
+    Beyond the stereo range (or in a depth hole) the box still gives range: ``z = f * size / px``, from
+    its width and its height, fused by their variances. The apparent size depends on the airframe, on
+    its yaw seen from here and on range (thin parts such as propellers vanish at low resolution), so
+    it is learnt online as an exponential average over recent confirmed, untruncated depth
+    measurements within ``max_depth_m`` (set just inside the stereo range: depth is still far more
+    accurate than size there, and the resolution is closest to what follows beyond it). Before that it
+    is ``width_ratio * span_m`` and ``height_ratio * span_m`` with a loose uncertainty.
     """
 
     def __init__(
         self,
         span_m: float,
         *,
-        prior_ratio: float = 1.4,
-        prior_rel_std: float = 0.15,
+        width_ratio: float = 1.3,
+        height_ratio: float = 0.65,
+        prior_rel_std: float = 0.25,
         max_depth_m: float = 9.5,
         alpha: float = 0.05,
-        min_rel_std: float = 0.03,
+        min_rel_std: float = 0.10,
     ) -> None:
         self.span_m = span_m
         self.max_depth_m = max_depth_m
         self.alpha = alpha
         self.min_rel_std = min_rel_std
-        self._prior = SizePrior(prior_ratio * span_m, prior_rel_std)
-        self._mean_m = self._prior.size_m
-        self._rel_var = prior_rel_std**2
+        self._prior = SizePrior(width_ratio * span_m, prior_rel_std, height_ratio * span_m, prior_rel_std)
+        self._mean = [self._prior.width_m, self._prior.height_m]
+        self._rel_var = [prior_rel_std**2, prior_rel_std**2]
         self.updates = 0
 
     def update(self, m: LeaderMeasurement) -> None:
         """Learn from a depth measurement the tracker accepted (others are ignored)."""
         if m.range_source != "depth" or m.truncated or m.p_cam_leader_m[2] > self.max_depth_m:
             return
-        size_m = m.size_ratio * self.span_m
         # Early on average fast (1/n), then settle to the exponential window.
         a = max(self.alpha, 1.0 / (self.updates + 1))
-        rel = size_m / self._mean_m - 1.0
-        self._mean_m += a * (size_m - self._mean_m)
         w = max(self.alpha, 1.0 / (self.updates + 2))
-        self._rel_var = (1.0 - w) * self._rel_var + w * rel * rel
+        for i, size_m in enumerate((m.width_m, m.height_m)):
+            rel = size_m / self._mean[i] - 1.0
+            self._mean[i] += a * (size_m - self._mean[i])
+            self._rel_var[i] = (1.0 - w) * self._rel_var[i] + w * rel * rel
         self.updates += 1
 
     def prior(self) -> SizePrior:
         """The current apparent-size estimate (the configured prior until enough updates)."""
         if self.updates < 10:
             return self._prior
-        return SizePrior(self._mean_m, max(self.min_rel_std, math.sqrt(self._rel_var)))
+        sw, sh = (max(self.min_rel_std, math.sqrt(v)) for v in self._rel_var)
+        return SizePrior(self._mean[0], sw, self._mean[1], sh)
+
+
+def range_from_size(
+    w_px: float, h_px: float, focal_px: float, prior: SizePrior, edge_jitter_px: float
+) -> tuple[float, float] | None:
+    """Range (m) and its relative variance from the box size, fusing width and height in log range.
+
+    Each side's relative error combines the size's own spread and two box edges' jitter over its length.
+    """
+    log_sum = 0.0
+    weight = 0.0
+    for size_px, size_m, rel_std in (
+        (w_px, prior.width_m, prior.width_rel_std),
+        (h_px, prior.height_m, prior.height_rel_std),
+    ):
+        if size_px < _MIN_SIZE_RANGE_PX:
+            continue
+        rel_var = rel_std * rel_std + 2.0 * (edge_jitter_px / size_px) ** 2
+        log_sum += math.log(focal_px * size_m / size_px) / rel_var
+        weight += 1.0 / rel_var
+    if weight == 0.0:
+        return None
+    return math.exp(log_sum / weight), 1.0 / weight
 
 
 def measure_leader(
@@ -290,11 +333,14 @@ def measure_leader(
     leader: LeaderConfig,
     cfg: PoseConfig,
     size_prior: SizePrior | None = None,
+    down_cam: Vec3 | None = None,
 ) -> LeaderMeasurement | None:
     """The leader's centre in the camera frame from one detection, or None without a usable range.
 
     Range comes from the box's depth cluster; without one (beyond the stereo range, a depth hole) and
-    with a ``size_prior``, from the box size, with the size's uncertainty.
+    with a ``size_prior``, from the box size, with the size's uncertainty. The box centre's point is
+    moved up by ``leader.box_centre_below_m`` along ``down_cam`` (gravity in the camera frame at the
+    frame's attitude; the camera's own y axis when None) to reach the leader's centre.
     """
     w_px, h_px = det.size_px
     x0, y0, x1, y1 = det.box_xyxy_px
@@ -318,13 +364,20 @@ def measure_leader(
         n_eff = min(cluster.n_px, cfg.independent_depth_px) * cluster.kept_fraction
         var_z = depth_sigma_m(z, intr.fx_px, cfg) ** 2 / n_eff + cfg.surface_model_std_m**2
         source, surface_m, n_px = "depth", cluster.z_m, cluster.n_px
-    elif size_prior is not None and not truncated and size_px >= _MIN_SIZE_RANGE_PX:
-        z = intr.fx_px * size_prior.size_m / size_px
-        var_z = z * z * (size_prior.rel_std**2 + (jitter / size_px) ** 2)
+    elif size_prior is not None and not truncated:
+        ranged = range_from_size(w_px, h_px, intr.fx_px, size_prior, cfg.box_jitter_px)
+        if ranged is None:
+            return None
+        z, rel_var = ranged
+        # Size errors persist for about a second (yaw, pixel quantisation): the filter must not average
+        # them as if independent, so they count as fewer, larger ones.
+        var_z = z * z * rel_var * _SIZE_ERROR_PERSISTENCE
         source, surface_m, n_px = "size", math.nan, 0
     else:
         return None
     p_cam = np.array([a * z, b * z, z], dtype=np.float64)
+    if leader.box_centre_below_m != 0.0:
+        p_cam = p_cam - leader.box_centre_below_m * (_CAM_DOWN if down_cam is None else down_cam)
     # p = (a z, b z, z) with a = (u - cx) / fx, b = (v - cy) / fy: Jacobian wrt (u, v, z).
     J = np.array([[z / intr.fx_px, 0.0, a], [0.0, z / intr.fy_px, b], [0.0, 0.0, 1.0]])
     cov = (J * np.array([jitter * jitter, jitter * jitter, var_z])) @ J.T
@@ -342,6 +395,8 @@ def measure_leader(
         box_xyxy_px=det.box_xyxy_px,
         truncated=truncated,
         range_source=source,
+        width_m=w_px * z / intr.fx_px,
+        height_m=h_px * z / intr.fy_px,
     )
 
 
@@ -354,11 +409,14 @@ def measure_all(
     leader: LeaderConfig,
     cfg: PoseConfig,
     size_prior: SizePrior | None = None,
+    down_cam: Vec3 | None = None,
 ) -> list[LeaderMeasurement]:
     """:func:`measure_leader` for every detection of a frame; boxes without a usable range are dropped."""
     out = []
     for det in detections:
-        m = measure_leader(depth_m, intr, det, stamp_s, leader=leader, cfg=cfg, size_prior=size_prior)
+        m = measure_leader(
+            depth_m, intr, det, stamp_s, leader=leader, cfg=cfg, size_prior=size_prior, down_cam=down_cam
+        )
         if m is not None:
             out.append(m)
     return out

@@ -97,6 +97,7 @@ def sitl_serve(
     scenario: Path | None = None,
     extra_env: dict[str, str] | None = None,
     vehicles: int = 2,
+    args: list[str] | None = None,
 ) -> Iterator[SitlProcess]:
     """Start ``python -m sitl serve`` and wait until it says it is running; always stop it."""
     ports = pick_ports(vehicles)
@@ -108,6 +109,7 @@ def sitl_serve(
     cmd += ["--config", str(config or REPO / "config" / "sitl.toml")]
     if scenario is not None:
         cmd += ["--scenario", str(scenario)]
+    cmd += args or []
     proc = subprocess.Popen(
         cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
     )

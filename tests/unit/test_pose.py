@@ -21,7 +21,7 @@ from companion.perception.pose import (
 from companion.perception.types import Detection, Intrinsics
 from tests.synthetic import D435_COLOR, render
 
-LEADER = LeaderConfig()
+LEADER = LeaderConfig(box_centre_below_m=0.0)  # the synthetic quad's silhouette is centred
 POSE = PoseConfig(depth_max_m=20.0)  # the synthetic camera has no range cut-off unless asked
 
 
@@ -93,7 +93,7 @@ def test_single_frame_error_within_noise_budget(z_m: float, tol_m: float) -> Non
     rng = np.random.default_rng(int(z_m))
     errs = []
     nees = []
-    for _ in range(25):
+    for _ in range(15):
         p = np.array([rng.uniform(-0.2, 0.2) * z_m, rng.uniform(-0.1, 0.1) * z_m, z_m])
         view = render(p, rng=rng, yaw_rad=rng.uniform(0, math.pi), hole_fraction=0.05)
         m = measure_leader(
@@ -109,7 +109,7 @@ def test_single_frame_error_within_noise_budget(z_m: float, tol_m: float) -> Non
     assert np.mean(nees) < 6.0
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=30, deadline=None)
 @given(
     st.floats(1.0, 15.0),
     st.floats(-0.4, 0.4),
@@ -187,7 +187,7 @@ def test_size_fallback_ranges_beyond_the_stereo_range_after_learning_the_size() 
         assert m.range_source == "depth"
         calib.update(m)
     prior = calib.prior()
-    assert prior.rel_std < 0.2  # box size jitters a lot at 20-40 px; depth does far better
+    assert prior.height_rel_std < 0.2  # box size jitters a lot at 10-40 px; depth does far better
     view = render((0.5, 0.1, 11.5), rng=rng, yaw_rad=yaw + 0.4, depth_max_m=10.0)
     det = Detection(view.box_xyxy_px, 0.9)
     assert measure_leader(view.depth_m, D435_COLOR, det, 0.0, leader=LEADER, cfg=cfg) is None  # no depth

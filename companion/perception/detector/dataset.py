@@ -8,9 +8,10 @@ Layouts understood (``split`` None means "all images"):
 * ``DIR/SPLIT.txt`` listing image paths (relative to DIR), labels found by swapping ``images`` for ``labels``.
 
 A label file holds ``class cx cy w h`` lines normalised to the image size; class 0 is the leader (other
-classes are ignored). A missing or empty label file means a leader-free image. Per-image leader ranges
-(for recall by range bin) come from a ``manifest.csv`` or ``manifest.jsonl`` beside the images when it has an
-``image``/``file`` column and a ``range_m`` column.
+classes are ignored). A missing or empty label file means no leader box. Per-image facts come from a
+``manifest.csv`` or ``manifest.jsonl`` in DIR when it has an ``image``/``file`` column: ``range_m`` (leader
+range, for recall by range bin) and ``has_leader`` (0: no leader anywhere in the scene; a frame can have a
+leader and no box when too little of it is visible, and such a frame is not "leader-free").
 """
 
 from __future__ import annotations
@@ -33,11 +34,15 @@ Boxes = NDArray[np.float32]  # (N, 4) x0 y0 x1 y1, px
 
 @dataclass(frozen=True, slots=True)
 class Sample:
-    """One image of a dataset, its label file (None: no file) and the leader's range when known, m."""
+    """One image of a dataset and its label file (None: no file).
+
+    When the manifest says so: the leader's range (m) and whether a leader is in the scene at all.
+    """
 
     image_path: Path
     label_path: Path | None
     range_m: float | None = None
+    has_leader: bool | None = None
 
     @property
     def key(self) -> str:
@@ -104,13 +109,21 @@ def find_samples(root: Path, split: str | None = None) -> list[Sample]:
         raise FileNotFoundError(
             f"no images found in {where}{root} (see companion.perception.detector.dataset)"
         )
-    ranges = read_ranges(root)
-    return [Sample(img, lab, ranges.get(img.stem)) for img, lab in pairs]
+    facts = read_manifest(root)
+    return [Sample(img, lab, *facts.get(img.stem, (None, None))) for img, lab in pairs]
 
 
-def read_ranges(root: Path) -> dict[str, float]:
-    """Image stem -> leader range (m) from a ``manifest.csv`` or ``manifest.jsonl`` in ``root``."""
-    out: dict[str, float] = {}
+def _number(v: object) -> float | None:
+    try:
+        x = float(str(v))
+    except ValueError:
+        return None
+    return x if math.isfinite(x) else None
+
+
+def read_manifest(root: Path) -> dict[str, tuple[float | None, bool | None]]:
+    """Image stem -> (leader range m, leader in the scene) from ``manifest.csv``/``.jsonl`` in ``root``."""
+    out: dict[str, tuple[float | None, bool | None]] = {}
     rows: Iterable[dict[str, object]] = []
     if (root / "manifest.csv").exists():
         with (root / "manifest.csv").open(newline="") as f:
@@ -121,15 +134,12 @@ def read_ranges(root: Path) -> dict[str, float]:
         ]
     for row in rows:
         name = row.get("image") or row.get("file") or row.get("file_name")
+        if name is None:
+            continue
         rng = row.get("range_m")
-        if name is None or rng in (None, ""):
-            continue
-        try:
-            value = float(str(rng))
-        except ValueError:
-            continue
-        if math.isfinite(value):
-            out[Path(str(name)).stem] = value
+        has = row.get("has_leader")
+        has_leader = None if has in (None, "") else bool(_number(has))
+        out[Path(str(name)).stem] = (None if rng in (None, "") else _number(rng), has_leader)
     return out
 
 

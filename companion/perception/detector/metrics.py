@@ -77,6 +77,8 @@ class ImageRecord:
     pred_scores: NDArray[np.float32]
     gt_boxes: NDArray[np.float32]
     range_m: float | None
+    #: No leader in the scene at all (for the false-positive rate); None: judge by the labels.
+    leader_free: bool | None = None
 
 
 @dataclass
@@ -91,8 +93,9 @@ class DetectionStats:
         pred_scores: NDArray[np.float32],
         gt_boxes: NDArray[np.float32],
         range_m: float | None = None,
+        leader_free: bool | None = None,
     ) -> None:
-        self.records.append(ImageRecord(pred_boxes, pred_scores, gt_boxes, range_m))
+        self.records.append(ImageRecord(pred_boxes, pred_scores, gt_boxes, range_m, leader_free))
 
     def summary(
         self, conf_threshold: float, iou_thresholds: NDArray[np.floating] = IOU_THRESHOLDS
@@ -113,7 +116,7 @@ class DetectionStats:
             above = r.pred_scores >= conf_threshold
             op_tp += int((tp[:, i50] & above).sum())
             op_fp += int((~tp[:, i50] & above).sum())
-            if len(r.gt_boxes) == 0:
+            if r.leader_free if r.leader_free is not None else len(r.gt_boxes) == 0:
                 leader_free += 1
                 leader_free_fp += int(above.any())
             if r.range_m is not None and len(r.gt_boxes):

@@ -53,3 +53,13 @@ def test_map50_95_penalises_loose_boxes() -> None:
     out = s.summary(0.5)
     assert out["map50"] == pytest.approx(1.0)
     assert out["map50_95"] == pytest.approx(0.7)  # TP at 0.50 .. 0.80: 7 of 10 thresholds
+
+
+def test_a_frame_with_an_unlabelled_leader_is_not_leader_free() -> None:
+    s = DetectionStats()
+    s.add(b(0, 0, 5, 5), np.array([0.9], np.float32), E, leader_free=False)  # leader too hidden for a box
+    s.add(E, np.zeros(0, np.float32), E, leader_free=True)
+    out = s.summary(0.5)
+    assert out["leader_free_images"] == 1
+    assert out["leader_free_fp_rate"] == 0.0
+    assert out["precision"] == 0.0  # still a false positive for precision (no box to match)
