@@ -405,9 +405,11 @@ def measure_leader(
         if ranged is None:
             return None
         z, rel_var = ranged
-        # Size errors persist for about a second (yaw, pixel quantisation): the filter must not average
-        # them as if independent, so they count as fewer, larger ones.
-        var_z = z * z * rel_var * _SIZE_ERROR_PERSISTENCE
+        # The error is relative to range; scale it by the predicted range when there is one, never by
+        # this noisy range (short readings would weigh more and drag the track in). Size errors persist
+        # for about a second (yaw, pixel quantisation), so they count as fewer, larger ones.
+        z_ref = z if z_hint_m is None else z_hint_m
+        var_z = z_ref * z_ref * rel_var * _SIZE_ERROR_PERSISTENCE
         source, surface_m, n_px = "size", math.nan, 0
     else:
         return None
