@@ -52,21 +52,10 @@ FOLLOWER = "follower"
 LEADER = "leader"
 
 
-def sitl_source() -> Path | None:
-    """Where an importable ``sitl.serve`` lives: this checkout, or ``$WINGMAN_SITL_SRC`` (a dev override)."""
-    if (REPO / "sitl" / "serve.py").exists():
-        return REPO
-    override = os.environ.get("WINGMAN_SITL_SRC")
-    if override and (Path(override) / "sitl" / "serve.py").exists():
-        return Path(override)
-    return None
-
-
 def sitl_missing_reason() -> str | None:
-    if sitl_source() is None:
-        return "sitl serve is not on this branch yet (set WINGMAN_SITL_SRC to a checkout that has it)"
+    """Why the simulator cannot run here (None when it can)."""
     if importlib.util.find_spec("jsbsim") is None:
-        return "jsbsim is not installed"
+        return "jsbsim is not installed (pip install -e .[sim])"
     return None
 
 
@@ -135,8 +124,7 @@ class SimProcess:
         self.log_path = tmp_path / "sitl.log"
 
     async def __aenter__(self) -> SimProcess:
-        src = sitl_source()
-        assert src is not None
+        src = REPO
         run_dir = self.tmp_path / "sitl-run"
         run_dir.mkdir()
         # `python -m` puts the cwd first on sys.path: run from a directory holding only the sitl package.

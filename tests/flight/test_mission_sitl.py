@@ -158,6 +158,47 @@ async def test_gps_loss_with_land_policy_lands_softly_without_gps(tmp_path: Path
     assert figures["px4_position_invalid_at_touchdown"] == 1.0
 
 
+async def test_gps_loss_external_position_keeps_px4_estimate_valid(tmp_path: Path) -> None:
+    """Policy (b): the follower's position for PX4 = the leader's shared position minus the seen vector."""
+    cfg = mission_cfg(gps_loss_policy="vision_external_position")
+    figures: dict[str, float] = {}
+
+    async def body(f: Flight) -> None:
+        f.tracker.share_leader_position = True
+        await f.reach(S.FOLLOW, timeout_s=60)
+        await f.sim_time(26.0)
+        assert await inject_gps(f.ports, 1) == 0
+        t_cut = f.clock.now_s()
+        await f.reach(S.FOLLOW_VISION, timeout_s=3.0)
+        # Attitude first, then velocity once PX4 has accepted the external fix.
+        for _ in range(100):
+            if any(t.reason.name == "VISION_MODE_CHANGED" for t in f.rec.transitions):
+                break
+            await asyncio.sleep(0.1)
+        t_ext = f.clock.now_s()
+        figures["gps_loss_to_external_s"] = t_ext - t_cut
+        await asyncio.sleep(20.0)
+        assert f.runner.state == S.FOLLOW_VISION, f.rec.reasons()
+        rows = f.rec.rows_in(S.FOLLOW_VISION, since_s=t_ext)
+        assert rows
+        assert all(r.setpoint == "VelocityBodySetpoint" for r in rows)
+        figures["px4_position_valid_frac"] = sum(r.position_valid is True for r in rows) / len(rows)
+        assert CUSTOM_MODE_AUTO_LAND not in [m for _, m in f.tap.vehicle_modes(since_s=t_cut)]
+        errs = [r.formation_err_m for r in rows if r.t_s > t_ext + 3.0 and r.formation_err_m is not None]
+        figures["external_rmse_m"] = rmse(errs)
+        figures["external_max_dev_m"] = max(errs)
+        f.runner.request_shutdown()
+        await f.reach(S.PX4_LAND, timeout_s=3.0)
+
+    await fly(tmp_path, cfg, STRAIGHT_SCENARIO, body)
+    print(
+        "\nexternal-position figures (TEST-ONLY truth tracker):", {k: round(v, 3) for k, v in figures.items()}
+    )
+    assert figures["gps_loss_to_external_s"] < 6.0
+    assert figures["px4_position_valid_frac"] > 0.95
+    assert figures["external_rmse_m"] <= 0.45
+
+
 async def test_stale_estimates_never_reach_the_vehicle(tmp_path: Path) -> None:
     """The tracker stops: within a tick of ``stale_estimate_s`` the wire carries only hover setpoints."""
     cfg = mission_cfg(leader_lost_action="land", stall_hover_s=3.0)
