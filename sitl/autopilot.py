@@ -88,6 +88,9 @@ _MOTORS_OFF = (0.0, 0.0, 0.0, 0.0)
 #: Armed on the ground, PX4 spins the motors at idle.
 _MOTORS_IDLE = (0.03, 0.03, 0.03, 0.03)
 _STATUSTEXT_REPEAT_S = 1.0
+#: Frames PX4 accepts external-vision poses in: LOCAL_NED 1, LOCAL_FRD 20, and the deprecated
+#: MOCAP_NED 14 / VISION_NED 16 that older clients still send (gone from pymavlink's common).
+_EV_FRAMES = frozenset({1, 20, 14, 16})
 
 
 @dataclass(slots=True)
@@ -1077,10 +1080,7 @@ class Autopilot:
         self.counters["vision"] += 1
 
     def _on_odometry(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
-        if int(msg.frame_id) not in (
-            mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_VISION_NED,
-            mavlink.MAV_FRAME_MOCAP_NED,
-        ):  # fmt: skip
+        if int(msg.frame_id) not in _EV_FRAMES:
             self.counters["vision_refused"] += 1
             return
         x, y, z = _fin(msg.x), _fin(msg.y), _fin(msg.z)
@@ -1178,9 +1178,7 @@ class Autopilot:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         mission_type = int(getattr(msg, "mission_type", 0) or 0)
-        self._reply(
-            link, mavlink.MAVLink_mission_count_message(src_system, src_component, 0, mission_type, 0)
-        )
+        self._reply(link, mavlink.MAVLink_mission_count_message(src_system, src_component, 0, mission_type))
 
     def _on_mission_count(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
@@ -1189,7 +1187,7 @@ class Autopilot:
         self._reply(
             link,
             mavlink.MAVLink_mission_ack_message(
-                src_system, src_component, mavlink.MAV_MISSION_UNSUPPORTED, mission_type, 0
+                src_system, src_component, mavlink.MAV_MISSION_UNSUPPORTED, mission_type
             ),
         )
 

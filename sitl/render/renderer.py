@@ -284,7 +284,10 @@ class Renderer:
         self._sdepth = ctx.depth_renderbuffer((W * s, H * s))
         self._scene_fbo = ctx.framebuffer([self._s0, self._s1], self._sdepth)
         self._d_depth = ctx.texture((W, H), 1, dtype="f4")
-        self._direct_fbo = ctx.framebuffer([self._s0, self._s1, self._d_depth], self._sdepth)
+        # DIRECT (real time, no supersampling) writes final depth in the scene pass.
+        self._direct_fbo = (
+            ctx.framebuffer([self._s0, self._s1, self._d_depth], self._sdepth) if s == 1 else None
+        )
         self._edges_fbo = ctx.framebuffer([self._d_depth])
         # Post: final colour, depth and leader coverage.
         self._p_rgb = ctx.texture((W, H), 4)
@@ -595,9 +598,11 @@ class Renderer:
                 vao.render(moderngl.TRIANGLES)
                 self._edges_fbo.scissor = None  # type: ignore[assignment]
             aux = np.empty((H, W, 4), dtype=np.uint8)
-            self._direct_fbo.read_into(rgb, components=3, attachment=0)
-            self._direct_fbo.read_into(aux, components=4, attachment=1)
-            self._direct_fbo.read_into(depth, components=1, attachment=2, dtype="f4")
+            dfbo = self._direct_fbo
+            assert dfbo is not None  # noqa: S101  (direct implies supersample == 1)
+            dfbo.read_into(rgb, components=3, attachment=0)
+            dfbo.read_into(aux, components=4, attachment=1)
+            dfbo.read_into(depth, components=1, attachment=2, dtype="f4")
             mask = aux[..., 3] >= 128
         else:
             # Whole frame when near things fill much of it (and always for supersampled datasets).
@@ -663,7 +668,7 @@ class Renderer:
         clip_from_ned = _mat_bytes(self._P @ view_matrix(cam))
         cam_ned = tuple(float(c) for c in cam.p_ned_cam_m)
         glare = self._glare_rgb(cam)
-        fbo = self._direct_fbo if sensor is not None else self._scene_fbo
+        fbo = self._direct_fbo if sensor is not None and self._direct_fbo is not None else self._scene_fbo
         fbo.use()
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)

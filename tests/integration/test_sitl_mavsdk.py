@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -42,7 +43,9 @@ def one_vehicle(tmp_path: Path) -> Iterator[SitlProcess]:
     with sitl_serve(speed=SPEED, config=cfg, vehicles=1) as sim:
         yield sim
     out = "\n".join(sim.output)
-    assert "handler errors 0" in out, out[-3000:]
+    errors = [int(x) for x in re.findall(r"handler errors (\d+)", out)]
+    assert errors, out[-3000:]
+    assert errors == [0] * len(errors), errors
 
 
 @contextlib.asynccontextmanager

@@ -91,7 +91,8 @@ def test_gps_loss_in_offboard_velocity_follows_px4_timeline() -> None:
     assert world.truth("follower").p_ned_m[2] > -0.2
 
 
-def test_external_vision_keeps_position_valid_after_gps_loss() -> None:
+@pytest.mark.parametrize("message", ["VISION_POSITION_ESTIMATE", "ODOMETRY"])
+def test_external_vision_keeps_position_valid_after_gps_loss(message: str) -> None:
     world = world_with(seed=4)
     c = Client(world)
     c.take_off(5.0)
@@ -103,7 +104,33 @@ def test_external_vision_keeps_position_valid_after_gps_loss() -> None:
         p = world.truth("follower").p_ned_m
         n, e = p[0] - off[0] + rng.normal(0, 0.05), p[1] - off[1] + rng.normal(0, 0.05)
         cov = [0.01] + [0.0] * 5 + [0.01] + [0.0] * 14
-        c.send(mavlink.MAVLink_vision_position_estimate_message(int(t * 1e6), n, e, p[2], 0, 0, 0, cov, 0))
+        if message == "ODOMETRY":
+            c.send(
+                mavlink.MAVLink_odometry_message(
+                    int(t * 1e6),
+                    mavlink.MAV_FRAME_LOCAL_NED,
+                    mavlink.MAV_FRAME_BODY_FRD,
+                    n,
+                    e,
+                    p[2],
+                    [1.0, 0.0, 0.0, 0.0],
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    cov,
+                    [NAN] * 21,
+                    0,
+                    0,
+                    100,
+                )
+            )
+        else:
+            c.send(
+                mavlink.MAVLink_vision_position_estimate_message(int(t * 1e6), n, e, p[2], 0, 0, 0, cov, 0)
+            )
 
     c.run(1.0, each=stream)
     assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
@@ -299,3 +326,112 @@ def test_default_streams_at_px4_onboard_rates_and_set_message_interval() -> None
     st = [m for _, m in c.log if m.get_type() == "SYSTEM_TIME"][-1]
     assert st.time_boot_ms / 1000.0 == pytest.approx(world.t_s, abs=1.05)
     assert st.time_unix_usec == pytest.approx((1_767_225_600.0 + st.time_boot_ms / 1000.0) * 1e6, abs=2e3)
+
+
+def test_every_handled_message_type_with_random_values_is_harmless() -> None:
+    import random
+
+    from tests.fuzz_messages import random_message
+
+    world = world_with(seed=10)
+    c = Client(world)
+    handled = set(c.ap._handlers)
+    classes = [cls for cls in mavlink.mavlink_map.values() if cls.msgname in handled]
+    assert len(classes) == len(handled)
+    rng = random.Random(5)
+    for _ in range(200):
+        for _ in range(100):
+            c.link.send(random_message(rng, classes), rng.randint(0, 255), rng.randint(0, 255))
+        c.run(0.1)
+    assert c.ap.counters["messages_in"] == 20_000
+    assert c.ap.counters["handler_errors"] == 0
+
+
+def test_command_int_reposition_and_global_setpoints_fly_to_lat_lon() -> None:
+    world = world_with(seed=12)
+    c = Client(world)
+    c.take_off(5.0)
+    ap = c.ap
+    off = world.origin_offset_ned_m("follower")
+    lat, lon, _ = ap.origin.to_geodetic(10.0, 0.0, 0.0)
+    c.send(
+        mavlink.MAVLink_command_int_message(
+            c.sysid,
+            1,
+            mavlink.MAV_FRAME_GLOBAL,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            0,
+            0,
+            NAN,
+            int(lat * 1e7),
+            int(lon * 1e7),
+            ap.home.alt_m + 6.0,
+        )
+    )
+    c.run(12.0)
+    p = world.truth("follower").p_ned_m
+    assert ap.nav_state is NavState.AUTO_LOITER
+    assert p[0] - off[0] == pytest.approx(10.0, abs=0.6)
+    assert -p[2] == pytest.approx(6.0 + 0.09, abs=0.4)
+    # SET_POSITION_TARGET_GLOBAL_INT (MAVSDK's set_position_global) in offboard.
+    lat2, lon2, _ = ap.origin.to_geodetic(10.0, 8.0, 0.0)
+
+    def stream(_t: float) -> None:
+        c.send(
+            mavlink.MAVLink_set_position_target_global_int_message(
+                0,
+                c.sysid,
+                1,
+                mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                0b110111111000,
+                int(lat2 * 1e7),
+                int(lon2 * 1e7),
+                5.0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+        )
+
+    c.run(1.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
+    c.run(10.0, each=stream)
+    p = world.truth("follower").p_ned_m
+    assert (p[0] - off[0], p[1] - off[1]) == pytest.approx((10.0, 8.0), abs=0.6)
+    assert -p[2] == pytest.approx(5.0 + 0.09, abs=0.4)
+
+
+def test_return_climbs_flies_home_lands_and_disarms() -> None:
+    world = world_with(seed=13)
+    c = Client(world)
+    c.take_off(5.0)
+
+    def stream(_t: float) -> None:
+        c.position_setpoint(20.0, 10.0, -5.0)
+
+    stream(0.0)
+    c.run(1.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
+    c.run(12.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH) == 0
+    peak = [0.0]
+
+    def watch(_t: float) -> None:
+        peak[0] = max(peak[0], -world.truth("follower").p_ned_m[2])
+
+    c.run_until(lambda: not c.ap.armed, 120.0, each=watch)
+    p = world.truth("follower").p_ned_m
+    off = world.origin_offset_ned_m("follower")
+    # PX4 defaults: climb to at least RTL_DESCEND_ALT (30 m), return, descend, land at home.
+    assert peak[0] == pytest.approx(30.0, abs=1.5)
+    assert math.hypot(p[0] - off[0], p[1] - off[1]) < 1.0
+    assert p[2] > -0.2
+    assert "Disarmed by landing" in [x for _, x in c.texts()]

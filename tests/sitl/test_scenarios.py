@@ -196,3 +196,9 @@ def test_link_loss_scenario_cuts_and_bursts_reach_the_client() -> None:
     assert burst == pytest.approx(70.0, rel=0.1)  # 30 % lost
     assert min(att) >= 0.02  # 20 ms latency
     assert link.dropped_out > 0
+
+
+def test_shipped_sitl_config_documents_the_defaults() -> None:
+    from sitl.config import SitlConfig, load_sitl_config
+
+    assert load_sitl_config(REPO / "config" / "sitl.toml", environ={}) == SitlConfig()
