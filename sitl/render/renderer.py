@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
+import cv2
 import moderngl
 import numpy as np
 from numpy.typing import NDArray
@@ -45,7 +46,7 @@ from sitl.render.geometry import (
     yaw_rel_rad,
 )
 from sitl.render.meshes import F32, VERTEX_ATTRIBUTES, VERTEX_FLOATS, VERTEX_FORMAT
-from sitl.render.noise import FIELD_PX, pattern_texture, sensor_noise_field
+from sitl.render.noise import FIELD_PX, NORMAL_RANGE, pattern_texture, sensor_noise_field
 from sitl.render.shaders import SHADOW_OFFSETS_PX
 from sitl.render.world import (
     CLOUD_ALTITUDE_M,
@@ -79,6 +80,7 @@ _CUBE_FACES = (
 )
 
 U8 = NDArray[np.uint8]
+_UNIT_CUBE = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,6 +133,24 @@ def white_balance_gains(camera_k: float) -> tuple[float, float, float]:
     """
     cam, ref = kelvin_rgb(camera_k), kelvin_rgb(5500.0)
     return ref[0] / cam[0], 1.0, ref[2] / cam[2]
+
+
+def _skybox_vertices(face_px: int) -> NDArray[np.float32]:
+    """The sky cube's triangles: per vertex a corner direction (NED) and its sky-atlas texel coordinates.
+
+    Face ``i`` of the atlas holds rows ``[i face_px, (i + 1) face_px)``; a face's (s, t) in [-1, 1] maps
+    to texels [0.5, face_px - 0.5], so that the interpolated coordinate never leaves the face.
+    """
+    out = []
+    for i, rows in enumerate(_CUBE_FACES):
+        M = np.array(rows, dtype=np.float64)
+        corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+        for s_, t_ in corners:
+            d = M @ np.array([s_, t_, 1.0])
+            u = 0.5 + 0.5 * (s_ + 1.0) * (face_px - 1)
+            v = 0.5 + 0.5 * (t_ + 1.0) * (face_px - 1) + i * face_px
+            out.append([*d, u, v])
+    return np.array(out, dtype=np.float32)
 
 
 def _mat_bytes(M: NDArray[np.float64]) -> bytes:
@@ -262,8 +282,14 @@ class Renderer:
         p = pattern[::4, ::4].astype(np.float32) / 255.0
         dens = 0.8 * p[..., 0] + 0.12 * p[..., 1] + 0.08 * p[..., 1]
         self._cloud_quantiles = np.percentile(dens, np.linspace(0, 100, 101))
-        noise = sensor_noise_field(seed + 1, self.camera.depth_noise_corr_px)
-        self._noise = ctx.texture((FIELD_PX, FIELD_PX), 4, noise.tobytes())
+        # The periodic field padded by a frame, so that every offset in [0, FIELD_PX)^2 reads a frame
+        # without wrapping (a wrap costs more per pixel than the fetch's address on llvmpipe).
+        noise = np.pad(
+            sensor_noise_field(seed + 1, self.camera.depth_noise_corr_px),
+            ((0, H - 1), (0, W - 1), (0, 0)),
+            mode="wrap",
+        )
+        self._noise = ctx.texture((noise.shape[1], noise.shape[0]), 4, noise.tobytes())
         self._s0 = ctx.texture((W * s, H * s), 4)
         self._s1 = ctx.texture((W * s, H * s), 4)
         for t in (self._noise, self._s0, self._s1):
@@ -276,19 +302,25 @@ class Renderer:
         )
         self._ground_tex = ctx.texture((GROUND_TEX_PX, GROUND_TEX_PX), 4)
         self._ground_fbo = ctx.framebuffer([self._ground_tex])
-        self._sky_face_px = SKY_FACE_PX if s == 1 else SKY_FACE_PX_SUPERSAMPLED
-        self._face_tex = ctx.texture((self._sky_face_px, self._sky_face_px), 4)
+        # The sky: at output resolution six faces in one atlas (a skybox samples it with texelFetch);
+        # supersampled, a cube map sampled with linear filtering.
+        face = self._sky_face_px = SKY_FACE_PX if s == 1 else SKY_FACE_PX_SUPERSAMPLED
+        self._face_tex = ctx.texture((face, face * (6 if s == 1 else 1)), 4)
+        self._face_tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._face_fbo = ctx.framebuffer([self._face_tex])
         self._sky_cube: moderngl.TextureCube | None = None
-        # Scene: S0 colour, S1 aux (packed disparity, leader + texturedness); DIRECT adds final depth.
-        self._sdepth = ctx.depth_renderbuffer((W * s, H * s))
+        self._skybox = ctx.buffer(_skybox_vertices(face).tobytes())
+        # Scene: S0 colour (alpha < 0.5: leader), S1 aux (packed disparity, leader + texturedness), or,
+        # DIRECT (real time, no supersampling), S0 and the final depth; the depth buffer is a texture
+        # that the holes pass reads disparity from.
+        self._sdepth = ctx.depth_texture((W * s, H * s))
+        self._sdepth.compare_func = ""
+        self._sdepth.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._scene_fbo = ctx.framebuffer([self._s0, self._s1], self._sdepth)
         self._d_depth = ctx.texture((W, H), 1, dtype="f4")
-        # DIRECT (real time, no supersampling) writes final depth in the scene pass.
-        self._direct_fbo = (
-            ctx.framebuffer([self._s0, self._s1, self._d_depth], self._sdepth) if s == 1 else None
-        )
+        self._direct_fbo = ctx.framebuffer([self._s0, self._d_depth], self._sdepth) if s == 1 else None
         self._edges_fbo = ctx.framebuffer([self._d_depth])
+        self._rgba = np.empty((H, W, 4), dtype=np.uint8)
         # Post: final colour, depth and leader coverage.
         self._p_rgb = ctx.texture((W, H), 4)
         self._p_depth = ctx.texture((W, H), 1, dtype="f4")
@@ -315,6 +347,9 @@ class Renderer:
             _set(prog, "u_tex", 4)
             _set(prog, "u_z", 0.0)
         self._P = projection_matrix(self.intrinsics, NEAR_M, FAR_M, s)
+        # Window depth zw -> disparity: 1 / z = (2 zw - 1 - P22) / P23, so disparity = fB / z is affine.
+        fB, P22, P23 = self.camera.focal_baseline_px_m, self._P[2, 2], self._P[2, 3]
+        self._disp_from_window_z = (2.0 * fB / P23, -fB * (1.0 + P22) / P23)
         # Framebuffer pixel (x, y) at scale s is intrinsics pixel ((x + 0.5) / s - 0.5, ...).
         S = np.array([[1.0 / s, 0.0, 0.5 / s - 0.5], [0.0, 1.0 / s, 0.5 / s - 0.5], [0.0, 0.0, 1.0]])
         self._Kinv_fb = np.linalg.inv(self.intrinsics.K) @ S
@@ -338,17 +373,22 @@ class Renderer:
                 vertex_shader=shaders.SCENE_VS, fragment_shader=shaders.with_defines(fs, DIRECT=d)
             )
 
-        sky = ctx.program(
-            vertex_shader=shaders.FULLSCREEN_VS,
-            fragment_shader=shaders.with_defines(shaders.SKY_FS, DIRECT=d),
-        )
+        if self.supersample == 1:
+            sky = ctx.program(
+                vertex_shader=shaders.SKYBOX_VS,
+                fragment_shader=shaders.with_defines(shaders.SKYBOX_FS, DIRECT=d),
+            )
+            sky_vao = ctx.vertex_array(sky, [(self._skybox, "3f 2f", "in_dir", "in_uv")])
+        else:
+            sky = ctx.program(vertex_shader=shaders.FULLSCREEN_VS, fragment_shader=shaders.SKY_FS)
+            sky_vao = ctx.vertex_array(sky, [(self._tri, "2f", "in_xy")])
         progs = _ScenePrograms(
             ground=mesh(shaders.SCENE_GROUND_FS),
             generic=mesh(shaders.SCENE_GENERIC_FS),
             foliage=mesh(shaders.SCENE_FOLIAGE_FS),
             rotor=mesh(shaders.SCENE_ROTOR_FS),
             sky=sky,
-            sky_vao=ctx.vertex_array(sky, [(self._tri, "2f", "in_xy")]),
+            sky_vao=sky_vao,
         )
         cam = self.camera
         for prog in progs.all:
@@ -358,31 +398,36 @@ class Renderer:
                 self._sensor_constants(prog)
         _set(progs.ground, "u_ground", 5)
         _set(progs.sky, "u_sky", 6)
+        _set(progs.sky, "u_sky_atlas", 6)
         _set(progs.sky, "u_z", 1.0)
         return progs
 
     def _sensor_constants(self, prog: moderngl.Program) -> None:
         """Uniforms of the sensor model that never change for a camera (see shaders._SENSOR)."""
         cam = self.camera
+        fB = cam.focal_baseline_px_m
+        sigma_px = cam.subpixel_px if cam.depth_noise else 0.0
+        floor, low_texture = (0.004, 0.10) if cam.depth_holes else (0.0, 0.0)
         _set(prog, "u_noise", 2)
-        _set(prog, "u_half_size", (self.intrinsics.width_px / 2.0, self.intrinsics.height_px / 2.0))
-        _set(prog, "u_subpix", cam.subpixel_px if cam.depth_noise else 0.0)
-        _set(prog, "u_zrange", (cam.depth_min_m, cam.depth_max_m))
-        _set(prog, "u_hole_p", (0.004, 0.10) if cam.depth_holes else (0.0, 0.0))
+        _set(prog, "u_disp_noise", (NORMAL_RANGE * sigma_px, -0.5 * NORMAL_RANGE * sigma_px))
+        _set(prog, "u_drange", (fB / cam.depth_max_m, fB / cam.depth_min_m))
+        _set(prog, "u_hole_p", (floor + low_texture, low_texture))
 
     def _post_variant(
-        self, edges: bool, shadow_px: int, blur_n: int, depth_only: bool = False
+        self, edges: bool, shadow_px: int, blur_n: int, holes_only: bool = False
     ) -> tuple[moderngl.Program, moderngl.VertexArray]:
         """The post program for one combination of switches, compiled on first use."""
-        key = (int(edges), shadow_px if edges else 0, blur_n, int(depth_only))
+        key = (int(edges), shadow_px if edges else 0, blur_n, int(holes_only))
         if key not in self._post_variants:
             prog = self._ctx.program(
                 vertex_shader=shaders.FULLSCREEN_VS,
-                fragment_shader=shaders.post_fs(self.supersample, edges, key[1], blur_n, depth_only),
+                fragment_shader=shaders.post_fs(self.supersample, edges, key[1], blur_n, holes_only),
             )
             _set(prog, "u_z", 0.0)
             _set(prog, "u_col", 0)
             _set(prog, "u_aux", 1)
+            _set(prog, "u_zbuf", 3)
+            _set(prog, "u_disp_from_z", self._disp_from_window_z)
             _set(prog, "u_size", (self.intrinsics.width_px, self.intrinsics.height_px))
             _set(prog, "u_fB", self.camera.focal_baseline_px_m)
             self._sensor_constants(prog)
@@ -468,12 +513,21 @@ class Renderer:
         _set(kp, "u_fog_density", self.visual.fog_density_per_m)
         self._ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
         self._pattern.use(4)
+        fbo = self._face_fbo
+        fbo.use()
+        atlas = self.supersample == 1
         faces = np.empty((6, face, face, 4), dtype=np.uint8)
-        self._face_fbo.use()
         for i, rows in enumerate(_CUBE_FACES):
+            org_y = face * i if atlas else 0
+            fbo.viewport = (0, org_y, face, face)
+            _set(kp, "u_face_org", (0.0, float(org_y)))
             _set(kp, "u_dir_from_st", _mat_bytes(np.array(rows, dtype=np.float64)))
             self._sky_bake_vao.render(moderngl.TRIANGLES)
-            self._face_fbo.read_into(faces[i], components=4)
+            if not atlas:
+                fbo.read_into(faces[i], components=4)
+        fbo.viewport = (0, 0, *fbo.size)
+        if atlas:
+            return
         if self._sky_cube is None:
             self._sky_cube = self._ctx.texture_cube((face, face), 4)
         for i in range(6):
@@ -560,15 +614,7 @@ class Renderer:
         holes = self.camera.depth_holes
         shadow_px = self._shadow_search_px(cam, leader, extra_vertices)
         region = self._near_region(cam, leader, extra_vertices, shadow_px) if holes else None
-        offs = self._rng.integers(0, FIELD_PX, 2)
-        k = self.visual.sensor_noise if self.camera.colour_noise else 0.0
-        a, b = 0.0008 * analog * k, (0.002 * analog * k) ** 2
-        sensor = {
-            "u_off": (int(offs[0]), int(offs[1])),
-            "u_noise_sd": (0.5 * math.sqrt(a), 0.5 * math.sqrt(b), max(b**0.25, 1e-3)),
-            "u_vignette": self.visual.vignetting,
-            "u_contrast": self.visual.contrast,
-        }
+        sensor = self._sensor_uniforms(analog)
 
         # ---- pass 1: scene (and, DIRECT, the sensor)
         self._scene_pass(
@@ -584,62 +630,138 @@ class Renderer:
 
         # ---- pass 2: sensor, or (DIRECT) only edge and stereo-shadow holes near objects
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
-        self._s0.use(0)
-        self._s1.use(1)
         self._noise.use(2)
-        rgb = np.empty((H, W, 3), dtype=np.uint8)
         depth = np.empty((H, W), dtype=np.float32)
         if direct:
-            if region is not None:
-                pp, vao = self._post_variant(True, shadow_px, 0, depth_only=True)
-                self._post_uniforms(pp, sensor, H0, H1, 0)
-                self._edges_fbo.use()
-                self._edges_fbo.scissor = region
-                vao.render(moderngl.TRIANGLES)
-                self._edges_fbo.scissor = None  # type: ignore[assignment]
-            aux = np.empty((H, W, 4), dtype=np.uint8)
-            dfbo = self._direct_fbo
-            assert dfbo is not None  # noqa: S101  (direct implies supersample == 1)
-            dfbo.read_into(rgb, components=3, attachment=0)
-            dfbo.read_into(aux, components=4, attachment=1)
-            dfbo.read_into(depth, components=1, attachment=2, dtype="f4")
-            mask = aux[..., 3] >= 128
-        else:
-            # Whole frame when near things fill much of it (and always for supersampled datasets).
-            whole = holes and (
-                self.supersample > 1 or (region is not None and region[2] * region[3] > 0.4 * W * H)
+            return self._finish_direct(
+                cam,
+                leader,
+                region=region,
+                shadow_px=shadow_px,
+                sensor=sensor,
+                depth=depth,
+                exposure_s=exposure_s,
+                truth=truth,
             )
-            passes = [(whole, None)] if whole or region is None else [(False, None), (True, region)]
-            self._post_fbo.use()
-            for edges, scissor in passes:
-                pp, vao = self._post_variant(edges, shadow_px, blur_n)
-                self._post_uniforms(pp, sensor, H0, H1, blur_n)
-                self._post_fbo.scissor = scissor  # type: ignore[assignment]
-                vao.render(moderngl.TRIANGLES)
-            self._post_fbo.scissor = None  # type: ignore[assignment]
-            mask_u8 = np.empty((H, W), dtype=np.uint8)
-            self._post_fbo.read_into(rgb, components=3, attachment=0)
-            self._post_fbo.read_into(depth, components=1, attachment=1, dtype="f4")
-            self._post_fbo.read_into(mask_u8, components=1, attachment=2)
+        self._s0.use(0)
+        self._s1.use(1)
+        rgb = np.empty((H, W, 3), dtype=np.uint8)
+        # Whole frame when near things fill much of it (and always for supersampled datasets).
+        whole = holes and (
+            self.supersample > 1 or (region is not None and region[2] * region[3] > 0.4 * W * H)
+        )
+        passes = [(whole, None)] if whole or region is None else [(False, None), (True, region)]
+        self._post_fbo.use()
+        for edges, scissor in passes:
+            pp, vao = self._post_variant(edges, shadow_px, blur_n)
+            self._post_uniforms(pp, sensor, H0, H1, blur_n)
+            self._post_fbo.scissor = scissor  # type: ignore[assignment]
+            vao.render(moderngl.TRIANGLES)
+        self._post_fbo.scissor = None  # type: ignore[assignment]
+        mask_u8 = np.empty((H, W), dtype=np.uint8)
+        self._post_fbo.read_into(rgb, components=3, attachment=0)
+        self._post_fbo.read_into(depth, components=1, attachment=1, dtype="f4")
+        self._post_fbo.read_into(mask_u8, components=1, attachment=2)
         self._meter(rgb)
 
         box, visible, full = None, 0.0, 0.0
         if leader is not None and truth:
-            if direct:
-                box, count = box_from_mask(mask)
-                visible = float(count)
-                mask_out = mask.view(np.uint8) * np.uint8(255)
-            else:
-                box, count = box_from_mask(mask_u8)
-                visible = (
-                    float(count) if self.supersample == 1 else float(mask_u8.sum(dtype=np.int64)) / 255.0
-                )
-                mask_out = mask_u8
+            box, count = box_from_mask(mask_u8)
+            visible = float(count) if self.supersample == 1 else float(mask_u8.sum(dtype=np.int64)) / 255.0
             if box is not None:
                 full = max(self._full_leader_px(cam, leader), visible)
-        else:
-            mask_out = np.zeros((H, W), dtype=np.uint8) if direct else mask_u8
-        return RenderedView(rgb, depth, mask_out, box, visible, full, exposure_s)
+        return RenderedView(rgb, depth, mask_u8, box, visible, full, exposure_s)
+
+    def _finish_direct(
+        self,
+        cam: CameraPose,
+        leader: LeaderPose | None,
+        *,
+        region: tuple[int, int, int, int] | None,
+        shadow_px: int,
+        sensor: dict[str, Any],
+        depth: NDArray[np.float32],
+        exposure_s: float,
+        truth: bool,
+    ) -> RenderedView:
+        """After a DIRECT scene pass: edge and shadow holes near objects, read-back, the leader's truth."""
+        W, H = self.intrinsics.width_px, self.intrinsics.height_px
+        if region is not None:
+            pp, vao = self._post_variant(True, shadow_px, 0, holes_only=True)
+            self._post_uniforms(pp, sensor, np.eye(3), np.eye(3), 0)
+            self._sdepth.use(3)
+            self._edges_fbo.use()
+            self._edges_fbo.scissor = region
+            vao.render(moderngl.TRIANGLES)
+            self._edges_fbo.scissor = None  # type: ignore[assignment]
+        dfbo = self._direct_fbo
+        assert dfbo is not None  # noqa: S101  (direct implies supersample == 1)
+        rgba = self._rgba
+        # RGBA reads as a copy; llvmpipe converts to RGB byte by byte (10x slower than OpenCV's swizzle).
+        dfbo.read_into(rgba, components=4, attachment=0)
+        dfbo.read_into(depth, components=1, attachment=1, dtype="f4")
+        rgb = np.empty((H, W, 3), dtype=np.uint8)
+        cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB, dst=rgb)
+        self._meter(rgb)
+        mask = np.zeros((H, W), dtype=np.uint8)
+        box, visible, full = None, 0.0, 0.0
+        span = self._leader_span(cam, leader) if truth else None
+        if leader is not None and span is not None:
+            x0, y0, x1, y1 = span
+            # Colour alpha < 0.5 marks the leader (opaque parts write 0, the rotor pass zeroes it).
+            sub = rgba[y0:y1, x0:x1, 3] < 128
+            sub_box, count = box_from_mask(sub)
+            if sub_box is not None:
+                mask[y0:y1, x0:x1] = sub.view(np.uint8) * np.uint8(255)
+                box = (sub_box[0] + x0, sub_box[1] + y0, sub_box[2] + x0, sub_box[3] + y0)
+                visible = float(count)
+                full = max(self._full_leader_px(cam, leader), visible)
+        return RenderedView(rgb, depth, mask, box, visible, full, exposure_s)
+
+    def _leader_span(self, cam: CameraPose, leader: LeaderPose | None) -> tuple[int, int, int, int] | None:
+        """Pixel rectangle (x0, y0, x1, y1) that holds every pixel of the leader, or None if off screen.
+
+        The projection of the leader's bounding cube, a pixel wider on each side; the whole frame if the
+        cube reaches behind the camera.
+        """
+        if leader is None:
+            return None
+        intr = self.intrinsics
+        W, H = intr.width_px, intr.height_px
+        R = self.leader_model.bound_radius_m
+        corners = cam.to_cam(leader.p_ned_m) + R * _UNIT_CUBE
+        if np.any(corners[:, 2] <= NEAR_M):
+            return (0, 0, W, H)
+        u = intr.fx_px * corners[:, 0] / corners[:, 2] + intr.cx_px
+        v = intr.fy_px * corners[:, 1] / corners[:, 2] + intr.cy_px
+        x0, x1 = max(math.floor(u.min()) - 1, 0), min(math.ceil(u.max()) + 2, W)
+        y0, y1 = max(math.floor(v.min()) - 1, 0), min(math.ceil(v.max()) + 2, H)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        return (x0, y0, x1, y1)
+
+    def _sensor_uniforms(self, analog_gain: float) -> dict[str, Any]:
+        """Per-frame sensor-model uniforms (see ``shaders._SENSOR``), constants folded for the shader.
+
+        A fresh noise offset each frame. Colour noise: shot variance ``a`` and read variance ``b`` grow with
+        analog gain; in the sqrt domain their sd is about ``0.5 sqrt(a) + 0.5 sqrt(b) / (v + b^0.25)``.
+        Vignetting darkens by ``vignetting / 4 * (radius / half width)^2``; contrast pivots on 0.45.
+        """
+        W, H = self.intrinsics.width_px, self.intrinsics.height_px
+        offs = self._rng.integers(0, FIELD_PX, 2)
+        k = self.visual.sensor_noise if self.camera.colour_noise else 0.0
+        a, b = 0.0008 * analog_gain * k, (0.002 * analog_gain * k) ** 2
+        c = self.visual.contrast
+        x, y, z = 0.5 * math.sqrt(a), 0.5 * math.sqrt(b), max(b**0.25, 1e-3)
+        # The shader's noise is 8 (byte - 0.5) units and its vignetting term v g k / c: fold 8 and c in.
+        sd = (NORMAL_RANGE * c * x, NORMAL_RANGE * c * c * y, c * z)
+        r_scale = math.sqrt(c * self.visual.vignetting / 4.0) / (W / 2.0)
+        return {
+            "u_off": (int(offs[0]), int(offs[1])),
+            "u_noise_sd": sd,
+            "u_vig": (r_scale, r_scale, -r_scale * W / 2.0, -r_scale * H / 2.0),
+            "u_tone": (c, 0.45 * (1.0 - c)),
+        }
 
     def _post_uniforms(
         self, prog: moderngl.Program, sensor: dict[str, Any], H0: Mat3, H1: Mat3, blur_n: int
@@ -668,17 +790,21 @@ class Renderer:
         clip_from_ned = _mat_bytes(self._P @ view_matrix(cam))
         cam_ned = tuple(float(c) for c in cam.p_ned_cam_m)
         glare = self._glare_rgb(cam)
-        fbo = self._direct_fbo if sensor is not None and self._direct_fbo is not None else self._scene_fbo
+        direct = sensor is not None and self._direct_fbo is not None
+        fbo = self._direct_fbo if direct and self._direct_fbo is not None else self._scene_fbo
         fbo.use()
+        n_att = len(fbo.color_attachments)
+        if self.supersample == 1:
+            # The skybox covers every pixel nothing else drew: only depth needs clearing.
+            fbo.color_mask = [(False, False, False, False)] * n_att  # type: ignore[assignment]
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        fbo.color_mask = [(True, True, True, True)] * n_att  # type: ignore[assignment]
         ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         ctx.disable(moderngl.BLEND)
         ctx.front_face = "cw"  # the y-down projection mirrors the image (see projection_matrix)
         ctx.depth_func = "<"
         self._pattern.use(4)
         self._ground_tex.use(5)
-        assert self._sky_cube is not None  # noqa: S101  (baked in set_visual)
-        self._sky_cube.use(6)
         self._noise.use(2)
         identity = _mat_bytes(np.eye(4))
         # Ground mip levels: footprint at 1 m = 1 / (f h) metres per pixel (see the ground shader).
@@ -722,6 +848,7 @@ class Renderer:
         ctx.disable(moderngl.CULL_FACE)
         ctx.depth_func = "<="
         fbo.depth_mask = False
+        self._sky_tex().use(6)
         _set(progs.sky, "u_ned_from_pix", _mat_bytes(cam.R_ned_cam @ self._Kinv_fb))
         _set(progs.sky, "u_gain_rgb", tuple(g * SKY_SCALE for g in gain_rgb))
         _set(progs.sky, "u_glare_rgb", tuple(g / SKY_SCALE for g in glare))
@@ -736,18 +863,30 @@ class Renderer:
             _set(rp, "u_blade_vis", blade_vis)
             ctx.depth_func = "<"
             ctx.enable(moderngl.BLEND)
+            # DIRECT: colour alpha becomes 0 (the leader mask), the depth attachment is left alone.
+            # Otherwise: colour RGB only, and the aux alpha (leader + texturedness) from the disc.
             ctx.blend_func = (  # type: ignore[assignment]  # moderngl takes 2 or 4 factors
                 moderngl.SRC_ALPHA,
                 moderngl.ONE_MINUS_SRC_ALPHA,
-                moderngl.ONE,
+                moderngl.ZERO if direct else moderngl.ONE,
                 moderngl.ZERO,
             )
-            masks = [(True, True, True, False), (False, False, False, True), (False, False, False, False)]
-            fbo.color_mask = masks[: len(fbo.color_attachments)]  # type: ignore[assignment]
+            off = (False, False, False, False)
+            if direct:
+                fbo.color_mask = [(True, True, True, True), off]  # type: ignore[assignment]
+            else:
+                fbo.color_mask = [(True, True, True, False), (False, False, False, True)]  # type: ignore[assignment]
             progs.leader_vaos[1].render(moderngl.TRIANGLES)
-            fbo.color_mask = [(True, True, True, True)] * len(fbo.color_attachments)  # type: ignore[assignment]
+            fbo.color_mask = [(True, True, True, True)] * n_att  # type: ignore[assignment]
             ctx.disable(moderngl.BLEND)
         fbo.depth_mask = True
+
+    def _sky_tex(self) -> moderngl.Texture | moderngl.TextureCube:
+        """The baked sky: the face atlas (output resolution) or the cube map (supersampled)."""
+        if self.supersample == 1:
+            return self._face_tex
+        assert self._sky_cube is not None  # noqa: S101  (baked in set_visual)
+        return self._sky_cube
 
     def _glare_rgb(self, cam: CameraPose) -> tuple[float, float, float]:
         """Veiling glare: light a sun in or near the view scatters over the whole image (linear)."""

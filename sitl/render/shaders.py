@@ -32,37 +32,37 @@ vec4 tex_lod(vec2 t) { return texture(u_tex, t * (1.0 / 1024.0)); }
 """
 
 #: The sensor model shared by the post pass and DIRECT scene shaders (needs ``u_fB`` declared first).
+#: Its constants are folded on the CPU (``Renderer._sensor_uniforms``) so that a pixel costs few ops.
 _SENSOR = """
 // r: white N(0,1) luminance noise, g: white N(0,1) chroma noise (also a per-pixel coin), b: spatially
 // correlated N(0,1) disparity noise (all stored as 8 (x - 0.5)); a: clumpy field, uniform on [0, 1].
 uniform sampler2D u_noise;
-uniform ivec2 u_off;
-uniform vec2 u_half_size;    // output half size, px
-uniform vec3 u_noise_sd;     // colour noise sd in the sqrt domain: sd = x + y / (v + z), v = sqrt(linear)
-uniform float u_vignette;
-uniform float u_contrast;
-uniform float u_subpix;      // disparity noise sigma, px
-uniform vec2 u_zrange;       // valid depth, m
-uniform vec2 u_hole_p;       // blob-hole probability: (floor, extra at zero texture)
+uniform ivec2 u_off;         // per-frame offset; p + u_off stays inside the field (no wrap to compute)
+uniform vec4 u_vig;          // r = p u_vig.xy + u_vig.zw; r^2 = contrast vignetting / 4 (radius / half w)^2
+uniform vec2 u_tone;         // (contrast, 0.45 (1 - contrast))
+uniform vec3 u_noise_sd;     // 8 contrast sd, sd = x + y / (v.g k + z): shot + read noise (sqrt domain)
+uniform vec2 u_disp_noise;   // disparity noise (8 sigma, -4 sigma), px
+uniform vec2 u_drange;       // valid true disparity (fB / z_max, fB / z_min), px
+uniform vec2 u_hole_p;       // blob-hole threshold: p(textured) = x - y textured
 
-vec4 sensor_noise(ivec2 p) { return texelFetch(u_noise, (p + u_off) & 1023, 0); }
+vec4 sensor_noise(ivec2 p) { return texelFetch(u_noise, p + u_off, 0); }
 
 // Colour in the sqrt domain the scene writes (gamma 2, close to sRGB): vignetting, shot + read noise
-// (shot noise is nearly constant in this domain), contrast.
+// (shot noise is nearly constant in this domain, read noise grows in the dark; its level follows the
+// green channel), contrast about 0.45. All of it is one multiply-add per channel after the set-up.
 vec3 sensor_colour(vec3 v, vec4 nz) {
-    vec3 n = 8.0 * (nz.rgb - 0.5);
-    vec2 r = (gl_FragCoord.xy - u_half_size) / u_half_size.x;
-    v *= 1.0 - u_vignette * 0.25 * dot(r, r);
-    v += (u_noise_sd.x + u_noise_sd.y / (v + u_noise_sd.z)) * (n.r + 0.5 * n.g * vec3(1.0, -0.2, -1.0));
-    return (v - 0.45) * u_contrast + 0.45;
+    vec2 r = gl_FragCoord.xy * u_vig.xy + u_vig.zw;
+    float k = u_tone.x - dot(r, r);
+    float sd = u_noise_sd.x + u_noise_sd.y / (v.g * k + u_noise_sd.z);
+    vec3 n = nz.g * vec3(0.5, -0.1, -0.5) + (nz.r - vec3(0.75, 0.45, 0.25));
+    return v * k + (sd * n + u_tone.y);
 }
 
 // D400 stereo: noise on the true disparity d (px, 0 = nothing), range limits on the true disparity (a
 // matcher's search range, so noise is never truncated), clumps of failed matches on low texture.
 float sensor_depth(float d, float textured, vec4 nz) {
-    float dn = d + u_subpix * 8.0 * (nz.b - 0.5);
-    bool valid = d >= u_fB / u_zrange.y && d <= u_fB / u_zrange.x && dn > 0.0
-        && nz.a >= u_hole_p.x + u_hole_p.y * (1.0 - textured);
+    float dn = nz.b * u_disp_noise.x + (d + u_disp_noise.y);
+    bool valid = d >= u_drange.x && d <= u_drange.y && dn > 0.0 && nz.a >= u_hole_p.x - u_hole_p.y * textured;
     return valid ? u_fB / dn : 0.0;
 }
 """
@@ -119,9 +119,10 @@ in vec2 v_uv;
 flat in int v_kind;
 flat in float v_param;
 layout(location = 0) out vec4 o_col;
-layout(location = 1) out vec4 o_aux;
 #if DIRECT
-layout(location = 2) out float o_depth;
+layout(location = 1) out float o_depth;
+#else
+layout(location = 1) out vec4 o_aux;
 #endif
 
 vec3 pack_disparity(float d) {
@@ -141,6 +142,8 @@ float spec32(float x) {
     return x;
 }
 
+// alpha: opacity for the blended rotor discs; opaque surfaces pass 1 - u_leader (DIRECT reads the
+// leader mask from colour alpha < 0.5; the rotor pass zeroes alpha through its blend function).
 void emit(vec3 col, float alpha, float textured, float dist) {
     float fog = exp(-u_fog_density * dist);
     col = mix(u_fog_rgb, col, fog) + u_glare_rgb;
@@ -149,11 +152,12 @@ void emit(vec3 col, float alpha, float textured, float dist) {
     textured *= fog;
 #if DIRECT
     vec4 nz = sensor_noise(ivec2(gl_FragCoord.xy));
-    v = sensor_colour(v, nz);
+    o_col = vec4(sensor_colour(v, nz), alpha);
     o_depth = sensor_depth(d, textured, nz);
-#endif
+#else
     o_col = vec4(v, alpha);
     o_aux = vec4(pack_disparity(d), 0.5 * u_leader + 0.49 * textured);
+#endif
 }
 """
 )
@@ -246,7 +250,7 @@ void main() {
     fres *= fres; fres *= fres;
     col += spec * (u_sun_rgb * spec32(dot(n, h)) * step(0.0, ndl) + (0.15 + 0.6 * fres) * ambient(n));
     col = mix(col, v_rgb, emissive);
-    emit(col, 1.0, mix(0.85, 0.6, max(wall, glossy)), dist);
+    emit(col, 1.0 - u_leader, mix(0.85, 0.6, max(wall, glossy)), dist);
 }
 """
 )
@@ -328,13 +332,14 @@ uniform vec4 u_cloud;      // (altitude m, texel size m, coverage threshold low,
 uniform vec2 u_cloud_off;  // texels
 uniform mat3 u_dir_from_st;   // cube face (s, t, 1) in [-1, 1] -> direction (GL cube-map convention)
 uniform float u_face_px;
+uniform vec2 u_face_org;      // window position of the face's corner (faces share one atlas)
 uniform float u_sky_scale;
 uniform vec3 u_fog_rgb;
 uniform float u_fog_density;
 const float FOG_LAYER_M = 300.0;   // fog thickness for upward rays
 layout(location = 0) out vec4 o_sky;
 void main() {
-    vec2 st = 2.0 * gl_FragCoord.xy / u_face_px - 1.0;
+    vec2 st = 2.0 * (gl_FragCoord.xy - u_face_org) / u_face_px - 1.0;
     vec3 d = normalize(u_dir_from_st * vec3(st, 1.0));
     float el = -d.z;
     float mu = dot(d, u_sun_dir);
@@ -362,11 +367,40 @@ void main() {
 """
 )
 
-#: The sky per frame: one cube-map lookup where nothing else was drawn.
-SKY_FS = (
-    """
+#: The sky per frame, supersampled (datasets): one filtered cube-map lookup where nothing else was drawn.
+SKY_FS = """
+#version 330
 uniform samplerCube u_sky;
 uniform mat3 u_ned_from_pix;   // R_ned_cam * K^-1 at the framebuffer's scale
+uniform vec3 u_gain_rgb;       // exposure * white balance * SKY_SCALE
+uniform vec3 u_glare_rgb;      // veiling glare, divided by SKY_SCALE
+layout(location = 0) out vec4 o_col;
+layout(location = 1) out vec4 o_aux;
+void main() {
+    vec3 s = textureLod(u_sky, u_ned_from_pix * vec3(gl_FragCoord.xy - 0.5, 1.0), 0.0).rgb;
+    o_col = vec4(sqrt(min((s * s + u_glare_rgb) * u_gain_rgb, 1.0)), 1.0);
+    o_aux = vec4(0.0);
+}
+"""
+
+#: The sky at output resolution: a cube around the camera, each face textured from its tile of the
+#: baked atlas. The rasteriser interpolates the face coordinates (exact: a face is a plane), so a
+#: pixel costs one ``texelFetch`` instead of a direction and a cube-map lookup (3x cheaper on llvmpipe).
+SKYBOX_VS = """
+#version 330
+uniform mat4 u_clip_from_ned;
+in vec3 in_dir;    // a cube corner, NED (only its direction matters)
+in vec2 in_uv;     // its atlas texel coordinates
+out vec2 v_uv;
+void main() {
+    v_uv = in_uv;
+    gl_Position = (u_clip_from_ned * vec4(in_dir, 0.0)).xyww;   // at infinity: window depth 1
+}
+"""
+
+SKYBOX_FS = (
+    """
+uniform sampler2D u_sky_atlas;
 uniform vec3 u_gain_rgb;       // exposure * white balance * SKY_SCALE
 uniform vec3 u_glare_rgb;      // veiling glare, divided by SKY_SCALE
 uniform float u_fB;
@@ -374,20 +408,22 @@ uniform float u_fB;
 """
     + _SENSOR
     + """
-layout(location = 2) out float o_depth;
+layout(location = 1) out float o_depth;
+#else
+layout(location = 1) out vec4 o_aux;
 #endif
 layout(location = 0) out vec4 o_col;
-layout(location = 1) out vec4 o_aux;
+in vec2 v_uv;
 void main() {
-    // Level 0: face texels are about a pixel wide; implicit LOD on a cube costs ~3x the lookup here.
-    vec3 s = textureLod(u_sky, u_ned_from_pix * vec3(gl_FragCoord.xy - 0.5, 1.0), 0.0).rgb;
+    vec3 s = texelFetch(u_sky_atlas, ivec2(v_uv), 0).rgb;
     vec3 v = sqrt(min((s * s + u_glare_rgb) * u_gain_rgb, 1.0));
 #if DIRECT
-    v = sensor_colour(v, sensor_noise(ivec2(gl_FragCoord.xy)));
+    o_col = vec4(sensor_colour(v, sensor_noise(ivec2(gl_FragCoord.xy))), 1.0);
     o_depth = 0.0;
-#endif
+#else
     o_col = vec4(v, 1.0);
     o_aux = vec4(0.0);
+#endif
 }
 """
 )
@@ -404,9 +440,12 @@ SHADOW_OFFSETS_PX: dict[int, tuple[int, ...]] = {
 _POST_BODY = (
     """
 // Variant switches: SS (1 or 2), EDGES (0/1), N_SHADOW + SHADOW_OFFS, BLUR_N (0 = none),
-// DEPTH_ONLY (1: write only depth, location 0; the colour and mask came from a DIRECT scene pass).
+// HOLES_ONLY (1: after a DIRECT scene pass, which wrote colour, mask and noisy depth: read disparity
+// from the scene's depth buffer and write 0 m where edge and shadow holes are, nothing elsewhere).
 uniform sampler2D u_col;
 uniform sampler2D u_aux;
+uniform sampler2D u_zbuf;    // HOLES_ONLY: the scene's window depth
+uniform vec2 u_disp_from_z;  // HOLES_ONLY: disparity = window depth * x + y, px
 uniform ivec2 u_size;        // output size, px
 uniform float u_fB;          // focal length * baseline, px m
 uniform mat3 u_H0;
@@ -414,7 +453,7 @@ uniform mat3 u_H1;
 """
     + _SENSOR
     + """
-#if DEPTH_ONLY
+#if HOLES_ONLY
 layout(location = 0) out float o_depth;
 #else
 layout(location = 0) out vec4 o_rgb;
@@ -424,7 +463,13 @@ layout(location = 2) out float o_mask;
 
 const vec3 DEC = vec3(255.0, 255.0 / 256.0, 255.0 / 65536.0);
 
+#if HOLES_ONLY
+float disp(ivec2 p) {
+    return texelFetch(u_zbuf, min(p, u_size - 1), 0).r * u_disp_from_z.x + u_disp_from_z.y;
+}
+#else
 float disp(ivec2 p) { return dot(texelFetch(u_aux, min(p, u_size - 1) * SS, 0).rgb, DEC); }
+#endif
 
 vec3 col_at(ivec2 q) {
 #if SS == 1
@@ -439,10 +484,14 @@ vec3 col_at(ivec2 q) {
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     vec4 nz = sensor_noise(p);
+#if HOLES_ONLY
+    float d = disp(p);
+#else
     vec4 aux = texelFetch(u_aux, p * SS, 0);
     float d = dot(aux.rgb, DEC);
     float leader = step(0.5, aux.a);
     float depth = sensor_depth(d, (aux.a - 0.5 * leader) / 0.49, nz);
+#endif
 #if EDGES
     // Stereo shadow: the right imager sits at +x, so a surface k px to the right with k px more
     // disparity hides this point from it. Offsets are sparse beyond 4 px (see SHADOW_OFFSETS_PX).
@@ -457,11 +506,16 @@ void main() {
     // Depth edges: the matcher's window straddles two surfaces; three in four such pixels fail.
     float dd = disp(max(p - ivec2(0, 1), ivec2(0)));
     float jump = max(abs(dr - d), abs(dd - d));
-    bool edge_hole = jump > max(0.5, 0.06 * d) && 8.0 * (nz.g - 0.5) > -0.67;
+    bool edge_hole = jump > max(0.5, 0.06 * d) && nz.g > 0.41625;   // N(0,1) > -0.67: 3 in 4
+#if HOLES_ONLY
+    if (shadow < 0.0 && !edge_hole) discard;
+    o_depth = 0.0;
+#else
     if (shadow >= 0.0 || edge_hole) depth = 0.0;
 #endif
+#endif
+#if !HOLES_ONLY
     o_depth = depth;
-#if !DEPTH_ONLY
 #if SS == 1
     o_mask = leader;
 #else
@@ -498,7 +552,7 @@ def with_defines(source: str, **defines: int | str) -> str:
     return head + source
 
 
-def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int, depth_only: bool = False) -> str:
+def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int, holes_only: bool = False) -> str:
     """The post-pass source for one variant (``shadow_px`` must be a key of SHADOW_OFFSETS_PX)."""
     offs = SHADOW_OFFSETS_PX.get(shadow_px, (1,))
     return with_defines(
@@ -508,7 +562,7 @@ def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int, depth_only: bool 
         N_SHADOW=len(offs),
         SHADOW_OFFS=", ".join(str(o) for o in offs),
         BLUR_N=blur_n,
-        DEPTH_ONLY=int(depth_only),
+        HOLES_ONLY=int(holes_only),
     )
 
 
