@@ -68,6 +68,7 @@ SKY_SCALE = 8.0
 #: Sky cube face size: texels about a pixel wide at 640 px (nearest); datasets supersample and filter.
 SKY_FACE_PX = 1024
 SKY_FACE_PX_SUPERSAMPLED = 512
+#: Ground texture size (a power of two: the real-time ground shader wraps texel indices with a mask).
 GROUND_TEX_PX = 2048
 #: Cube-map face (s, t, 1) -> direction, GL's convention, faces +X -X +Y -Y +Z -Z.
 _CUBE_FACES = (
@@ -368,9 +369,18 @@ class Renderer:
         ctx = self._ctx
         d = int(direct)
 
+        filtered = int(self.supersample > 1)
+
         def mesh(fs: str) -> moderngl.Program:
             return ctx.program(
-                vertex_shader=shaders.SCENE_VS, fragment_shader=shaders.with_defines(fs, DIRECT=d)
+                vertex_shader=shaders.SCENE_VS,
+                fragment_shader=shaders.with_defines(
+                    fs,
+                    DIRECT=d,
+                    FILTERED=filtered,
+                    GROUND_LEVELS=GROUND_TEX_PX.bit_length() - 1,
+                    GROUND_PERIOD_M=f"{GROUND_PERIOD_M:.1f}",
+                ),
             )
 
         if self.supersample == 1:
@@ -810,13 +820,12 @@ class Renderer:
         # Ground mip levels: footprint at 1 m = 1 / (f h) metres per pixel (see the ground shader).
         f_px = self.intrinsics.fx_px * self.supersample
         base = -math.log2(f_px * max(-float(cam.p_ned_cam_m[2]), 0.05))
-        _set(
-            progs.ground,
-            "u_ground_lod",
-            (base - math.log2(GROUND_PERIOD_M / GROUND_TEX_PX), base - math.log2(0.04)),
-        )
+        lod = (base - math.log2(GROUND_PERIOD_M / GROUND_TEX_PX), base - math.log2(0.04))
+        _set(progs.ground, "u_ground_lod", lod)
+        _set(progs.ground, "u_ground_lod_k", (2.0 ** (lod[0] + 0.5), 2.0 ** (lod[1] + 0.5)))
+        glare_gain = (glare[0] * gain_rgb[0], glare[1] * gain_rgb[1], glare[2] * gain_rgb[2])
         for prog in progs.all:
-            _set(prog, "u_glare_rgb", glare)
+            _set(prog, "u_glare_rgb", glare_gain)
             _set(prog, "u_clip_from_ned", clip_from_ned)
             _set(prog, "u_ned_from_model", identity)
             _set(prog, "u_cam_ned", cam_ned)
@@ -851,7 +860,6 @@ class Renderer:
         self._sky_tex().use(6)
         _set(progs.sky, "u_ned_from_pix", _mat_bytes(cam.R_ned_cam @ self._Kinv_fb))
         _set(progs.sky, "u_gain_rgb", tuple(g * SKY_SCALE for g in gain_rgb))
-        _set(progs.sky, "u_glare_rgb", tuple(g / SKY_SCALE for g in glare))
         progs.sky_vao.render(moderngl.TRIANGLES)
         if leader is not None:
             # Rotor discs: blend colour, mark the mask (aux alpha), leave depth and texturedness alone.

@@ -103,8 +103,8 @@ uniform vec3 u_sky_rgb;
 uniform vec3 u_bounce_rgb;
 uniform vec3 u_fog_rgb;
 uniform float u_fog_density;
-uniform vec3 u_gain_rgb;
-uniform vec3 u_glare_rgb;   // veiling glare from a sun near the view (scattered in the lens)
+uniform vec3 u_gain_rgb;    // exposure * white balance
+uniform vec3 u_glare_rgb;   // veiling glare from a sun near the view (scattered in the lens), times gain
 uniform float u_leader;
 uniform float u_fB;   // focal length * baseline at output resolution, px m
 #if DIRECT
@@ -146,8 +146,8 @@ float spec32(float x) {
 // leader mask from colour alpha < 0.5; the rotor pass zeroes alpha through its blend function).
 void emit(vec3 col, float alpha, float textured, float dist) {
     float fog = exp(-u_fog_density * dist);
-    col = mix(u_fog_rgb, col, fog) + u_glare_rgb;
-    vec3 v = sqrt(clamp(col * u_gain_rgb, 0.0, 1.0));
+    col = mix(u_fog_rgb, col, fog);
+    vec3 v = sqrt(min(col * u_gain_rgb + u_glare_rgb, 1.0));   // col >= 0
     float d = u_fB * gl_FragCoord.w;
     textured *= fog;
 #if DIRECT
@@ -170,14 +170,28 @@ uniform sampler2D u_tex;
 uniform sampler2D u_ground;     // sqrt(albedo), texturedness; GROUND_PERIOD_M period, mipmapped
 uniform vec3 u_ground_light;    // irradiance on flat ground: sun * cos(zenith) + sky
 uniform vec2 u_ground_lod;      // mip level at 1 m distance of the ground and the detail textures
+uniform vec2 u_ground_lod_k;    // FILTERED == 0: 2^(u_ground_lod + 0.5)
 void main() {
-    float dist = length(u_cam_ned - v_p);
+    vec3 to_cam = u_cam_ned - v_p;
+    float dist2 = dot(to_cam, to_cam);
     // A flat ground seen from height h: a pixel's footprint along the view is dist^2 / (f h), so the
-    // mip level is 2 log2(dist) + const (implicit derivatives cost more than the fetch on llvmpipe).
-    float l = 2.0 * log2(dist);
+    // mip level is log2(dist^2) + const (implicit derivatives cost more than the fetch on llvmpipe).
+#if FILTERED
+    float l = log2(dist2);
     vec4 g = textureLod(u_ground, v_p.xy * (1.0 / 1024.0), l + u_ground_lod.x);
     float det = textureLod(u_tex, v_p.xy * (25.0 / 1024.0), l + u_ground_lod.y).b;
-    emit(g.rgb * g.rgb * (0.7 + 0.6 * det) * u_ground_light, 1.0, g.a, dist);
+#else
+    // Nearest mip level = the float exponent of dist^2 2^(lod + 0.5); fetch the texel by hand (texture
+    // wrap is a mask at power-of-two sizes): a third cheaper than textureLod with a per-pixel level.
+    // GROUND_TEX_PX (2^GROUND_LEVELS) texels per GROUND_PERIOD_M; the detail pattern: 1024 per 40.96 m.
+    int l0 = clamp((floatBitsToInt(dist2 * u_ground_lod_k.x) >> 23) - 127, 0, GROUND_LEVELS);
+    int l1 = clamp((floatBitsToInt(dist2 * u_ground_lod_k.y) >> 23) - 127, 0, 10);
+    ivec2 t0 = ivec2(floor(v_p.xy * (float(1 << GROUND_LEVELS) / GROUND_PERIOD_M)));
+    ivec2 t1 = ivec2(floor(v_p.xy * 25.0));
+    vec4 g = texelFetch(u_ground, (t0 >> l0) & (((1 << GROUND_LEVELS) >> l0) - 1), l0);
+    float det = texelFetch(u_tex, (t1 >> l1) & ((1024 >> l1) - 1), l1).b;
+#endif
+    emit(g.rgb * g.rgb * (0.7 + 0.6 * det) * u_ground_light, 1.0, g.a, sqrt(dist2));
 }
 """
 )
@@ -373,12 +387,12 @@ SKY_FS = """
 uniform samplerCube u_sky;
 uniform mat3 u_ned_from_pix;   // R_ned_cam * K^-1 at the framebuffer's scale
 uniform vec3 u_gain_rgb;       // exposure * white balance * SKY_SCALE
-uniform vec3 u_glare_rgb;      // veiling glare, divided by SKY_SCALE
+uniform vec3 u_glare_rgb;      // veiling glare times exposure * white balance
 layout(location = 0) out vec4 o_col;
 layout(location = 1) out vec4 o_aux;
 void main() {
     vec3 s = textureLod(u_sky, u_ned_from_pix * vec3(gl_FragCoord.xy - 0.5, 1.0), 0.0).rgb;
-    o_col = vec4(sqrt(min((s * s + u_glare_rgb) * u_gain_rgb, 1.0)), 1.0);
+    o_col = vec4(sqrt(min(s * s * u_gain_rgb + u_glare_rgb, 1.0)), 1.0);
     o_aux = vec4(0.0);
 }
 """
@@ -402,7 +416,7 @@ SKYBOX_FS = (
     """
 uniform sampler2D u_sky_atlas;
 uniform vec3 u_gain_rgb;       // exposure * white balance * SKY_SCALE
-uniform vec3 u_glare_rgb;      // veiling glare, divided by SKY_SCALE
+uniform vec3 u_glare_rgb;      // veiling glare times exposure * white balance
 uniform float u_fB;
 #if DIRECT
 """
@@ -416,7 +430,7 @@ layout(location = 0) out vec4 o_col;
 in vec2 v_uv;
 void main() {
     vec3 s = texelFetch(u_sky_atlas, ivec2(v_uv), 0).rgb;
-    vec3 v = sqrt(min((s * s + u_glare_rgb) * u_gain_rgb, 1.0));
+    vec3 v = sqrt(min(s * s * u_gain_rgb + u_glare_rgb, 1.0));
 #if DIRECT
     o_col = vec4(sensor_colour(v, sensor_noise(ivec2(gl_FragCoord.xy))), 1.0);
     o_depth = 0.0;
