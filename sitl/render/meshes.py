@@ -241,6 +241,11 @@ class MeshBuilder:
             return np.zeros((0, VERTEX_FLOATS), dtype=np.float32)
         return np.concatenate(self._parts)
 
+    @property
+    def part_sizes(self) -> list[int]:
+        """Vertex count of each :meth:`add` call that added vertices, in order."""
+        return [len(part) for part in self._parts]
+
 
 def Rz(angle_rad: float) -> F64:
     """Rotation about z (yaw in NED/FRD)."""

@@ -81,6 +81,10 @@ _CUBE_FACES = (
 )
 
 U8 = NDArray[np.uint8]
+#: Bytes of one indirect draw record (moderngl's stride for glMultiDrawArraysIndirect).
+_INDIRECT_BYTES = 20
+#: Sd of the sum of two uniform bytes, the shaders' colour-noise unit (see ``shaders.colour_noise``).
+NOISE_SUM_SD = math.sqrt(2.0 * (256.0**2 - 1.0) / 12.0)
 _UNIT_CUBE = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 
 
@@ -152,6 +156,38 @@ def _skybox_vertices(face_px: int) -> NDArray[np.float32]:
             v = 0.5 + 0.5 * (t_ + 1.0) * (face_px - 1) + i * face_px
             out.append([*d, u, v])
     return np.array(out, dtype=np.float32)
+
+
+def _color_mask(fbo: moderngl.Framebuffer, masks: list[tuple[bool, bool, bool, bool]]) -> None:
+    """Per-attachment colour write masks (the first ``len(attachments)`` of ``masks``)."""
+    n = len(fbo.color_attachments)
+    fbo.color_mask = masks[0] if n == 1 else masks[:n]  # type: ignore[assignment]
+
+
+def _frustum_normals(intr: Intrinsics, margin_px: float) -> NDArray[np.float64]:
+    """Inward unit normals (camera frame) of the view frustum's four side planes, widened by a margin."""
+    W, H = intr.width_px, intr.height_px
+    xl, xr = (-0.5 - margin_px - intr.cx_px) / intr.fx_px, (W - 0.5 + margin_px - intr.cx_px) / intr.fx_px
+    yt, yb = (-0.5 - margin_px - intr.cy_px) / intr.fy_px, (H - 0.5 + margin_px - intr.cy_px) / intr.fy_px
+    n = np.array([[1.0, 0.0, -xl], [-1.0, 0.0, xr], [0.0, 1.0, -yt], [0.0, -1.0, yb]])
+    out: NDArray[np.float64] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return out
+
+
+def _clip_half_plane(
+    poly: list[tuple[float, float]], a: float, b: float, c: float
+) -> list[tuple[float, float]]:
+    """The part of a convex polygon where ``a x + b y + c >= 0`` (one Sutherland-Hodgman step)."""
+    out: list[tuple[float, float]] = []
+    for i, p in enumerate(poly):
+        q = poly[(i + 1) % len(poly)]
+        fp, fq = a * p[0] + b * p[1] + c, a * q[0] + b * q[1] + c
+        if fp >= 0.0:
+            out.append(p)
+        if (fp >= 0.0) != (fq >= 0.0):
+            t = fp / (fp - fq)
+            out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+    return out
 
 
 def _mat_bytes(M: NDArray[np.float64]) -> bytes:
@@ -319,9 +355,13 @@ class Renderer:
         self._sdepth.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._scene_fbo = ctx.framebuffer([self._s0, self._s1], self._sdepth)
         self._d_depth = ctx.texture((W, H), 1, dtype="f4")
-        self._direct_fbo = ctx.framebuffer([self._s0, self._d_depth], self._sdepth) if s == 1 else None
-        self._edges_fbo = ctx.framebuffer([self._d_depth])
+        self._direct_fbo = ctx.framebuffer([self._s0], self._sdepth) if s == 1 else None
+        self._depth_fbo = ctx.framebuffer([self._d_depth])
         self._rgba = np.empty((H, W, 4), dtype=np.uint8)
+        # Draw records of the world chunks in view (glMultiDrawArraysIndirect: count, 1, first, 0, pad).
+        self._indirect = ctx.buffer(reserve=_INDIRECT_BYTES * 1024, dynamic=True)
+        self._Kinv = np.linalg.inv(self.intrinsics.K)
+        self._frustum_n = _frustum_normals(self.intrinsics, margin_px=2.0)
         # Post: final colour, depth and leader coverage.
         self._p_rgb = ctx.texture((W, H), 4)
         self._p_depth = ctx.texture((W, H), 1, dtype="f4")
@@ -424,14 +464,14 @@ class Renderer:
         _set(prog, "u_hole_p", (floor + low_texture, low_texture))
 
     def _post_variant(
-        self, edges: bool, shadow_px: int, blur_n: int, holes_only: bool = False
+        self, edges: bool, shadow_px: int, blur_n: int, depth_pass: bool = False
     ) -> tuple[moderngl.Program, moderngl.VertexArray]:
         """The post program for one combination of switches, compiled on first use."""
-        key = (int(edges), shadow_px if edges else 0, blur_n, int(holes_only))
+        key = (int(edges), shadow_px if edges else 0, blur_n, int(depth_pass))
         if key not in self._post_variants:
             prog = self._ctx.program(
                 vertex_shader=shaders.FULLSCREEN_VS,
-                fragment_shader=shaders.post_fs(self.supersample, edges, key[1], blur_n, holes_only),
+                fragment_shader=shaders.post_fs(self.supersample, edges, key[1], blur_n, depth_pass),
             )
             _set(prog, "u_z", 0.0)
             _set(prog, "u_col", 0)
@@ -482,10 +522,9 @@ class Renderer:
         self._bake_sky()
         self._wb = white_balance_gains(visual.white_balance_k)
         self._log2_gain = None
-        self._near_occluders = np.array(
-            [[*o.p_ned_m, max(o.resolved_size_m[0], o.resolved_size_m[1])] for o in visual.occluders],
-            dtype=np.float64,
-        ).reshape(-1, 4)
+        chunks = self.world.chunks
+        self._chunk_order = np.argsort(chunks.first, kind="stable")
+        self._chunk_group_sorted = chunks.group[self._chunk_order]
 
     def _bake_ground(self) -> None:
         """Render the world's ground materials into the periodic ground texture (+ mipmaps)."""
@@ -622,8 +661,15 @@ class Renderer:
         direct = self._programs_direct is not None and blur_n == 0
         progs = self._programs_direct if direct and self._programs_direct is not None else self._programs
         holes = self.camera.depth_holes
-        shadow_px = self._shadow_search_px(cam, leader, extra_vertices)
-        region = self._near_region(cam, leader, extra_vertices, shadow_px) if holes else None
+        C = self.world.chunks
+        chunk_cam = (C.centre_ned_m - cam.p_ned_cam_m) @ cam.R_ned_cam
+        in_view = self._chunks_in_view(chunk_cam)
+        near = in_view & (C.group != 0) & (chunk_cam[:, 2] - C.radius_m < self.camera.depth_max_m)
+        near_cam, near_r = chunk_cam[near], C.radius_m[near]
+        shadow_px = self._shadow_search_px(cam, leader, extra_vertices, near_cam, near_r)
+        region = self._near_region(
+            cam, leader, extra_vertices, shadow_px=shadow_px, near_cam=near_cam, near_r=near_r
+        )
         sensor = self._sensor_uniforms(analog)
 
         # ---- pass 1: scene (and, DIRECT, the sensor)
@@ -636,6 +682,7 @@ class Renderer:
             exposure_s=exposure_s,
             extra_vertices=extra_vertices,
             sensor=sensor if direct else None,
+            in_view=in_view,
         )
 
         # ---- pass 2: sensor, or (DIRECT) only edge and stereo-shadow holes near objects
@@ -646,7 +693,7 @@ class Renderer:
             return self._finish_direct(
                 cam,
                 leader,
-                region=region,
+                boxes=[b for b in (region, self._ground_region(cam)) if b is not None],
                 shadow_px=shadow_px,
                 sensor=sensor,
                 depth=depth,
@@ -657,6 +704,8 @@ class Renderer:
         self._s1.use(1)
         rgb = np.empty((H, W, 3), dtype=np.uint8)
         # Whole frame when near things fill much of it (and always for supersampled datasets).
+        if not holes:
+            region = None
         whole = holes and (
             self.supersample > 1 or (region is not None and region[2] * region[3] > 0.4 * W * H)
         )
@@ -687,29 +736,44 @@ class Renderer:
         cam: CameraPose,
         leader: LeaderPose | None,
         *,
-        region: tuple[int, int, int, int] | None,
+        boxes: list[tuple[int, int, int, int]],
         shadow_px: int,
         sensor: dict[str, Any],
         depth: NDArray[np.float32],
         exposure_s: float,
         truth: bool,
     ) -> RenderedView:
-        """After a DIRECT scene pass: edge and shadow holes near objects, read-back, the leader's truth."""
+        """After a DIRECT scene pass: the depth pass where depth can be valid, read-back, leader truth.
+
+        ``boxes`` are scissor boxes (x, y, w, h) that hold every pixel whose true depth is in range
+        (near objects, near ground); depth is 0 elsewhere.
+        """
         W, H = self.intrinsics.width_px, self.intrinsics.height_px
-        if region is not None:
-            pp, vao = self._post_variant(True, shadow_px, 0, holes_only=True)
+        dfbo = self._depth_fbo
+        dfbo.use()
+        dfbo.clear(0.0)
+        if boxes:
+            pp, vao = self._post_variant(self.camera.depth_holes, shadow_px, 0, depth_pass=True)
             self._post_uniforms(pp, sensor, np.eye(3), np.eye(3), 0)
+            self._s0.use(0)
             self._sdepth.use(3)
-            self._edges_fbo.use()
-            self._edges_fbo.scissor = region
-            vao.render(moderngl.TRIANGLES)
-            self._edges_fbo.scissor = None  # type: ignore[assignment]
-        dfbo = self._direct_fbo
-        assert dfbo is not None  # noqa: S101  (direct implies supersample == 1)
+            x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+            x1, y1 = max(b[0] + b[2] for b in boxes), max(b[1] + b[3] for b in boxes)
+            union = (x0, y0, x1 - x0, y1 - y0)
+            # One draw over the union unless the boxes leave much of it out (an object high, the
+            # near ground low); overlapping boxes only compute the same depth twice.
+            if union[2] * union[3] <= 1.2 * sum(b[2] * b[3] for b in boxes):
+                boxes = [union]
+            for box_ in boxes:
+                dfbo.scissor = box_
+                vao.render(moderngl.TRIANGLES)
+            dfbo.scissor = None  # type: ignore[assignment]
+        scene = self._direct_fbo
+        assert scene is not None  # noqa: S101  (direct implies supersample == 1)
         rgba = self._rgba
         # RGBA reads as a copy; llvmpipe converts to RGB byte by byte (10x slower than OpenCV's swizzle).
-        dfbo.read_into(rgba, components=4, attachment=0)
-        dfbo.read_into(depth, components=1, attachment=1, dtype="f4")
+        scene.read_into(rgba, components=4, attachment=0)
+        dfbo.read_into(depth, components=1, attachment=0, dtype="f4")
         rgb = np.empty((H, W, 3), dtype=np.uint8)
         cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB, dst=rgb)
         self._meter(rgb)
@@ -718,7 +782,7 @@ class Renderer:
         span = self._leader_span(cam, leader) if truth else None
         if leader is not None and span is not None:
             x0, y0, x1, y1 = span
-            # Colour alpha < 0.5 marks the leader (opaque parts write 0, the rotor pass zeroes it).
+            # Colour alpha < 0.5 marks the leader (its opaque parts and rotor discs; see shaders.emit).
             sub = rgba[y0:y1, x0:x1, 3] < 128
             sub_box, count = box_from_mask(sub)
             if sub_box is not None:
@@ -759,15 +823,17 @@ class Renderer:
         """
         W, H = self.intrinsics.width_px, self.intrinsics.height_px
         offs = self._rng.integers(0, FIELD_PX, 2)
+        seed = int(self._rng.integers(0, 2**32, dtype=np.uint64))
         k = self.visual.sensor_noise if self.camera.colour_noise else 0.0
         a, b = 0.0008 * analog_gain * k, (0.002 * analog_gain * k) ** 2
         c = self.visual.contrast
         x, y, z = 0.5 * math.sqrt(a), 0.5 * math.sqrt(b), max(b**0.25, 1e-3)
-        # The shader's noise is 8 (byte - 0.5) units and its vignetting term v g k / c: fold 8 and c in.
-        sd = (NORMAL_RANGE * c * x, NORMAL_RANGE * c * c * y, c * z)
+        # The shader's noise is the hash's byte sums (sd NOISE_SUM_SD) and its read-noise term sees v g k / c.
+        sd = (c * x / NOISE_SUM_SD, c * c * y / NOISE_SUM_SD, c * z)
         r_scale = math.sqrt(c * self.visual.vignetting / 4.0) / (W / 2.0)
         return {
             "u_off": (int(offs[0]), int(offs[1])),
+            "u_seed": seed,
             "u_noise_sd": sd,
             "u_vig": (r_scale, r_scale, -r_scale * W / 2.0, -r_scale * H / 2.0),
             "u_tone": (c, 0.45 * (1.0 - c)),
@@ -793,8 +859,9 @@ class Renderer:
         exposure_s: float,
         extra_vertices: F32 | None,
         sensor: dict[str, Any] | None,
+        in_view: NDArray[np.bool_],
     ) -> None:
-        """Draw the world, distractors, leader, sky and rotor discs into the scene framebuffer."""
+        """Draw the world chunks in view, distractors, leader, sky and rotor discs into the scene."""
         ctx = self._ctx
         gain_rgb = (gain * self._wb[0], gain * self._wb[1], gain * self._wb[2])
         clip_from_ned = _mat_bytes(self._P @ view_matrix(cam))
@@ -803,12 +870,13 @@ class Renderer:
         direct = sensor is not None and self._direct_fbo is not None
         fbo = self._direct_fbo if direct and self._direct_fbo is not None else self._scene_fbo
         fbo.use()
-        n_att = len(fbo.color_attachments)
+        on, off = (True, True, True, True), (False, False, False, False)
         if self.supersample == 1:
             # The skybox covers every pixel nothing else drew: only depth needs clearing.
-            fbo.color_mask = [(False, False, False, False)] * n_att  # type: ignore[assignment]
+            _color_mask(fbo, [off, off])
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        fbo.color_mask = [(True, True, True, True)] * n_att  # type: ignore[assignment]
+        _color_mask(fbo, [on, on])
+        fbo.use()  # moderngl applies a restored single-attachment mask only on use() after a clear
         ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         ctx.disable(moderngl.BLEND)
         ctx.front_face = "cw"  # the y-down projection mirrors the image (see projection_matrix)
@@ -831,6 +899,7 @@ class Renderer:
             _set(prog, "u_cam_ned", cam_ned)
             _set(prog, "u_gain_rgb", gain_rgb)
             _set(prog, "u_leader", 0.0)
+            _set(prog, "u_blend_alpha", 0.0)
             if sensor is not None:
                 for name, value in sensor.items():
                     _set(prog, name, value)
@@ -850,9 +919,13 @@ class Renderer:
                 self._dyn_buf.orphan(data.nbytes * 2)
             self._dyn_buf.write(data.tobytes())
             progs.dyn_vao.render(moderngl.TRIANGLES, vertices=len(data))
-        for vao, (first, count) in zip(progs.world_vaos[::-1], self.world.groups[::-1], strict=True):
-            if count:
-                vao.render(moderngl.TRIANGLES, vertices=count, first=first)
+        offsets = self._write_draw_records(in_view)
+        for g in (2, 1, 0):
+            n = offsets[g + 1] - offsets[g]
+            if n:
+                progs.world_vaos[g].render_indirect(
+                    self._indirect, moderngl.TRIANGLES, count=n, first=offsets[g]
+                )
         # Sky where nothing was drawn: depth is still 1.0 there.
         ctx.disable(moderngl.CULL_FACE)
         ctx.depth_func = "<="
@@ -871,22 +944,23 @@ class Renderer:
             _set(rp, "u_blade_vis", blade_vis)
             ctx.depth_func = "<"
             ctx.enable(moderngl.BLEND)
-            # DIRECT: colour alpha becomes 0 (the leader mask), the depth attachment is left alone.
-            # Otherwise: colour RGB only, and the aux alpha (leader + texturedness) from the disc.
+            # Blend the colour by the disc's opacity. The aux alpha (leader + texturedness) takes the
+            # disc's value; DIRECT writes that into colour alpha in a second, unblended pass.
             ctx.blend_func = (  # type: ignore[assignment]  # moderngl takes 2 or 4 factors
                 moderngl.SRC_ALPHA,
                 moderngl.ONE_MINUS_SRC_ALPHA,
-                moderngl.ZERO if direct else moderngl.ONE,
+                moderngl.ONE,
                 moderngl.ZERO,
             )
-            off = (False, False, False, False)
-            if direct:
-                fbo.color_mask = [(True, True, True, True), off]  # type: ignore[assignment]
-            else:
-                fbo.color_mask = [(True, True, True, False), (False, False, False, True)]  # type: ignore[assignment]
+            _set(rp, "u_blend_alpha", 1.0)
+            _color_mask(fbo, [(True, True, True, False), (False, False, False, True)])
             progs.leader_vaos[1].render(moderngl.TRIANGLES)
-            fbo.color_mask = [(True, True, True, True)] * n_att  # type: ignore[assignment]
             ctx.disable(moderngl.BLEND)
+            if direct:
+                _set(rp, "u_blend_alpha", 0.0)
+                _color_mask(fbo, [(False, False, False, True)])
+                progs.leader_vaos[1].render(moderngl.TRIANGLES)
+            _color_mask(fbo, [on, on])
         fbo.depth_mask = True
 
     def _sky_tex(self) -> moderngl.Texture | moderngl.TextureCube:
@@ -909,8 +983,53 @@ class Renderer:
         phase = math.fmod(omega * t_s, math.pi)
         return phase, float(min(max(1.0 - omega * exposure_s / math.pi, 0.0), 1.0))
 
-    def _shadow_search_px(self, cam: CameraPose, leader: LeaderPose | None, extra: F32 | None) -> int:
-        """Widest stereo shadow worth searching: disparity of the nearest thing in view, px."""
+    def _chunks_in_view(self, chunk_cam: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which world chunks' bounding spheres (centres in the camera frame) touch the view frustum."""
+        r = self.world.chunks.radius_m
+        inside: NDArray[np.bool_] = np.all(chunk_cam @ self._frustum_n.T >= -r[:, None], axis=1) & (
+            chunk_cam[:, 2] > NEAR_M - r
+        )
+        return inside
+
+    def _write_draw_records(self, in_view: NDArray[np.bool_]) -> list[int]:
+        """Indirect draw records of the chunks in view, consecutive ones merged; per-group offsets.
+
+        Returns ``[o0, o1, o2, o3]``: group ``g``'s records are ``o[g]`` up to ``o[g + 1]``.
+        """
+        C = self.world.chunks
+        order = self._chunk_order
+        vis = in_view[order].astype(np.int8)
+        group = self._chunk_group_sorted
+        # A run starts at a visible chunk whose predecessor is hidden or in another group.
+        prev_vis = np.concatenate([[0], vis[:-1]])
+        new_group = np.concatenate([[True], group[1:] != group[:-1]])
+        starts = np.flatnonzero((vis == 1) & ((prev_vis == 0) | new_group))
+        next_vis = np.concatenate([vis[1:], [0]])
+        next_new = np.concatenate([new_group[1:], [True]])
+        ends = np.flatnonzero((vis == 1) & ((next_vis == 0) | next_new))
+        first = C.first[order][starts]
+        count = C.first[order][ends] + C.count[order][ends] - first
+        rec = np.zeros((starts.size, _INDIRECT_BYTES // 4), dtype=np.uint32)
+        rec[:, 0], rec[:, 1], rec[:, 2] = count, 1, first
+        if rec.nbytes > self._indirect.size:
+            self._indirect.orphan(rec.nbytes * 2)
+        if rec.size:
+            self._indirect.write(rec.tobytes())
+        run_group = group[starts]
+        return [int(np.searchsorted(run_group, g)) for g in range(4)]
+
+    def _shadow_search_px(
+        self,
+        cam: CameraPose,
+        leader: LeaderPose | None,
+        extra: F32 | None,
+        near_cam: NDArray[np.float64],
+        near_r: NDArray[np.float64],
+    ) -> int:
+        """Widest stereo shadow worth searching: disparity of the nearest thing in view, px.
+
+        ``near_cam``, ``near_r``: bounding spheres (camera frame) of the world chunks within range.
+        """
         z_near = 1e9
         if leader is not None:
             z = float(cam.to_cam(leader.p_ned_m)[2]) - self.leader_model.bound_radius_m
@@ -920,20 +1039,12 @@ class Renderer:
         h = -float(cam.p_ned_cam_m[2])
         if h > 0.0:
             W, H = self.intrinsics.width_px, self.intrinsics.height_px
-            rays = (
-                cam.R_ned_cam
-                @ np.linalg.inv(self.intrinsics.K)
-                @ np.array([[0.0, W - 1.0], [H - 1.0, H - 1.0], [1.0, 1.0]])
-            )
+            rays = cam.R_ned_cam @ self._Kinv @ np.array([[0.0, W - 1.0], [H - 1.0, H - 1.0], [1.0, 1.0]])
             down = rays[2]
             if np.any(down > 1e-6):
                 z_near = min(z_near, float(np.min(h / down[down > 1e-6])))
-        if self._near_occluders.size:
-            d = (
-                np.linalg.norm(self._near_occluders[:, :2] - cam.p_ned_cam_m[:2], axis=1)
-                - self._near_occluders[:, 3]
-            )
-            z_near = min(z_near, float(max(np.min(d), 0.3)))
+        if near_r.size:
+            z_near = min(z_near, float(max(np.min(near_cam[:, 2] - near_r), 0.3)))
         if extra is not None and len(extra):
             zs = (extra[:, :3].astype(np.float64) - cam.p_ned_cam_m) @ cam.R_ned_cam[:, 2]
             zs = zs[zs > NEAR_M]
@@ -944,13 +1055,20 @@ class Renderer:
         return min((k for k in SHADOW_OFFSETS_PX if k >= widest), default=max(SHADOW_OFFSETS_PX))
 
     def _near_region(
-        self, cam: CameraPose, leader: LeaderPose | None, extra: F32 | None, shadow_px: int
+        self,
+        cam: CameraPose,
+        leader: LeaderPose | None,
+        extra: F32 | None,
+        *,
+        shadow_px: int,
+        near_cam: NDArray[np.float64],
+        near_r: NDArray[np.float64],
     ) -> tuple[int, int, int, int] | None:
         """Scissor box (x, y, w, h) around things near enough to have valid depth, or None.
 
-        The leader (its bounding cube), scenario occluders (their footprint cylinders) and distractors
-        within the depth range; widened to the left by the stereo shadow. The whole frame if any of
-        them straddles the image plane.
+        The leader (its bounding cube), world chunks within range (their bounding spheres' cubes) and
+        distractors; widened to the left by the stereo shadow. The whole frame if any of them straddles
+        the image plane. The ground is :meth:`_ground_region`.
         """
         intr = self.intrinsics
         W, H = intr.width_px, intr.height_px
@@ -960,13 +1078,9 @@ class Renderer:
             R = self.leader_model.bound_radius_m
             c = cam.to_cam(leader.p_ned_m)
             if c[2] - R < z_max:
-                cube = np.array(
-                    [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64
-                )
-                pts.append(c + R * cube)
-        for x, y, _, size in self._near_occluders:
-            if float(np.hypot(x - cam.p_ned_cam_m[0], y - cam.p_ned_cam_m[1])) - size < z_max:
-                return (0, 0, W, H)
+                pts.append(c + R * _UNIT_CUBE)
+        if near_r.size:
+            pts.append((near_cam[:, None, :] + near_r[:, None, None] * _UNIT_CUBE[None]).reshape(-1, 3))
         if extra is not None and len(extra):
             pc = (extra[:, :3].astype(np.float64) - cam.p_ned_cam_m) @ cam.R_ned_cam
             pts.append(pc[pc[:, 2] < z_max + 1.0])
@@ -983,6 +1097,30 @@ class Renderer:
         x1 = min(math.ceil(u.max()) + 3, W)
         y0 = max(math.floor(v.min()) - 3, 0)
         y1 = min(math.ceil(v.max()) + 3, H)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        return (x0, y0, x1 - x0, y1 - y0)
+
+    def _ground_region(self, cam: CameraPose) -> tuple[int, int, int, int] | None:
+        """Scissor box (x, y, w, h) of the ground nearer than the depth range, or None.
+
+        The ground (NED down = 0) at pixel (u, v) lies at depth ``h / g(u, v)``, with ``g`` the down
+        component of the pixel's ray at unit depth, affine in (u, v): in range where
+        ``g >= h / depth_max``, a half-plane of the image.
+        """
+        h = -float(cam.p_ned_cam_m[2])
+        if h <= 0.0:
+            return None  # at or below ground level: the ground is seen edge-on or from below (culled)
+        intr = self.intrinsics
+        W, H = intr.width_px, intr.height_px
+        g = (cam.R_ned_cam @ self._Kinv)[2]
+        frame = [(-0.5, -0.5), (W - 0.5, -0.5), (W - 0.5, H - 0.5), (-0.5, H - 0.5)]
+        poly = _clip_half_plane(frame, float(g[0]), float(g[1]), float(g[2]) - h / self.camera.depth_max_m)
+        if not poly:
+            return None
+        us, vs = [q[0] for q in poly], [q[1] for q in poly]
+        x0, x1 = max(math.floor(min(us) + 0.5) - 1, 0), min(math.ceil(max(us) + 0.5) + 1, W)
+        y0, y1 = max(math.floor(min(vs) + 0.5) - 1, 0), min(math.ceil(max(vs) + 0.5) + 1, H)
         if x1 <= x0 or y1 <= y0:
             return None
         return (x0, y0, x1 - x0, y1 - y0)

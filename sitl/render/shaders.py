@@ -34,27 +34,38 @@ vec4 tex_lod(vec2 t) { return texture(u_tex, t * (1.0 / 1024.0)); }
 #: The sensor model shared by the post pass and DIRECT scene shaders (needs ``u_fB`` declared first).
 #: Its constants are folded on the CPU (``Renderer._sensor_uniforms``) so that a pixel costs few ops.
 _SENSOR = """
-// r: white N(0,1) luminance noise, g: white N(0,1) chroma noise (also a per-pixel coin), b: spatially
-// correlated N(0,1) disparity noise (all stored as 8 (x - 0.5)); a: clumpy field, uniform on [0, 1].
+// u_noise (depth only): g: white N(0,1) (a per-pixel coin), b: spatially correlated N(0,1) disparity
+// noise (both stored as 8 (x - 0.5)); a: clumpy field, uniform on [0, 1]. Colour noise is hashed.
 uniform sampler2D u_noise;
 uniform ivec2 u_off;         // per-frame offset; p + u_off stays inside the field (no wrap to compute)
+uniform uint u_seed;         // per-frame colour-noise seed
 uniform vec4 u_vig;          // r = p u_vig.xy + u_vig.zw; r^2 = contrast vignetting / 4 (radius / half w)^2
 uniform vec2 u_tone;         // (contrast, 0.45 (1 - contrast))
-uniform vec3 u_noise_sd;     // 8 contrast sd, sd = x + y / (v.g k + z): shot + read noise (sqrt domain)
+uniform vec3 u_noise_sd;     // contrast sd / NOISE_SUM_SD, sd = x + y / (v.g k + z): shot + read noise
 uniform vec2 u_disp_noise;   // disparity noise (8 sigma, -4 sigma), px
 uniform vec2 u_drange;       // valid true disparity (fB / z_max, fB / z_min), px
 uniform vec2 u_hole_p;       // blob-hole threshold: p(textured) = x - y textured
 
 vec4 sensor_noise(ivec2 p) { return texelFetch(u_noise, p + u_off, 0); }
 
+// White luminance and chroma noise, each the sum of two bytes of a 32-bit hash of the pixel and the
+// frame's seed (lowbias32): triangular on [0, 510], mean 255, sd NOISE_SUM_SD. A fifth of the cost of
+// a texture fetch on llvmpipe.
+vec2 colour_noise(ivec2 p) {
+    uint h = (uint(p.x) | (uint(p.y) << 16)) ^ u_seed;
+    h ^= h >> 16; h *= 0x7feb352du; h ^= h >> 15; h *= 0x846ca68bu; h ^= h >> 16;
+    return vec2(uvec2(h & 255u, (h >> 16) & 255u) + uvec2((h >> 8) & 255u, h >> 24));
+}
+
 // Colour in the sqrt domain the scene writes (gamma 2, close to sRGB): vignetting, shot + read noise
 // (shot noise is nearly constant in this domain, read noise grows in the dark; its level follows the
 // green channel), contrast about 0.45. All of it is one multiply-add per channel after the set-up.
-vec3 sensor_colour(vec3 v, vec4 nz) {
+vec3 sensor_colour(vec3 v, vec2 lc) {
     vec2 r = gl_FragCoord.xy * u_vig.xy + u_vig.zw;
     float k = u_tone.x - dot(r, r);
     float sd = u_noise_sd.x + u_noise_sd.y / (v.g * k + u_noise_sd.z);
-    vec3 n = nz.g * vec3(0.5, -0.1, -0.5) + (nz.r - vec3(0.75, 0.45, 0.25));
+    // Luminance plus chroma along (1, -0.2, -1) / 2, both centred: 255 (1, 1, 1) + 255 (0.5, -0.1, -0.5).
+    vec3 n = lc.y * vec3(0.5, -0.1, -0.5) + (lc.x - vec3(382.5, 229.5, 127.5));
     return v * k + (sd * n + u_tone.y);
 }
 
@@ -118,10 +129,9 @@ in vec3 v_rgb;
 in vec2 v_uv;
 flat in int v_kind;
 flat in float v_param;
+uniform float u_blend_alpha;   // 1: alpha is the opacity to blend with (rotor discs, first pass)
 layout(location = 0) out vec4 o_col;
-#if DIRECT
-layout(location = 1) out float o_depth;
-#else
+#if !DIRECT
 layout(location = 1) out vec4 o_aux;
 #endif
 
@@ -142,21 +152,19 @@ float spec32(float x) {
     return x;
 }
 
-// alpha: opacity for the blended rotor discs; opaque surfaces pass 1 - u_leader (DIRECT reads the
-// leader mask from colour alpha < 0.5; the rotor pass zeroes alpha through its blend function).
+// alpha: the rotor discs' opacity (blended while u_blend_alpha = 1). DIRECT otherwise writes
+// 0.5 (1 - leader) + 0.49 texturedness into colour alpha for the depth pass and the leader mask.
 void emit(vec3 col, float alpha, float textured, float dist) {
     float fog = exp(-u_fog_density * dist);
     col = mix(u_fog_rgb, col, fog);
     vec3 v = sqrt(min(col * u_gain_rgb + u_glare_rgb, 1.0));   // col >= 0
-    float d = u_fB * gl_FragCoord.w;
     textured *= fog;
 #if DIRECT
-    vec4 nz = sensor_noise(ivec2(gl_FragCoord.xy));
-    o_col = vec4(sensor_colour(v, nz), alpha);
-    o_depth = sensor_depth(d, textured, nz);
+    float a = 0.5 - 0.5 * u_leader + 0.49 * textured;
+    o_col = vec4(sensor_colour(v, colour_noise(ivec2(gl_FragCoord.xy))), mix(a, alpha, u_blend_alpha));
 #else
     o_col = vec4(v, alpha);
-    o_aux = vec4(pack_disparity(d), 0.5 * u_leader + 0.49 * textured);
+    o_aux = vec4(pack_disparity(u_fB * gl_FragCoord.w), 0.5 * u_leader + 0.49 * textured);
 #endif
 }
 """
@@ -264,7 +272,7 @@ void main() {
     fres *= fres; fres *= fres;
     col += spec * (u_sun_rgb * spec32(dot(n, h)) * step(0.0, ndl) + (0.15 + 0.6 * fres) * ambient(n));
     col = mix(col, v_rgb, emissive);
-    emit(col, 1.0 - u_leader, mix(0.85, 0.6, max(wall, glossy)), dist);
+    emit(col, 1.0, mix(0.85, 0.6, max(wall, glossy)), dist);
 }
 """
 )
@@ -422,7 +430,6 @@ uniform float u_fB;
 """
     + _SENSOR
     + """
-layout(location = 1) out float o_depth;
 #else
 layout(location = 1) out vec4 o_aux;
 #endif
@@ -432,8 +439,7 @@ void main() {
     vec3 s = texelFetch(u_sky_atlas, ivec2(v_uv), 0).rgb;
     vec3 v = sqrt(min(s * s * u_gain_rgb + u_glare_rgb, 1.0));
 #if DIRECT
-    o_col = vec4(sensor_colour(v, sensor_noise(ivec2(gl_FragCoord.xy))), 1.0);
-    o_depth = 0.0;
+    o_col = vec4(sensor_colour(v, colour_noise(ivec2(gl_FragCoord.xy))), 0.5);   // not leader, no texture
 #else
     o_col = vec4(v, 1.0);
     o_aux = vec4(0.0);
@@ -454,12 +460,12 @@ SHADOW_OFFSETS_PX: dict[int, tuple[int, ...]] = {
 _POST_BODY = (
     """
 // Variant switches: SS (1 or 2), EDGES (0/1), N_SHADOW + SHADOW_OFFS, BLUR_N (0 = none),
-// HOLES_ONLY (1: after a DIRECT scene pass, which wrote colour, mask and noisy depth: read disparity
-// from the scene's depth buffer and write 0 m where edge and shadow holes are, nothing elsewhere).
+// DEPTH_PASS (1: after a DIRECT scene pass, which wrote the final colour: only depth, from the scene's
+// depth buffer (disparity) and colour alpha (leader, texturedness); scissored to where depth is valid).
 uniform sampler2D u_col;
 uniform sampler2D u_aux;
-uniform sampler2D u_zbuf;    // HOLES_ONLY: the scene's window depth
-uniform vec2 u_disp_from_z;  // HOLES_ONLY: disparity = window depth * x + y, px
+uniform sampler2D u_zbuf;    // DEPTH_PASS: the scene's window depth
+uniform vec2 u_disp_from_z;  // DEPTH_PASS: disparity = window depth * x + y, px
 uniform ivec2 u_size;        // output size, px
 uniform float u_fB;          // focal length * baseline, px m
 uniform mat3 u_H0;
@@ -467,7 +473,7 @@ uniform mat3 u_H1;
 """
     + _SENSOR
     + """
-#if HOLES_ONLY
+#if DEPTH_PASS
 layout(location = 0) out float o_depth;
 #else
 layout(location = 0) out vec4 o_rgb;
@@ -477,7 +483,7 @@ layout(location = 2) out float o_mask;
 
 const vec3 DEC = vec3(255.0, 255.0 / 256.0, 255.0 / 65536.0);
 
-#if HOLES_ONLY
+#if DEPTH_PASS
 float disp(ivec2 p) {
     return texelFetch(u_zbuf, min(p, u_size - 1), 0).r * u_disp_from_z.x + u_disp_from_z.y;
 }
@@ -498,8 +504,10 @@ vec3 col_at(ivec2 q) {
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     vec4 nz = sensor_noise(p);
-#if HOLES_ONLY
+#if DEPTH_PASS
     float d = disp(p);
+    float ca = texelFetch(u_col, p, 0).a;
+    float depth = sensor_depth(d, (ca - 0.5 * step(0.5, ca)) * (1.0 / 0.49), nz);
 #else
     vec4 aux = texelFetch(u_aux, p * SS, 0);
     float d = dot(aux.rgb, DEC);
@@ -521,15 +529,10 @@ void main() {
     float dd = disp(max(p - ivec2(0, 1), ivec2(0)));
     float jump = max(abs(dr - d), abs(dd - d));
     bool edge_hole = jump > max(0.5, 0.06 * d) && nz.g > 0.41625;   // N(0,1) > -0.67: 3 in 4
-#if HOLES_ONLY
-    if (shadow < 0.0 && !edge_hole) discard;
-    o_depth = 0.0;
-#else
     if (shadow >= 0.0 || edge_hole) depth = 0.0;
 #endif
-#endif
-#if !HOLES_ONLY
     o_depth = depth;
+#if !DEPTH_PASS
 #if SS == 1
     o_mask = leader;
 #else
@@ -553,7 +556,7 @@ void main() {
 #else
     vec3 v = col_at(p);
 #endif
-    o_rgb = vec4(sensor_colour(v, nz), 1.0);
+    o_rgb = vec4(sensor_colour(v, colour_noise(p)), 1.0);
 #endif
 }
 """
@@ -566,7 +569,7 @@ def with_defines(source: str, **defines: int | str) -> str:
     return head + source
 
 
-def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int, holes_only: bool = False) -> str:
+def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int, depth_pass: bool = False) -> str:
     """The post-pass source for one variant (``shadow_px`` must be a key of SHADOW_OFFSETS_PX)."""
     offs = SHADOW_OFFSETS_PX.get(shadow_px, (1,))
     return with_defines(
@@ -576,7 +579,7 @@ def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int, holes_only: bool 
         N_SHADOW=len(offs),
         SHADOW_OFFS=", ".join(str(o) for o in offs),
         BLUR_N=blur_n,
-        HOLES_ONLY=int(holes_only),
+        DEPTH_PASS=int(depth_pass),
     )
 
 

@@ -261,8 +261,11 @@ def _foliage_kind(sparse: float) -> float:
     return float(Kind.FOLIAGE) + min(max(sparse, 0.0), 0.95)
 
 
-def _ring(radius: float, heights: F64, rgb: RGB, kind: float, b: MeshBuilder) -> None:
-    """A vertical band around the origin facing inwards, top edge at the given heights (m, up)."""
+def _ring(radius: float, heights: F64, rgb: RGB, kind: float, b: MeshBuilder, *, segments: int = 48) -> None:
+    """A vertical band around the origin facing inwards, top edge at the given heights (m, up).
+
+    Added as ``segments`` meshes (world chunks), so that the renderer draws only those in view.
+    """
     n = heights.size
     th = np.linspace(0.0, 2.0 * math.pi, n + 1)
     hh = np.append(heights, heights[0])
@@ -282,7 +285,10 @@ def _ring(radius: float, heights: F64, rgb: RGB, kind: float, b: MeshBuilder) ->
     if float(np.mean(np.sum(m.nrm * inward, axis=1))) < 0:
         idx = np.arange(m.n_vertices).reshape(-1, 3)[:, ::-1].reshape(-1)
         m = Mesh(m.pos[idx], -m.nrm[idx], m.uv[idx])
-    b.add(m, rgb, kind)
+    per_quad = m.n_vertices // n
+    for piece in np.array_split(np.arange(n), min(segments, n)):
+        sl = slice(int(piece[0]) * per_quad, (int(piece[-1]) + 1) * per_quad)
+        b.add(Mesh(m.pos[sl], m.nrm[sl], m.uv[sl]), rgb, kind)
 
 
 def _smooth_profile(rng: np.random.Generator, n: int, octaves: int = 5) -> F64:
@@ -297,6 +303,20 @@ def _smooth_profile(rng: np.random.Generator, n: int, octaves: int = 5) -> F64:
 
 
 @dataclass(frozen=True, slots=True)
+class Chunks:
+    """The world's meshes as the renderer culls them: one per structure part or ring segment.
+
+    Each is a contiguous vertex range of one shader group in ``World.vertices`` with a bounding sphere.
+    """
+
+    group: NDArray[np.int64]
+    first: NDArray[np.int64]
+    count: NDArray[np.int64]
+    centre_ned_m: F64
+    radius_m: F64
+
+
+@dataclass(frozen=True, slots=True)
 class World:
     """Static geometry (NED, m) and shading parameters of one visual configuration."""
 
@@ -304,6 +324,7 @@ class World:
     vertices: F32
     #: (first vertex, vertex count) of the ground, generic and foliage groups.
     groups: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
+    chunks: Chunks
     lighting: Lighting
     ground: GroundStyle
     cloud_threshold: tuple[float, float]
@@ -314,6 +335,30 @@ def shader_group(kind: NDArray[np.float32]) -> NDArray[np.int64]:
     """0 ground, 1 generic, 2 foliage: which scene program draws each vertex kind."""
     k = np.floor(kind).astype(np.int64)
     return np.where(k == Kind.GROUND, 0, np.where((k == Kind.FOLIAGE) | (k == Kind.DISTANT), 2, 1))
+
+
+def chunk_table(vertices: F32, part_sizes: list[int]) -> Chunks:
+    """Chunks of an unsorted vertex array of parts (one kind each), as :func:`sort_by_group` places them.
+
+    The sort is stable, so a part stays contiguous and parts keep their order within a group.
+    """
+    sizes = np.asarray(part_sizes, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    group = shader_group(vertices[starts, 11]) if sizes.size else np.zeros(0, dtype=np.int64)
+    first = np.zeros(sizes.size, dtype=np.int64)
+    base = 0
+    for g in range(3):
+        idx = np.flatnonzero(group == g)
+        first[idx] = base + np.concatenate([[0], np.cumsum(sizes[idx])[:-1]]).astype(np.int64)
+        base += int(sizes[idx].sum())
+    centre = np.zeros((sizes.size, 3))
+    radius = np.zeros(sizes.size)
+    for i, (s, n) in enumerate(zip(starts, sizes, strict=True)):
+        pos = vertices[s : s + n, 0:3].astype(np.float64)
+        lo, hi = pos.min(axis=0), pos.max(axis=0)
+        centre[i] = (lo + hi) / 2.0
+        radius[i] = float(np.max(np.linalg.norm(pos - centre[i], axis=1)))
+    return Chunks(group, first, sizes, centre, radius)
 
 
 def sort_by_group(vertices: F32) -> tuple[F32, tuple[tuple[int, int], tuple[int, int], tuple[int, int]]]:
@@ -396,10 +441,12 @@ def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
         )
     )
     thr = (lo_q - 0.06, lo_q + 0.10) if cover < 0.999 else (-1.0, -0.9)
-    vertices, groups = sort_by_group(b.build())
+    unsorted = b.build()
+    vertices, groups = sort_by_group(unsorted)
     return World(
         vertices=vertices,
         groups=groups,
+        chunks=chunk_table(unsorted, b.part_sizes),
         lighting=lighting(visual),
         ground=ground_style(visual, rng),
         cloud_threshold=thr,
