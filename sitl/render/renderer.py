@@ -81,6 +81,7 @@ _CUBE_FACES = (
 )
 
 U8 = NDArray[np.uint8]
+_IDENTITY4 = np.eye(4, dtype=np.float32).tobytes()
 #: Bytes of one indirect draw record (moderngl's stride for glMultiDrawArraysIndirect).
 _INDIRECT_BYTES = 20
 #: Sd of the sum of two uniform bytes, the shaders' colour-noise unit (see ``shaders.colour_noise``).
@@ -196,15 +197,28 @@ def _mat_bytes(M: NDArray[np.float64]) -> bytes:
 
 
 def _set(prog: moderngl.Program, name: str, value: Any) -> None:
-    """Set a uniform if the linker kept it (unused uniforms are optimised away)."""
-    try:
-        member = prog[name]
-    except KeyError:
+    """Set a uniform if the linker kept it (unused uniforms are optimised away) and it changed.
+
+    The program's ``extra`` caches each name's uniform (or None) and last value: setting one costs
+    microseconds in moderngl, and a frame sets dozens, most of them unchanged.
+    """
+    cache: dict[str, list[Any]] | None = prog.extra
+    if cache is None:
+        cache = prog.extra = {}
+    entry = cache.get(name)
+    if entry is None:
+        try:
+            member: Any = prog[name]
+        except KeyError:
+            member = None
+        entry = cache[name] = [member, None]
+    if entry[0] is None or entry[1] == value:
         return
+    entry[1] = value
     if isinstance(value, bytes):
-        member.write(value)  # type: ignore[union-attr]
+        entry[0].write(value)
     else:
-        member.value = value  # type: ignore[union-attr]
+        entry[0].value = value
 
 
 @dataclass(slots=True)
@@ -361,6 +375,11 @@ class Renderer:
         # Draw records of the world chunks in view (glMultiDrawArraysIndirect: count, 1, first, 0, pad).
         self._indirect = ctx.buffer(reserve=_INDIRECT_BYTES * 1024, dynamic=True)
         self._Kinv = np.linalg.inv(self.intrinsics.K)
+        # A turn by a small angle moves no pixel further than this many px per rad (pitch or yaw:
+        # f (1 + r^2 / f^2) at the corner radius r; roll: r), so slower turns skip the blur maths.
+        r_px = math.hypot(self.intrinsics.width_px, self.intrinsics.height_px) / 2.0 + 1.0
+        f_px = max(self.intrinsics.fx_px, self.intrinsics.fy_px)
+        self._streak_px_per_rad = f_px + r_px * r_px / f_px + r_px
         self._frustum_n = _frustum_normals(self.intrinsics, margin_px=2.0)
         # Post: final colour, depth and leader coverage.
         self._p_rgb = ctx.texture((W, H), 4)
@@ -653,7 +672,11 @@ class Renderer:
         exposure_s = max(self.camera.exposure_max_s * min(gain / GAIN_AT_MAX_SHUTTER, 1.0), 1.0 / 8000.0)
         analog = max(1.0, gain / GAIN_AT_MAX_SHUTTER)
         blur_n, H0, H1 = 0, np.eye(3), np.eye(3)
-        if omega_cam_rad_s is not None and self.camera.motion_blur:
+        if (
+            omega_cam_rad_s is not None
+            and self.camera.motion_blur
+            and float(np.linalg.norm(omega_cam_rad_s)) * exposure_s * self._streak_px_per_rad > 0.75
+        ):
             H0, H1, streak = blur_homographies(self.intrinsics, omega_cam_rad_s, exposure_s)
             if streak > 0.75:
                 blur_n = 4 if streak <= 4.0 else (8 if streak <= 8.0 else 16)
@@ -884,7 +907,7 @@ class Renderer:
         self._pattern.use(4)
         self._ground_tex.use(5)
         self._noise.use(2)
-        identity = _mat_bytes(np.eye(4))
+        identity = _IDENTITY4
         # Ground mip levels: footprint at 1 m = 1 / (f h) metres per pixel (see the ground shader).
         f_px = self.intrinsics.fx_px * self.supersample
         base = -math.log2(f_px * max(-float(cam.p_ned_cam_m[2]), 0.05))
