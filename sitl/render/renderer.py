@@ -53,6 +53,7 @@ from sitl.render.world import (
     CLOUD_TEXEL_M,
     GROUND_HALF_M,
     GROUND_PERIOD_M,
+    GROUPS,
     World,
     build_world,
 )
@@ -82,6 +83,8 @@ _CUBE_FACES = (
 
 U8 = NDArray[np.uint8]
 _IDENTITY4 = np.eye(4, dtype=np.float32).tobytes()
+#: Indices into ``world.GROUPS``: crowns, generic, diffuse, band, ground.
+_WORLD_DRAW_ORDER = (2, 1, 4, 3, 0)
 #: Bytes of one indirect draw record (moderngl's stride for glMultiDrawArraysIndirect).
 _INDIRECT_BYTES = 20
 #: Sd of the sum of two uniform bytes, the shaders' colour-noise unit (see ``shaders.colour_noise``).
@@ -228,6 +231,8 @@ class _ScenePrograms:
     ground: moderngl.Program
     generic: moderngl.Program
     foliage: moderngl.Program
+    band: moderngl.Program
+    diffuse: moderngl.Program
     rotor: moderngl.Program
     sky: moderngl.Program
     sky_vao: moderngl.VertexArray
@@ -237,11 +242,16 @@ class _ScenePrograms:
 
     @property
     def all(self) -> tuple[moderngl.Program, ...]:
-        return (self.ground, self.generic, self.foliage, self.rotor, self.sky)
+        return (*self.meshes, self.sky)
 
     @property
     def meshes(self) -> tuple[moderngl.Program, ...]:
-        return (self.ground, self.generic, self.foliage, self.rotor)
+        return (*self.world, self.rotor)
+
+    @property
+    def world(self) -> tuple[moderngl.Program, ...]:
+        """The world's programs in the order of ``world.GROUPS``."""
+        return (self.ground, self.generic, self.foliage, self.band, self.diffuse)
 
 
 class Renderer:
@@ -430,13 +440,15 @@ class Renderer:
 
         filtered = int(self.supersample > 1)
 
-        def mesh(fs: str) -> moderngl.Program:
+        def mesh(fs: str, *, band: int = 0, diffuse: int = 0) -> moderngl.Program:
             return ctx.program(
                 vertex_shader=shaders.SCENE_VS,
                 fragment_shader=shaders.with_defines(
                     fs,
                     DIRECT=d,
                     FILTERED=filtered,
+                    BAND=band,
+                    DIFFUSE=diffuse,
                     GROUND_LEVELS=GROUND_TEX_PX.bit_length() - 1,
                     GROUND_PERIOD_M=f"{GROUND_PERIOD_M:.1f}",
                 ),
@@ -455,6 +467,8 @@ class Renderer:
             ground=mesh(shaders.SCENE_GROUND_FS),
             generic=mesh(shaders.SCENE_GENERIC_FS),
             foliage=mesh(shaders.SCENE_FOLIAGE_FS),
+            band=mesh(shaders.SCENE_FOLIAGE_FS, band=1),
+            diffuse=mesh(shaders.SCENE_GENERIC_FS, diffuse=1),
             rotor=mesh(shaders.SCENE_ROTOR_FS),
             sky=sky,
             sky_vao=sky_vao,
@@ -519,9 +533,7 @@ class Renderer:
         rotors = ctx.buffer(self.leader_model.rotors.tobytes())
         self._resources = [world_buf, opaque, rotors]
         for progs in self._program_sets:
-            progs.world_vaos = tuple(
-                self._vao(p, world_buf) for p in (progs.ground, progs.generic, progs.foliage)
-            )
+            progs.world_vaos = tuple(self._vao(p, world_buf) for p in progs.world)
             progs.leader_vaos = (self._vao(progs.generic, opaque), self._vao(progs.rotor, rotors))
             self._resources += [*progs.world_vaos, *progs.leader_vaos]
         self._mask_vaos = (self._vao(self._mask_prog, opaque), self._vao(self._mask_prog, rotors))
@@ -943,7 +955,8 @@ class Renderer:
             self._dyn_buf.write(data.tobytes())
             progs.dyn_vao.render(moderngl.TRIANGLES, vertices=len(data))
         offsets = self._write_draw_records(in_view)
-        for g in (2, 1, 0):
+        # Near-ish things first (crowns, buildings, trunks), then the horizon band, the ground last.
+        for g in _WORLD_DRAW_ORDER:
             n = offsets[g + 1] - offsets[g]
             if n:
                 progs.world_vaos[g].render_indirect(
@@ -1017,7 +1030,7 @@ class Renderer:
     def _write_draw_records(self, in_view: NDArray[np.bool_]) -> list[int]:
         """Indirect draw records of the chunks in view, consecutive ones merged; per-group offsets.
 
-        Returns ``[o0, o1, o2, o3]``: group ``g``'s records are ``o[g]`` up to ``o[g + 1]``.
+        Returns ``o``: group ``g``'s records are ``o[g]`` up to ``o[g + 1]`` (groups of ``world.GROUPS``).
         """
         C = self.world.chunks
         order = self._chunk_order
@@ -1039,7 +1052,7 @@ class Renderer:
         if rec.size:
             self._indirect.write(rec.tobytes())
         run_group = group[starts]
-        return [int(np.searchsorted(run_group, g)) for g in range(4)]
+        return [int(np.searchsorted(run_group, g)) for g in range(len(GROUPS) + 1)]
 
     def _shadow_search_px(
         self,

@@ -245,11 +245,18 @@ void main() {
 )
 
 #: Everything opaque that is not ground or foliage: the leader, buildings (with windows), poles,
-#: distractors. Material differences are arithmetic, not branches.
+#: distractors. Material differences are arithmetic, not branches. Compiled with ``DIFFUSE`` for the
+#: world's plain, roof and bark surfaces (trunks, poles, roofs, hills), which have no windows or gloss.
 SCENE_GENERIC_FS = (
     _SCENE_HEAD
     + """
 void main() {
+#if DIFFUSE
+    vec3 to_cam = u_cam_ned - v_p;
+    vec3 n = normalize(v_n);
+    n = dot(n, to_cam) < 0.0 ? -n : n;
+    emit(v_rgb * (u_sun_rgb * max(dot(n, u_sun_dir), 0.0) + ambient(n)), 1.0, 0.85, length(to_cam));
+#else
     vec3 to_cam = u_cam_ned - v_p;
     float dist = length(to_cam);
     vec3 view = to_cam / dist;
@@ -273,11 +280,13 @@ void main() {
     col += spec * (u_sun_rgb * spec32(dot(n, h)) * step(0.0, ndl) + (0.15 + 0.6 * fres) * ambient(n));
     col = mix(col, v_rgb, emissive);
     emit(col, 1.0, mix(0.85, 0.6, max(wall, glossy)), dist);
+#endif
 }
 """
 )
 
-#: Tree crowns (FOLIAGE, sparsity in the kind's fraction) and the horizon forest band (DISTANT).
+#: Tree crowns (FOLIAGE, sparsity in the kind's fraction), or with ``BAND`` the horizon forest band
+#: (DISTANT): one texture lookup there, where the crowns' fine leaf pattern is sub-pixel anyway.
 SCENE_FOLIAGE_FS = (
     _SCENE_HEAD
     + _TEX_LOD
@@ -288,16 +297,20 @@ void main() {
     vec3 view = to_cam / dist;
     vec3 n = normalize(v_n);
     n = dot(n, view) < 0.0 ? -n : n;
+#if BAND
+    // Horizon forest: crowns a few metres wide cut into the top third of the band (coarse noise
+    // along the ring, so it survives the distance); the crowns' 0.5 m leaf blotches from the same
+    // lookup, their 6 cm leaves averaged.
+    vec4 t3 = tex_lod(vec2(v_uv.x / 2.5, 40.0 + 0.3 * v_uv.y));
+    if (0.62 + 0.38 * t3.b - v_uv.y < 0.0) discard;
+    float leaf = 0.25 + 0.5 * t3.g;
+#else
     vec4 t1 = tex_lod(vec2(v_p.x + 0.6 * v_p.z, v_p.y - 0.6 * v_p.z) / 0.06);
     vec4 t2 = tex_lod(vec2(v_p.x - 0.5 * v_p.z, v_p.y + 0.8 * v_p.z) / 0.5);
     float leaf = 0.5 * t1.b + 0.5 * t2.g;
     float rim = 1.0 - abs(dot(n, view));
-    float crown_cut = leaf - (v_param * 0.9 + 0.55 * rim * rim);
-    // Horizon forest: crowns a few metres wide cut into the top third of the band (coarse noise
-    // along the ring, so it survives the distance).
-    vec4 t3 = tex_lod(vec2(v_uv.x / 2.5, 40.0 + 0.3 * v_uv.y));
-    float band_cut = 0.62 + 0.38 * t3.b - v_uv.y;
-    if ((v_kind == 9 ? band_cut : crown_cut) < 0.0) discard;
+    if (leaf - (v_param * 0.9 + 0.55 * rim * rim) < 0.0) discard;
+#endif
     vec3 albedo = v_rgb * (0.55 + 0.9 * leaf);
     vec3 col = albedo * (u_sun_rgb * max(dot(n, u_sun_dir), 0.0) + ambient(n)) * (0.75 + 0.25 * leaf);
     emit(col, 1.0, 1.0, dist);

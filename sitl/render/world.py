@@ -320,10 +320,10 @@ class Chunks:
 class World:
     """Static geometry (NED, m) and shading parameters of one visual configuration."""
 
-    #: Sorted by shader group: ground, generic, foliage (see ``groups``).
+    #: Sorted by shader group (see ``groups``).
     vertices: F32
-    #: (first vertex, vertex count) of the ground, generic and foliage groups.
-    groups: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
+    #: (first vertex, vertex count) of each of :data:`GROUPS`.
+    groups: tuple[tuple[int, int], ...]
     chunks: Chunks
     lighting: Lighting
     ground: GroundStyle
@@ -331,10 +331,23 @@ class World:
     cloud_offset_texels: tuple[float, float]
 
 
+#: Scene programs that draw the world, by group index (see :func:`shader_group`).
+GROUPS = ("ground", "generic", "foliage", "band", "diffuse")
+
+
 def shader_group(kind: NDArray[np.float32]) -> NDArray[np.int64]:
-    """0 ground, 1 generic, 2 foliage: which scene program draws each vertex kind."""
+    """Which scene program draws each vertex kind: an index into :data:`GROUPS`.
+
+    Plain, roof and bark surfaces need none of the generic program's windows and gloss (``diffuse``);
+    the horizon forest band has its own cheap foliage program (``band``).
+    """
     k = np.floor(kind).astype(np.int64)
-    return np.where(k == Kind.GROUND, 0, np.where((k == Kind.FOLIAGE) | (k == Kind.DISTANT), 2, 1))
+    out = np.ones(k.shape, dtype=np.int64)
+    out[k == Kind.GROUND] = 0
+    out[k == Kind.FOLIAGE] = 2
+    out[k == Kind.DISTANT] = 3
+    out[(k == Kind.PLAIN) | (k == Kind.ROOF) | (k == Kind.BARK)] = 4
+    return out
 
 
 def chunk_table(vertices: F32, part_sizes: list[int]) -> Chunks:
@@ -347,7 +360,7 @@ def chunk_table(vertices: F32, part_sizes: list[int]) -> Chunks:
     group = shader_group(vertices[starts, 11]) if sizes.size else np.zeros(0, dtype=np.int64)
     first = np.zeros(sizes.size, dtype=np.int64)
     base = 0
-    for g in range(3):
+    for g in range(len(GROUPS)):
         idx = np.flatnonzero(group == g)
         first[idx] = base + np.concatenate([[0], np.cumsum(sizes[idx])[:-1]]).astype(np.int64)
         base += int(sizes[idx].sum())
@@ -361,15 +374,15 @@ def chunk_table(vertices: F32, part_sizes: list[int]) -> Chunks:
     return Chunks(group, first, sizes, centre, radius)
 
 
-def sort_by_group(vertices: F32) -> tuple[F32, tuple[tuple[int, int], tuple[int, int], tuple[int, int]]]:
+def sort_by_group(vertices: F32) -> tuple[F32, tuple[tuple[int, int], ...]]:
     """Vertices reordered by shader group (whole triangles stay together) and each group's range."""
     group = shader_group(vertices[::3, 11])
     order = np.argsort(group, kind="stable")
     idx = (order[:, None] * 3 + np.arange(3)[None, :]).reshape(-1)
-    counts = np.bincount(group, minlength=3) * 3
+    counts = np.bincount(group, minlength=len(GROUPS)) * 3
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     ranges = tuple((int(s), int(c)) for s, c in zip(starts, counts, strict=True))
-    return vertices[idx], (ranges[0], ranges[1], ranges[2])
+    return vertices[idx], ranges
 
 
 def random_structures(visual: VisualConfig, rng: np.random.Generator) -> list[OccluderSpec]:
