@@ -556,6 +556,8 @@ class Renderer:
         chunks = self.world.chunks
         self._chunk_order = np.argsort(chunks.first, kind="stable")
         self._chunk_group_sorted = chunks.group[self._chunk_order]
+        self._records_key = b""
+        self._records_offsets: list[int] = []
 
     def _bake_ground(self) -> None:
         """Render the world's ground materials into the periodic ground texture (+ mipmaps)."""
@@ -699,7 +701,8 @@ class Renderer:
         C = self.world.chunks
         chunk_cam = (C.centre_ned_m - cam.p_ned_cam_m) @ cam.R_ned_cam
         in_view = self._chunks_in_view(chunk_cam)
-        near = in_view & (C.group != 0) & (chunk_cam[:, 2] - C.radius_m < self.camera.depth_max_m)
+        standing = in_view & (C.group != 0)  # in view and not the ground
+        near = standing & (chunk_cam[:, 2] - C.radius_m < self.camera.depth_max_m)
         near_cam, near_r = chunk_cam[near], C.radius_m[near]
         shadow_px = self._shadow_search_px(cam, leader, extra_vertices, near_cam, near_r)
         region = self._near_region(
@@ -729,6 +732,7 @@ class Renderer:
                 cam,
                 leader,
                 boxes=[b for b in (region, self._ground_region(cam)) if b is not None],
+                blockers=(chunk_cam[standing], C.radius_m[standing], extra_vertices),
                 shadow_px=shadow_px,
                 sensor=sensor,
                 depth=depth,
@@ -772,6 +776,7 @@ class Renderer:
         leader: LeaderPose | None,
         *,
         boxes: list[tuple[int, int, int, int]],
+        blockers: tuple[NDArray[np.float64], NDArray[np.float64], F32 | None],
         shadow_px: int,
         sensor: dict[str, Any],
         depth: NDArray[np.float32],
@@ -781,7 +786,8 @@ class Renderer:
         """After a DIRECT scene pass: the depth pass where depth can be valid, read-back, leader truth.
 
         ``boxes`` are scissor boxes (x, y, w, h) that hold every pixel whose true depth is in range
-        (near objects, near ground); depth is 0 elsewhere.
+        (near objects, near ground); depth is 0 elsewhere. ``blockers``: what could hide the leader
+        (bounding spheres of the world chunks in view, camera frame; distractor vertices).
         """
         W, H = self.intrinsics.width_px, self.intrinsics.height_px
         dfbo = self._depth_fbo
@@ -814,7 +820,7 @@ class Renderer:
         self._meter(rgb)
         mask = np.zeros((H, W), dtype=np.uint8)
         box, visible, full = None, 0.0, 0.0
-        span = self._leader_span(cam, leader) if truth else None
+        span, inside = self._leader_span(cam, leader) if truth else (None, False)
         if leader is not None and span is not None:
             x0, y0, x1, y1 = span
             # Colour alpha < 0.5 marks the leader (its opaque parts and rotor discs; see shaders.emit).
@@ -824,30 +830,72 @@ class Renderer:
                 mask[y0:y1, x0:x1] = sub.view(np.uint8) * np.uint8(255)
                 box = (sub_box[0] + x0, sub_box[1] + y0, sub_box[2] + x0, sub_box[3] + y0)
                 visible = float(count)
-                full = max(self._full_leader_px(cam, leader), visible)
+                # Wholly in the frame with nothing in front: every pixel it covers is visible (the
+                # leader-alone pass would count the same pixels, up to its sampling offset).
+                if inside and not self._may_hide_leader(cam, leader, span, blockers):
+                    full = visible
+                else:
+                    full = max(self._full_leader_px(cam, leader), visible)
         return RenderedView(rgb, depth, mask, box, visible, full, exposure_s)
 
-    def _leader_span(self, cam: CameraPose, leader: LeaderPose | None) -> tuple[int, int, int, int] | None:
-        """Pixel rectangle (x0, y0, x1, y1) that holds every pixel of the leader, or None if off screen.
+    def _may_hide_leader(
+        self,
+        cam: CameraPose,
+        leader: LeaderPose,
+        span: tuple[int, int, int, int],
+        blockers: tuple[NDArray[np.float64], NDArray[np.float64], F32 | None],
+    ) -> bool:
+        """Whether anything could stand between the camera and the leader's pixels (conservative).
+
+        A world chunk whose bounding sphere starts nearer than the leader's far side and whose
+        projected bounding cube overlaps the leader's pixel span; any distractor; the ground unless the
+        camera and the whole leader are above it (then no line of sight between them crosses it).
+        """
+        chunk_cam, radius, extra = blockers
+        if extra is not None and len(extra):
+            return True
+        R = self.leader_model.bound_radius_m
+        if cam.p_ned_cam_m[2] >= 0.0 or leader.p_ned_m[2] + R >= 0.0:
+            return True
+        z_far = float(cam.to_cam(leader.p_ned_m)[2]) + R
+        front = chunk_cam[:, 2] - radius < z_far
+        if not np.any(front):
+            return False
+        corners = chunk_cam[front][:, None, :] + radius[front][:, None, None] * _UNIT_CUBE[None]
+        if np.any(corners[..., 2] <= NEAR_M):
+            return True
+        intr = self.intrinsics
+        u = intr.fx_px * corners[..., 0] / corners[..., 2] + intr.cx_px
+        v = intr.fy_px * corners[..., 1] / corners[..., 2] + intr.cy_px
+        x0, y0, x1, y1 = span
+        overlap = (u.max(axis=1) >= x0 - 1) & (u.min(axis=1) <= x1 + 1)
+        overlap &= (v.max(axis=1) >= y0 - 1) & (v.min(axis=1) <= y1 + 1)
+        return bool(np.any(overlap))
+
+    def _leader_span(
+        self, cam: CameraPose, leader: LeaderPose | None
+    ) -> tuple[tuple[int, int, int, int] | None, bool]:
+        """Pixel rectangle (x0, y0, x1, y1) holding the leader (None: off screen); is it wholly in frame?
 
         The projection of the leader's bounding cube, a pixel wider on each side; the whole frame if the
         cube reaches behind the camera.
         """
         if leader is None:
-            return None
+            return None, False
         intr = self.intrinsics
         W, H = intr.width_px, intr.height_px
         R = self.leader_model.bound_radius_m
         corners = cam.to_cam(leader.p_ned_m) + R * _UNIT_CUBE
         if np.any(corners[:, 2] <= NEAR_M):
-            return (0, 0, W, H)
+            return (0, 0, W, H), False
         u = intr.fx_px * corners[:, 0] / corners[:, 2] + intr.cx_px
         v = intr.fy_px * corners[:, 1] / corners[:, 2] + intr.cy_px
-        x0, x1 = max(math.floor(u.min()) - 1, 0), min(math.ceil(u.max()) + 2, W)
-        y0, y1 = max(math.floor(v.min()) - 1, 0), min(math.ceil(v.max()) + 2, H)
+        ux0, ux1 = math.floor(u.min()) - 1, math.ceil(u.max()) + 2
+        vy0, vy1 = math.floor(v.min()) - 1, math.ceil(v.max()) + 2
+        x0, x1, y0, y1 = max(ux0, 0), min(ux1, W), max(vy0, 0), min(vy1, H)
         if x1 <= x0 or y1 <= y0:
-            return None
-        return (x0, y0, x1, y1)
+            return None, False
+        return (x0, y0, x1, y1), (x0, x1, y0, y1) == (ux0, ux1, vy0, vy1)
 
     def _sensor_uniforms(self, analog_gain: float) -> dict[str, Any]:
         """Per-frame sensor-model uniforms (see ``shaders._SENSOR``), constants folded for the shader.
@@ -1032,6 +1080,9 @@ class Renderer:
 
         Returns ``o``: group ``g``'s records are ``o[g]`` up to ``o[g + 1]`` (groups of ``world.GROUPS``).
         """
+        key = in_view.tobytes()
+        if key == self._records_key:
+            return self._records_offsets
         C = self.world.chunks
         order = self._chunk_order
         vis = in_view[order].astype(np.int8)
@@ -1052,7 +1103,9 @@ class Renderer:
         if rec.size:
             self._indirect.write(rec.tobytes())
         run_group = group[starts]
-        return [int(np.searchsorted(run_group, g)) for g in range(len(GROUPS) + 1)]
+        self._records_key = key
+        self._records_offsets = [int(np.searchsorted(run_group, g)) for g in range(len(GROUPS) + 1)]
+        return self._records_offsets
 
     def _shadow_search_px(
         self,
