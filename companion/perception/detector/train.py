@@ -338,7 +338,9 @@ def train(
             for key, v in parts.items():
                 sums[key] += v
             if hasattr(bar, "set_postfix"):
-                bar.set_postfix(loss=f"{sums['loss'] / (k + 1):.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
+                bar.set_postfix(
+                    loss=f"{sums['loss'] / (k + 1):.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}", refresh=False
+                )
         row: dict[str, Any] = {"epoch": epoch + 1, "seconds": round(time.monotonic() - t0, 1)}
         row.update({k: round(v / max(1, steps_per_epoch), 4) for k, v in sums.items()})
         last_epoch = epoch == cfg.epochs - 1
