@@ -31,7 +31,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.frames import Vec3, wrap_pi
-from companion.mission.formation import FollowerState, FormationLaw
+from companion.mission.formation import FollowerState, FormationLaw, Slot
 from companion.mission.safety import SafetyLimits
 from companion.mission.types import (
     Command,
@@ -40,6 +40,7 @@ from companion.mission.types import (
     LeaderEstimate,
     MissionInputs,
     MissionState,
+    OperatorCommand,
     Reason,
     StepOutput,
     TrackStatus,
@@ -148,6 +149,8 @@ class MissionMachine:
         self._scan_sign = 1.0
         self._alt_hold_m = math.nan
         self._ext_valid_since: float | None = None
+        self._ext_since: float | None = None
+        self._ext_gave_up = False
         self._ext_reset_counter = 0
         self._touchdown_since: float | None = None
         self._shutting_down = False
@@ -310,6 +313,8 @@ class MissionMachine:
             self._shutting_down = True
             self._on_shutdown(veh)
             return
+        if inp.operator is not None and self._on_operator(inp.operator, veh):
+            return
         if (
             st in OFFBOARD_STATES
             and self._offboard_confirmed
@@ -354,6 +359,41 @@ class MissionMachine:
             self._transitions.append(Transition(self._now_s, st, st, Reason.SHUTDOWN_REQUESTED))
         else:
             self._go_px4(MissionState.PX4_HOLD, Reason.SHUTDOWN_REQUESTED, action)
+
+    def _on_operator(self, cmd: OperatorCommand, veh: VehicleState) -> bool:
+        """An operator's land or hold, in flight only. True when it changed the state."""
+        st = self.state
+        if st not in AIRBORNE_STATES or not veh.in_air:
+            return False
+        if cmd == OperatorCommand.LAND:
+            if not self._gps_ok:
+                self._go(MissionState.CONTROLLED_LANDING, Reason.OPERATOR_LAND, "no GPS")
+            elif st != MissionState.PX4_LAND:
+                self._go_px4(MissionState.PX4_LAND, Reason.OPERATOR_LAND)
+            return True
+        if cmd == OperatorCommand.HOLD and self._gps_ok and st != MissionState.PX4_HOLD:
+            self._go_px4(MissionState.PX4_HOLD, Reason.OPERATOR_HOLD)
+            return True
+        return False  # hold without GPS is impossible on PX4: refused (the runner says so)
+
+    def set_slot(self, offset_cam_m: tuple[float, float, float]) -> str | None:
+        """Change the formation slot in flight. Returns why it is refused, or None when applied.
+
+        The slot must lie ahead of the camera (the leader stays in view) and outside the separation bubble
+        with a metre to spare, so the law and the separation barrier never fight at rest.
+        """
+        slot = Slot.from_offset_cam(offset_cam_m)
+        if not all(math.isfinite(c) for c in offset_cam_m):
+            return "offset must be finite"
+        if slot.forward_m <= 0.0:
+            return "the leader must be ahead of the camera (z > 0)"
+        dist = math.sqrt(slot.forward_m**2 + slot.right_m**2 + slot.down_m**2)
+        if dist < self.limits.min_separation_m + 1.0:
+            return f"slot {dist:.1f} m from the leader: closer than min_separation_m + 1 m"
+        if abs(slot.bearing_offset_rad) > math.radians(30.0):
+            return "the leader would leave the image (more than 30 deg off the axis)"
+        self.law.slot = slot
+        return None
 
     def _ready_to_exit(self, veh: VehicleState) -> bool:
         if not self._shutting_down:
@@ -451,7 +491,7 @@ class MissionMachine:
             self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
         else:
             self.vision_mode = VisionMode.ATTITUDE
-            self._ext_valid_since = None
+            self._reset_external()
             self._go(MissionState.FOLLOW_VISION, reason, detail or f"policy {self.m.gps_loss_policy}")
 
     def _on_gps_lost(self, inp: MissionInputs) -> None:
@@ -465,7 +505,7 @@ class MissionMachine:
             self._go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
         else:
             self.vision_mode = VisionMode.ATTITUDE
-            self._ext_valid_since = None
+            self._reset_external()
             self._go(MissionState.FOLLOW_VISION, Reason.GPS_LOST, f"policy {self.m.gps_loss_policy}")
 
     # ------------------------------------------------------------------ states
@@ -657,14 +697,16 @@ class MissionMachine:
             if ext is None or veh.position_valid is not True:
                 why = "shared leader position stale" if ext is None else "PX4 rejected the external fix"
                 self.vision_mode = VisionMode.ATTITUDE
-                self._ext_valid_since = None
+                self._reset_external()
                 self.law.reset()
                 self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
             else:
                 vcmd = self.law.velocity(p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s)
                 return vcmd.setpoint, ext, vcmd.error.error_ned_m
-        elif ext is not None:
+        elif ext is not None and not self._ext_gave_up:
             # Attitude mode while PX4 digests the external fix; switch once it has been valid a while.
+            if self._ext_since is None:
+                self._ext_since = self._now_s
             if veh.position_valid is True:
                 if self._ext_valid_since is None:
                     self._ext_valid_since = self._now_s
@@ -681,9 +723,24 @@ class MissionMachine:
                     return vcmd.setpoint, ext, vcmd.error.error_ned_m
             else:
                 self._ext_valid_since = None
+                if self._now_s - self._ext_since > self.m.external_position_accept_s:
+                    # PX4 does not take the fix: stop sending it and stay on attitude (said once).
+                    self._ext_gave_up = True
+                    why = (
+                        f"attitude: external position not accepted in {self.m.external_position_accept_s:g} s"
+                    )
+                    self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, why)
+                    ext = None
+        elif self._ext_gave_up:
+            ext = None
         acmd = self.law.attitude(p_rel, v_rel, self._follower(veh, velocity_valid=False), self._now_s)
         err = acmd.error.error_ned_m if acmd.error is not None else None
         return acmd.setpoint, ext, err
+
+    def _reset_external(self) -> None:
+        self._ext_valid_since = None
+        self._ext_since = None
+        self._ext_gave_up = False
 
     def _enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
         veh = inp.vehicle
@@ -802,7 +859,13 @@ class MissionMachine:
         if not veh.armed:
             self._go(MissionState.DISARMED, Reason.DISARMED)
             return None
-        if not self._in_flight(CommandKind.DISARM) and self._now_s - self._last_attempt_s >= DISARM_RETRY_S:
+        # PX4 refuses to disarm before its land detector agrees; give it a moment before insisting.
+        on_ground = veh.landed_state == LandedState.ON_GROUND or self._t_in_state() > DISARM_RETRY_S
+        if (
+            on_ground
+            and not self._in_flight(CommandKind.DISARM)
+            and self._now_s - self._last_attempt_s >= DISARM_RETRY_S
+        ):
             self._last_attempt_s = self._now_s
             self._send(CommandKind.DISARM)
         if self._streaming:
