@@ -159,25 +159,28 @@ async def test_broker_restart_loses_nothing_beyond_the_buffer(
     collector = Collector(broker.port, "wingman/f1/state")
     async with running(reporter, collector):
         await wait_for(lambda: len(collector.payloads("state")) >= 10)
+        pushed_before = reporter.outbox.pushed
         broker.stop()
         await wait_for(lambda: not reporter.connected, 5)
         await asyncio.sleep(1.5)  # ~30 state messages produced while the broker is away
-        produced_offline = reporter.outbox.pushed
+        produced_offline = reporter.outbox.pushed - pushed_before
         broker.start()
-        await wait_for(lambda: reporter.connected and len(reporter.outbox) == 0, 10)
+        await wait_for(lambda: reporter.connected and len(reporter.outbox) == 0, 20)
         sent_until = reporter.outbox.pushed
-        await wait_for(lambda: max(seqs(collector.payloads("state")), default=-1) >= sent_until - 1, 10)
+        await wait_for(lambda: max(seqs(collector.payloads("state")), default=-1) >= sent_until - 1, 20)
         reporter_dropped = reporter.outbox.dropped
     got = seqs(collector.payloads("state"))
     missing = sorted(set(range(got[-1] + 1)) - set(got))
-    assert produced_offline > buffer_messages or buffer_messages == 1000
-    assert len(missing) == reporter_dropped
+    why = f"missing {missing}, dropped {reporter_dropped}"
+    # A message in flight when the broker died may have arrived although it stayed queued and was then
+    # dropped as the oldest: "dropped" may count one message that in fact got through, never fewer.
+    assert len(missing) <= reporter_dropped <= len(missing) + 1, why
     if buffer_messages == 1000:
-        assert missing == []
+        assert missing == [], why
     else:
+        assert produced_offline > buffer_messages
         # Exactly the oldest messages of the outage went, the newest buffer_messages survived.
-        assert reporter_dropped > 0
-        assert missing == list(range(missing[0], missing[0] + len(missing)))
+        assert missing == list(range(missing[0], missing[0] + len(missing))), why
     assert reporter.connects == 2
 
 
@@ -196,8 +199,7 @@ async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> 
     )
     collector = Collector(broker.port, "wingman/f1/events")
     async with running(reporter, collector):
-        await wait_for(lambda: reporter.connected)
-        await asyncio.sleep(0.3)  # subscriptions in place
+        await wait_for(lambda: reporter.subscribed)
         async with aiomqtt.Client("127.0.0.1", broker.port) as gcs:
             good = sign_command(KEY, {"cmd": "hold", "time_unix_s": time.time(), "nonce": "n1"})
             await gcs.publish("wingman/f1/cmd", good, qos=1)
