@@ -93,6 +93,9 @@ class LeaderConfig(Section):
     span_m: float = Field(0.45, gt=0.05, le=3.0)
     #: Half the body depth seen by the camera: depth measured on the front surface + this = centre.
     surface_to_centre_m: float = Field(0.05, ge=0.0, le=1.0)
+    #: How far the middle of the leader's silhouette sits below its centre (landing legs hang below,
+    #: propellers sit above), m: the box centre is shifted up by this before it is used.
+    box_centre_below_m: float = Field(0.04, ge=-0.5, le=0.5)
     #: Where the leader's own position comes from when it is shared (vision-external-position fallback).
     shared_position: Literal["none", "mavlink", "mqtt"] = "none"
     mavlink_system_id: int = Field(1, ge=1, le=255)
@@ -102,8 +105,9 @@ class PoseConfig(Section):
     """Leader position from a box and the aligned depth: depth window, stereo noise model, box jitter."""
 
     #: Depth outside [depth_min_m, depth_max_m] is treated as invalid (D435: ~0.2 m minimum range).
+    #: Keep depth_max_m at or below the camera's own cut-off: the pose undoes the bias of a known cut.
     depth_min_m: float = Field(0.2, ge=0.0)
-    depth_max_m: float = Field(20.0, gt=0.0)
+    depth_max_m: float = Field(10.0, gt=0.0)
     #: Stereo depth noise sigma_z = z^2 * subpixel / (f * baseline) per pixel (D435: 50 mm, ~0.08 px).
     stereo_baseline_m: float = Field(0.05, gt=0.0)
     stereo_subpixel_px: float = Field(0.08, gt=0.0)
@@ -114,8 +118,11 @@ class PoseConfig(Section):
     #: Box-centre jitter of the detector: this many pixels plus this fraction of the box size.
     box_jitter_px: float = Field(1.0, ge=0.0)
     box_jitter_frac: float = Field(0.03, ge=0.0)
-    #: Fewer valid depth pixels than this inside a box: no measurement.
+    #: Fewer valid depth pixels than this inside a box: no depth measurement.
     min_valid_px: int = Field(6, ge=1)
+    #: Without depth (beyond the stereo range, a hole), range the leader from its box size, learnt
+    #: online from depth measurements at closer range.
+    size_fallback: bool = True
 
 
 class TrackerConfig(Section):

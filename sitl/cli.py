@@ -46,12 +46,21 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", type=Path, default=Path("config/sitl.toml"))
     s.add_argument("--speed", type=float, default=None, help="speed factor (overrides the config)")
     s.add_argument("--scenario", type=Path, default=None, help="scenario TOML (leader path, faults)")
+    s.add_argument("--seed", type=int, default=None, help="random seed (default: scenario's, else config's)")
+    s.add_argument(
+        "--component",
+        action="append",
+        default=None,
+        metavar="MODULE:CALLABLE",
+        help="run an in-process async component (e.g. the camera server); repeatable",
+    )
     s.set_defaults(handler=_lazy("sitl.serve", "main", "serve"))
 
     d = sub.add_parser("dataset", help="render a detector dataset with YOLO labels and COCO json")
     d.add_argument("--out", type=Path, required=True)
     d.add_argument("--count", type=int, required=True)
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seq-len", type=int, default=6, help="frames per sequence (splits are by sequence)")
     d.set_defaults(handler=_lazy("sitl.dataset", "main_dataset", "dataset"))
 
     c = sub.add_parser(
@@ -60,10 +69,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--data", type=Path, required=True)
     c.add_argument("--out", type=Path, default=Path("runs/contact-sheet.png"))
     c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--tile-px", type=int, default=320, help="width of each colour/depth tile")
     c.set_defaults(handler=_lazy("sitl.dataset", "main_contact_sheet", "contact-sheet"))
 
     b = sub.add_parser("bench", help="lockstep real-time factor for 2 vehicles, without rendering")
     b.add_argument("--json", type=Path, default=None)
+    b.add_argument("--sim-s", type=float, default=60.0, help="sim seconds per run (default 60)")
+    b.add_argument("--repeats", type=int, default=3, help="runs; the median is reported (default 3)")
     b.set_defaults(handler=_lazy("sitl.bench", "main", "bench"))
 
     r = sub.add_parser("bench-render", help="rendered RGB-D frames per second at 640x480 with noise")

@@ -1,6 +1,7 @@
 """The simulator's configuration (``config/sitl.toml``): frozen, strict and versioned like the service's.
 
-Environment overrides use the ``SITL_`` prefix (``SITL_WORLD__SPEED_FACTOR=4``).
+Environment overrides use the ``SITL_`` prefix (``SITL_WORLD__SPEED_FACTOR=4``,
+``SITL_MAVLINK__API_REMOTE_PORT_BASE=24540``).
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from companion.config import Section, deep_merge, env_overrides, format_validation_error, read_toml
 from companion.errors import ConfigError
@@ -21,22 +22,57 @@ class WorldConfig(Section):
     """Time and randomness for the whole simulation."""
 
     speed_factor: float = Field(1.0, gt=0, le=100)
-    seed: int = 0
-    physics_rate_hz: float = Field(250.0, ge=100)
-    #: Home of vehicle 0; the others are placed relative to it.
-    home_lat_deg: float = 47.397742
-    home_lon_deg: float = 8.545594
-    home_alt_m: float = 488.0
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+    physics_rate_hz: float = Field(250.0, ge=100, le=2000)
+    #: Home of the world frame (on the ground); vehicles spawn relative to it.
+    home_lat_deg: float = Field(47.397742, ge=-80, le=80)
+    home_lon_deg: float = Field(8.545594, ge=-180, le=180)
+    home_alt_m: float = Field(488.0, ge=-400, le=9000)
+
+    @field_validator("physics_rate_hz")
+    @classmethod
+    def _multiple_of_outer(cls, v: float) -> float:
+        # The 50 Hz outer loop runs every N physics ticks.
+        if abs(v / 50.0 - round(v / 50.0)) > 1e-9:
+            raise ValueError("must be a multiple of 50 Hz")
+        return v
+
+
+class MavlinkConfig(Section):
+    """Where each vehicle talks, PX4 SITL's convention for vehicle i (system id i+1).
+
+    API link: bound to ``api_local_port_base + i``, sending to ``remote_host:api_remote_port_base + i``
+    (so MAVSDK's ``udpin://0.0.0.0:14540`` works as with PX4). GCS link: bound to
+    ``gcs_local_port_base + i``, sending to ``remote_host:gcs_remote_port`` (QGroundControl).
+    """
+
+    bind_host: str = "0.0.0.0"  # noqa: S104 - PX4 SITL listens on all interfaces too
+    remote_host: str = "127.0.0.1"
+    api_local_port_base: int = Field(14580, ge=1024, le=65000)
+    api_remote_port_base: int = Field(14540, ge=1024, le=65000)
+    gcs_enabled: bool = True
+    gcs_local_port_base: int = Field(18570, ge=1024, le=65000)
+    gcs_remote_port: int = Field(14550, ge=1024, le=65535)
+
+
+class ServeConfig(Section):
+    """``sitl serve`` extras."""
+
+    #: In-process async components ("module:callable", each called with a SimHandle), e.g. the
+    #: renderer's camera server.
+    components: tuple[str, ...] = ()
 
 
 class VehicleConfig(Section):
     """One simulated vehicle."""
 
-    name: str
+    name: str = Field(pattern=r"^[a-z][a-z0-9_]{0,31}$")
     role: str = "follower"
-    #: Spawn position in the shared local NED frame, m.
+    #: Spawn position in the shared world NED frame, m (down is ignored: vehicles start on the ground).
     spawn_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    spawn_yaw_deg: float = 0.0
+    spawn_yaw_deg: float = Field(0.0, ge=-360, le=360)
+    #: PX4 parameter overrides for this vehicle (name -> value).
+    params: dict[str, float] = Field(default_factory=dict)
 
 
 class SitlConfig(Section):
@@ -44,10 +80,21 @@ class SitlConfig(Section):
 
     schema_version: int = SCHEMA_VERSION
     world: WorldConfig = WorldConfig()
+    mavlink: MavlinkConfig = MavlinkConfig()
+    serve: ServeConfig = ServeConfig()
     vehicles: tuple[VehicleConfig, ...] = (
         VehicleConfig(name="leader", role="leader", spawn_ned_m=(8.0, 0.0, 0.0)),
         VehicleConfig(name="follower", role="follower"),
     )
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> SitlConfig:
+        names = [v.name for v in self.vehicles]
+        if len(set(names)) != len(names):
+            raise ValueError("vehicle names must be unique")
+        if not 1 <= len(names) <= 16:
+            raise ValueError("between 1 and 16 vehicles")
+        return self
 
 
 def load_sitl_config(path: Path | None, environ: Mapping[str, str] | None = None) -> SitlConfig:

@@ -86,11 +86,13 @@ def render(
     subpixel_px: float = 0.08,
     baseline_m: float = 0.05,
     hole_fraction: float = 0.0,
+    depth_max_m: float | None = None,
 ) -> View:
     """Depth image of the leader at ``p_cam_leader_m`` in front of a wall (or sky when None).
 
-    With ``rng``, each valid pixel gets Gaussian noise ``z^2 * subpixel / (f * baseline)`` and a
-    ``hole_fraction`` of pixels becomes invalid, as a D435 does.
+    With ``rng``, each valid pixel's disparity ``f * baseline / z`` gets Gaussian noise of ``subpixel``
+    px (so depth noise is ``z^2 * subpixel / (f * baseline)``), a ``hole_fraction`` of pixels becomes
+    invalid, and noisy depths beyond ``depth_max_m`` are dropped, as a D435 does.
     """
     p = np.asarray(p_cam_leader_m, dtype=np.float64)
     w, h = intr.width_px, intr.height_px
@@ -125,10 +127,16 @@ def render(
     box = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
     if rng is not None:
         valid = depth > 0
-        sigma = subpixel_px / (intr.fx_px * baseline_m) * depth**2
-        depth = np.where(valid, depth + rng.normal(size=depth.shape) * sigma, 0.0)
+        fb = intr.fx_px * baseline_m
+        disp = (
+            np.where(valid, fb / np.where(valid, depth, 1.0), 0.0)
+            + rng.normal(size=depth.shape) * subpixel_px
+        )
+        depth = np.where(valid & (disp > 0), fb / np.where(disp > 0, disp, 1.0), 0.0)
         if hole_fraction > 0:
             depth[rng.random(depth.shape) < hole_fraction] = 0.0
+    if depth_max_m is not None:
+        depth[depth > depth_max_m] = 0.0
     return View(depth.astype(np.float32), mask, box, p)
 
 

@@ -1,11 +1,14 @@
-"""``companion bench``: per-stage perception latency."""
+"""``companion bench``: per-stage perception latency (p50/p95/p99), torch and ONNX Runtime side by side."""
 
 from __future__ import annotations
 
+import argparse
+import json
+import sys
+from pathlib import Path
 from typing import Any
 
-from companion.cli import not_built
-from companion.commands._common import add_config_arg
+from companion.commands._common import add_config_arg, load
 
 
 def register(sub: Any) -> None:
@@ -13,5 +16,66 @@ def register(sub: Any) -> None:
     p = sub.add_parser("bench", help="time perception per stage (p50/p95/p99)")
     add_config_arg(p)
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
-    p.add_argument("--frames", type=int, default=200)
-    p.set_defaults(handler=not_built("bench"))
+    p.add_argument("--frames", type=int, default=200, help="frames timed per runtime (after 10 warm-up)")
+    p.add_argument(
+        "--runtimes", default="torch,onnx", help="comma list: torch, onnx (CUDA added when present)"
+    )
+    p.add_argument(
+        "--data", default=None, help="folder of 640x480 images to time on instead of synthetic frames"
+    )
+    p.set_defaults(handler=_bench)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    cfg = load(args)
+    import importlib.util
+
+    from companion.perception.bench import format_bench, run_bench
+    from companion.perception.detector import load_detector
+
+    wanted = [r.strip() for r in args.runtimes.split(",") if r.strip()]
+    detectors: dict[str, Any] = {}
+    for name in wanted:
+        if name not in ("torch", "onnx"):
+            print(f"companion bench: unknown runtime {name!r}", file=sys.stderr)
+            return 2
+        key = "onnxruntime" if name == "onnx" else "torch"
+        detectors[f"{key}-cpu"] = load_detector(cfg.detector, runtime=name)
+    if "torch" in wanted and importlib.util.find_spec("torch") is not None:
+        import torch
+
+        if torch.cuda.is_available():
+            detectors["torch-cuda"] = load_detector(cfg.detector, runtime="torch", device="cuda")
+    if "onnx" in wanted:
+        import onnxruntime as ort
+
+        if "CUDAExecutionProvider" in ort.get_available_providers():
+            detectors["onnxruntime-cuda"] = load_detector(cfg.detector, runtime="onnx", device="cuda")
+    frames = _frames(args, cfg)
+    result = run_bench(cfg, detectors, frames)
+    print(format_bench(result))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(result, indent=2))
+    return 0
+
+
+def _frames(args: argparse.Namespace, cfg: Any) -> list[Any]:
+    from companion.perception.bench import synthetic_frames
+
+    if args.data is None:
+        return synthetic_frames(args.frames)
+    import numpy as np
+
+    from companion.perception.detector.dataset import IMAGE_SUFFIXES, read_rgb
+    from companion.perception.types import Intrinsics, RgbdFrame
+
+    paths = sorted(p for p in Path(args.data).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)[: args.frames]
+    synth = synthetic_frames(len(paths))
+    frames = []
+    for i, (p, s) in enumerate(zip(paths, synth, strict=True)):
+        rgb = read_rgb(p)
+        h, w = rgb.shape[:2]
+        depth = s.depth_m if (h, w) == s.depth_m.shape else np.zeros((h, w), np.float32)
+        frames.append(RgbdFrame(rgb, depth, Intrinsics.from_hfov(w, h, 69.0), stamp_s=i / 30.0, seq=i))
+    return frames

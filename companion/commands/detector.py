@@ -1,24 +1,176 @@
-"""``companion detector train | eval | export``."""
+"""``companion detector train | eval | export``. Heavy imports (torch, cv2) happen inside the handlers."""
 
 from __future__ import annotations
 
+import argparse
+import json
+import logging
+import math
+import sys
+from pathlib import Path
 from typing import Any
 
-from companion.cli import not_built
+from companion.commands._common import add_config_arg, load
+from companion.errors import ModelError
+
+log = logging.getLogger("companion.detector")
 
 
 def register(sub: Any) -> None:
     """Add this module's commands to the ``companion`` subparsers."""
     p = sub.add_parser("detector", help="train, evaluate and export the leader detector")
     dsub = p.add_subparsers(dest="detector_command", metavar="ACTION", required=True)
-    t = dsub.add_parser("train", help="train on a `sitl dataset` folder")
+
+    t = dsub.add_parser("train", help="train on a `sitl dataset` folder (train/val splits)")
+    add_config_arg(t)
     t.add_argument("--data", required=True, help="dataset folder")
-    t.add_argument("--out", default="runs/detector", help="checkpoint folder")
-    t.set_defaults(handler=not_built("detector train"))
+    t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
+    t.add_argument("--epochs", type=int, default=60)
+    t.add_argument("--batch-size", type=int, default=32)
+    t.add_argument("--input-size", type=int, default=320, help="letterbox size the model is trained for, px")
+    t.add_argument("--crop", type=int, default=256, help="training crop size, px (<= --input-size)")
+    t.add_argument("--lr", type=float, default=2e-3)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--workers", type=int, default=1, help="augmentation worker processes")
+    t.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    t.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    t.add_argument("--val-every", type=int, default=2, help="validate every N epochs")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.set_defaults(handler=_train)
+
     e = dsub.add_parser("eval", help="precision, recall, mAP on a folder of images with YOLO labels")
-    e.add_argument("--data", required=True, help="folder with images/ and labels/")
+    add_config_arg(e)
+    e.add_argument("--data", required=True, help="folder with images/ and labels/ (or a dataset with splits)")
+    e.add_argument(
+        "--split", default=None, help="split to evaluate (default: 'test' when the folder has splits)"
+    )
     e.add_argument("--json", default=None, help="write the metrics to this JSON file")
-    e.set_defaults(handler=not_built("detector eval"))
-    x = dsub.add_parser("export", help="export the weights to ONNX")
-    x.add_argument("--out", default=None, help="ONNX path")
-    x.set_defaults(handler=not_built("detector export"))
+    e.add_argument(
+        "--model", default=None, help="weights (.pt) or export (.onnx); default: detector.model_path"
+    )
+    e.add_argument(
+        "--runtime", choices=("auto", "torch", "onnx"), default=None, help="override detector.runtime"
+    )
+    e.add_argument("--input-size", type=int, default=None, help="override detector.input_size_px")
+    e.add_argument("--conf", type=float, default=None, help="override detector.conf_threshold")
+    e.add_argument("--no-progress", action="store_true")
+    e.set_defaults(handler=_eval)
+
+    x = dsub.add_parser("export", help="export weights to ONNX (opset >= 17) and update the checksum sidecar")
+    add_config_arg(x)
+    x.add_argument("--weights", default=None, help="weights .pt (default: detector.model_path)")
+    x.add_argument("--out", default=None, help="ONNX path (default: beside the weights)")
+    x.add_argument("--opset", type=int, default=17)
+    x.set_defaults(handler=_export)
+
+
+def _train(args: argparse.Namespace) -> int:
+    load(args)
+    from companion.perception.detector.train import TrainConfig, train
+
+    if args.crop > args.input_size:
+        print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
+        return 2
+    cfg = TrainConfig(
+        data=str(args.data),
+        out=str(args.out),
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        input_size_px=args.input_size,
+        crop_px=args.crop,
+        lr=args.lr,
+        seed=args.seed,
+        workers=args.workers,
+        threads=args.threads,
+        device=args.device,
+        val_every=args.val_every,
+    )
+    try:
+        result = train(cfg, resume=args.resume, progress=not args.no_progress)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"companion detector train: {exc}", file=sys.stderr)
+        return 2
+    print(f"best validation mAP@0.5 {result['best_val_map50']:.3f}; weights in {args.out}/best.pt")
+    return 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    cfg = load(args)
+    from companion.perception.detector.dataset import find_samples, list_splits
+    from companion.perception.detector.evaluate import evaluate
+    from companion.perception.detector.metrics import format_summary
+
+    det_cfg = cfg.detector
+    updates: dict[str, Any] = {}
+    if args.model is not None:
+        updates["model_path"] = args.model
+        if Path(args.model).resolve() != Path(det_cfg.model_path).resolve():
+            updates["model_sha256"] = ""
+    if args.runtime is not None:
+        updates["runtime"] = args.runtime
+    elif args.model is not None and Path(args.model).suffix in (".pt", ".onnx"):
+        updates["runtime"] = "onnx" if Path(args.model).suffix == ".onnx" else "torch"
+    if args.input_size is not None:
+        updates["input_size_px"] = args.input_size
+    if args.conf is not None:
+        updates["conf_threshold"] = args.conf
+    det_cfg = det_cfg.model_copy(update=updates)
+    data = Path(args.data)
+    split = args.split
+    if split is None and data.is_dir() and "test" in list_splits(data):
+        split = "test"
+    try:
+        samples = find_samples(data, split)
+    except FileNotFoundError as exc:
+        print(f"companion detector eval: {exc}", file=sys.stderr)
+        return 2
+    detector = _load_unverified_ok(det_cfg)
+    summary = evaluate(detector, samples, progress=not args.no_progress)
+    summary["data"] = str(data)
+    summary["split"] = split
+    summary["model"] = det_cfg.model_path
+    print(f"{data}{f' [{split}]' if split else ''}: {detector.runtime} at {detector.input_size_px} px")
+    print(format_summary(summary))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(_json_ready(summary), indent=2))
+    return 0
+
+
+def _load_unverified_ok(det_cfg: Any) -> Any:
+    """Load through the checksum check; a run's own weights (no sidecar yet) are loaded with a warning."""
+    from companion.perception.detector import load_detector
+    from companion.perception.detector.weights import sha256_file
+
+    try:
+        return load_detector(det_cfg)
+    except ModelError as exc:
+        if "no checksum" not in str(exc):
+            raise
+        digest = sha256_file(Path(det_cfg.model_path))
+        log.warning(
+            "%s has no recorded checksum; evaluating it as-is (sha256 %s)", det_cfg.model_path, digest
+        )
+        return load_detector(det_cfg.model_copy(update={"model_sha256": digest}))
+
+
+def _json_ready(v: Any) -> Any:
+    """NaN (no data for a figure) -> null, recursively; JSON has no NaN."""
+    if isinstance(v, float) and math.isnan(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _json_ready(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_json_ready(x) for x in v]
+    return v
+
+
+def _export(args: argparse.Namespace) -> int:
+    cfg = load(args)
+    from companion.perception.detector.export import export_and_sign
+
+    weights = Path(args.weights or Path(cfg.detector.model_path).with_suffix(".pt"))
+    onnx_path, side = export_and_sign(weights, Path(args.out) if args.out else None, args.opset)
+    print(f"wrote {onnx_path} (opset {args.opset}); checksums in {side}")
+    return 0

@@ -20,8 +20,9 @@ from companion.perception.types import Detection, DetectorResult, RgbdFrame, Rgb
 RANGE_BINS_M: tuple[tuple[float, float], ...] = (
     (0.0, 3.0),
     (3.0, 6.0),
-    (6.0, 9.0),
-    (9.0, 12.0),
+    (6.0, 8.0),
+    (8.0, 10.0),
+    (10.0, 12.0),
     (12.0, math.inf),
 )
 #: The acceptance bands of issue 5.

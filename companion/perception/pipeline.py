@@ -13,15 +13,16 @@ Pure apart from the attitude history it owns: time comes from the frames' stamps
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from companion.config import Config, LeaderConfig, PoseConfig, TrackerConfig
-from companion.estimation.tracker import TargetTracker, TrackState
+from companion.estimation.tracker import TargetTracker, TrackState, TrackStatus
 from companion.frames import Mat3
-from companion.perception.pose import LeaderMeasurement, measure_all
+from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
 from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.perception.types import Detection, RgbdFrame
 
@@ -51,14 +52,21 @@ class PerceptionPipeline:
         self.tracker = TargetTracker(tracker, camera)
         self.attitude = attitude if attitude is not None else AttitudeHistory()
         self.counters = PipelineCounters()
+        self.size = (
+            SizeCalibrator(leader.span_m, max_depth_m=0.95 * pose.depth_max_m) if pose.size_fallback else None
+        )
         self._last_R_ned_body: Mat3 = np.eye(3)
+        self._att_key: tuple[float, float | None] = (math.nan, None)
+        self._att_R: Mat3 | None = None
 
     @classmethod
     def from_config(cls, cfg: Config) -> PerceptionPipeline:
         return cls(cfg.leader, cfg.pose, cfg.tracker, CameraGeometry.from_mount(cfg.camera.mount))
 
     def measure(self, frame: RgbdFrame, detections: Sequence[Detection]) -> list[LeaderMeasurement]:
-        """Pose stage: the leader's camera-frame position for every detection with usable depth."""
+        """Pose stage: the leader's camera-frame position for every detection with a usable range."""
+        R = self._attitude_at(frame.stamp_s)
+        down_cam = self.camera.R_ned_cam(R if R is not None else self._last_R_ned_body)[2]
         return measure_all(
             frame.depth_m,
             frame.intrinsics,
@@ -66,7 +74,18 @@ class PerceptionPipeline:
             frame.stamp_s,
             leader=self.leader,
             cfg=self.pose_cfg,
+            size_prior=None if self.size is None else self.size.prior(),
+            down_cam=down_cam,
         )
+
+    def _attitude_at(self, stamp_s: float) -> Mat3 | None:
+        """``R_ned_body`` at a frame stamp (one lookup per stamp, shared by both stages)."""
+        key = (stamp_s, self.attitude.latest_stamp_s)
+        if key != self._att_key:
+            self._att_key = key
+            R = self.attitude.R_at(stamp_s)
+            self._att_R = np.eye(3) if R is None and len(self.attitude) == 0 else R
+        return self._att_R
 
     def track(self, stamp_s: float, measurements: Sequence[LeaderMeasurement]) -> TrackState:
         """Track stage: follower attitude at ``stamp_s``, then one tracker step.
@@ -75,17 +94,18 @@ class PerceptionPipeline:
         recordings without attitude); with telemetry that does not cover the stamp, the frame's
         measurements cannot be placed in NED and are dropped (the track coasts).
         """
-        R = self.attitude.R_at(stamp_s)
+        R = self._attitude_at(stamp_s)
+        if len(self.attitude) == 0:
+            self.counters.attitude_assumed_level += 1
         if R is None:
-            if len(self.attitude) == 0:
-                self.counters.attitude_assumed_level += 1
-                R = np.eye(3)
-            else:
-                self.counters.attitude_missing += 1
-                measurements = ()
-                R = self._last_R_ned_body
+            self.counters.attitude_missing += 1
+            measurements = ()
+            R = self._last_R_ned_body
         self._last_R_ned_body = R
-        return self.tracker.step(stamp_s, measurements, R)
+        state = self.tracker.step(stamp_s, measurements, R)
+        if self.size is not None and state.measurement is not None and state.status == TrackStatus.CONFIRMED:
+            self.size.update(state.measurement)
+        return state
 
     def process(self, frame: RgbdFrame, detections: Sequence[Detection]) -> TrackState:
         """Both stages for one frame."""

@@ -4,16 +4,22 @@ The paper takes the depth at the box centre. A quadrotor's box centre often show
 the arms, and stereo depth noise grows with Z^2, so instead:
 
 1. **Robust depth** (:func:`robust_depth`): among the valid depth pixels inside the box, find the nearest
-   dense cluster (the leader; background is behind it) and take a trimmed mean around it. The window
-   is the leader's depth extent plus +-2.5 sigma of the stereo noise at that range.
+   dense cluster (the leader; background is behind it), then take a trimmed mean in *disparity*
+   (``f * baseline / z``), where stereo noise is Gaussian with a constant sigma, so the mean is unbiased.
+   Near ``depth_max_m`` the far half of the noise falls out of range; that truncation is undone
+   (truncated-normal mean), instead of reading the leader up to 0.2 m short at 10 m.
 2. **Surface to centre**: the cluster is the leader's visible surface; its centre lies
-   ``surface_to_centre_m`` further along the viewing ray.
+   ``surface_to_centre_m`` further along the viewing ray. The box's middle sits ``box_centre_below_m``
+   below the leader's centre (legs hang below, props sit above): moved up along gravity.
 3. **Back-projection** of the box centre: ``p = K^-1 [u v 1]^T Z``.
 4. **Covariance** from first-order propagation of box-centre jitter (pixels) and the depth error
    (``sigma_z = z^2 * subpixel / (f * baseline)`` per pixel, averaged over at most
    ``independent_depth_px`` pixels since stereo noise is spatially correlated, plus a shape term).
 5. **Size prior**: ``size_ratio`` = box size / expected size of a leader of span ``span_m`` at that
    depth; the tracker rejects boxes whose ratio is off by more than its tolerance.
+6. **Beyond the stereo range** (or in a depth hole) the range comes from the box's width and height
+   (:func:`range_from_size`) with the leader's apparent size learnt online from depth
+   (:class:`SizeCalibrator`). It is coarse (about 10 % of range) and its covariance says so.
 
 Everything here is pure: arrays and numbers in, a :class:`LeaderMeasurement` out; nothing copies the
 image (the box is a view; only its valid pixels are gathered).
@@ -34,6 +40,13 @@ from companion.perception.types import DepthImage, Detection, Intrinsics
 _TRIM_SIGMAS = 2.5
 #: A depth window is a candidate for the leader once it holds this fraction of the box's valid pixels.
 _CLUSTER_FRACTION = 0.1
+_CAM_DOWN = np.array([0.0, 1.0, 0.0])
+#: Variance inflation of size-ranged measurements, whose errors are correlated over many frames.
+_SIZE_ERROR_PERSISTENCE = 4.0
+#: Smallest box side used for ranging from size, px (a pixel of box error is then under 15 %).
+_MIN_SIZE_RANGE_PX = 7.0
+#: A cluster with less than this modelled fraction inside the valid range is too truncated to trust.
+_MIN_KEPT_FRACTION = 0.3
 #: Above this many valid pixels, the cluster search runs on an even subsample (the mean uses all).
 _SEARCH_SAMPLES = 2048
 
@@ -48,6 +61,9 @@ class DepthCluster:
     n_valid_px: int
     #: Standard deviation of the pixels in the window, m (noise plus the leader's own depth extent).
     spread_m: float
+    #: Modelled fraction of the leader's depth distribution inside the window and the valid range
+    #: (below 1 near ``depth_max_m``, where the far half of the noise is cut off and was corrected for).
+    kept_fraction: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,6 +86,11 @@ class LeaderMeasurement:
     box_xyxy_px: tuple[float, float, float, float]
     #: The box touches the image border: the leader may be cut off, its centre less certain.
     truncated: bool
+    #: Where the range came from: "depth" (stereo) or "size" (box size, beyond the stereo range).
+    range_source: str = "depth"
+    #: The box's width and height at the measured range, m (what the size calibration learns from).
+    width_m: float = math.nan
+    height_m: float = math.nan
 
 
 def back_project(u_px: float, v_px: float, z_m: float, intr: Intrinsics) -> Vec3:
@@ -152,19 +173,155 @@ def robust_depth(
         return None
     i = int(np.argmax(dense))
     i += int(np.argmax(counts[i : i + int(counts[i])]))
-    centre = float(s[i + (int(counts[i]) - 1) // 2])
-    sel = valid
+    centre_m = float(s[i + (int(counts[i]) - 1) // 2])
+    # Refine in disparity (fB / z), where stereo noise is Gaussian with a constant sigma: the trimmed
+    # mean there is unbiased, and the range limit is a plain lower truncation that can be undone.
+    fb = focal_px * cfg.stereo_baseline_m
+    sigma_d = cfg.stereo_subpixel_px
+    d_min = fb / cfg.depth_max_m  # farther pixels were dropped: the window is cut below this
+    disp = fb / valid.astype(np.float64)
+    d_c = fb / centre_m
+    sel = disp
     for _ in range(2):  # recentre twice: the first window starts on the cluster's near tail
-        half = 0.5 * body_depth_m + _TRIM_SIGMAS * k_noise * centre * centre
-        sel = valid[np.abs(valid - centre) <= half]
+        extent_d = fb * 0.5 * body_depth_m / (fb / d_c) ** 2
+        half = extent_d + _TRIM_SIGMAS * sigma_d
+        sel = disp[np.abs(disp - d_c) <= half]
         if sel.size == 0:
             return None
-        centre = float(sel.mean(dtype=np.float64))
+        d_c = float(sel.mean())
     if sel.size < cfg.min_valid_px:
         return None
+    # The leader's own depth extent adds to the spread (uniform over +-extent: std extent / sqrt 3).
+    sigma_eff = math.sqrt(sigma_d * sigma_d + (extent_d / math.sqrt(3.0)) ** 2)
+    mu, kept = _untruncated_mean(d_c, sigma_eff, max(d_c - half, d_min), d_c + half)
+    if kept < _MIN_KEPT_FRACTION or mu <= 0.0:
+        return None
+    z_sel = fb / sel
     return DepthCluster(
-        z_m=centre, n_px=int(sel.size), n_valid_px=n_valid, spread_m=float(sel.std(dtype=np.float64))
+        z_m=fb / mu,
+        n_px=int(sel.size),
+        n_valid_px=n_valid,
+        spread_m=float(z_sel.std()),
+        kept_fraction=kept,
     )
+
+
+def _phi(x: float) -> float:
+    return math.exp(-0.5 * x * x) / math.sqrt(2.0 * math.pi)
+
+
+def _Phi(x: float) -> float:
+    return 0.5 * (1.0 + math.erf(x / math.sqrt(2.0)))
+
+
+def _untruncated_mean(mean: float, sigma: float, lo: float, hi: float) -> tuple[float, float]:
+    """Mean ``mu`` of N(mu, sigma^2) whose part inside [lo, hi] has mean ``mean``; and that part's mass.
+
+    Fixed point ``mu <- mean - sigma (phi(a) - phi(b)) / (Phi(b) - Phi(a))``: it converges because the
+    truncated mean moves slower than ``mu``. With a symmetric window it returns ``mean`` at once.
+    """
+    mu = mean
+    kept = 1.0
+    for _ in range(30):
+        a, b = (lo - mu) / sigma, (hi - mu) / sigma
+        kept = _Phi(b) - _Phi(a)
+        if kept < 1e-6:
+            return mu, kept
+        new = mean - sigma * (_phi(a) - _phi(b)) / kept
+        if abs(new - mu) < 1e-6 * sigma:
+            return new, kept
+        mu = new
+    return mu, kept
+
+
+@dataclass(frozen=True, slots=True)
+class SizePrior:
+    """The leader's apparent width and height (box side times depth over focal length), m.
+
+    Height barely depends on the leader's yaw (it is level: props above, legs below); width does, by
+    up to +-20 % for a quad-X. Each comes with its relative standard deviation.
+    """
+
+    width_m: float
+    width_rel_std: float
+    height_m: float
+    height_rel_std: float
+
+
+class SizeCalibrator:
+    """Learns the leader's apparent size from depth measurements, for ranging where depth fails.
+
+    Beyond the stereo range (or in a depth hole) the box still gives range: ``z = f * size / px``, from
+    its width and its height, fused by their variances. The apparent size depends on the airframe, on
+    its yaw seen from here and on range (thin parts such as propellers vanish at low resolution), so
+    it is learnt online as an exponential average over recent confirmed, untruncated depth
+    measurements within ``max_depth_m`` (set just inside the stereo range: depth is still far more
+    accurate than size there, and the resolution is closest to what follows beyond it). Before that it
+    is ``width_ratio * span_m`` and ``height_ratio * span_m`` with a loose uncertainty.
+    """
+
+    def __init__(
+        self,
+        span_m: float,
+        *,
+        width_ratio: float = 1.3,
+        height_ratio: float = 0.65,
+        prior_rel_std: float = 0.25,
+        max_depth_m: float = 9.5,
+        alpha: float = 0.05,
+        min_rel_std: float = 0.10,
+    ) -> None:
+        self.span_m = span_m
+        self.max_depth_m = max_depth_m
+        self.alpha = alpha
+        self.min_rel_std = min_rel_std
+        self._prior = SizePrior(width_ratio * span_m, prior_rel_std, height_ratio * span_m, prior_rel_std)
+        self._mean = [self._prior.width_m, self._prior.height_m]
+        self._rel_var = [prior_rel_std**2, prior_rel_std**2]
+        self.updates = 0
+
+    def update(self, m: LeaderMeasurement) -> None:
+        """Learn from a depth measurement the tracker accepted (others are ignored)."""
+        if m.range_source != "depth" or m.truncated or m.p_cam_leader_m[2] > self.max_depth_m:
+            return
+        # Early on average fast (1/n), then settle to the exponential window.
+        a = max(self.alpha, 1.0 / (self.updates + 1))
+        w = max(self.alpha, 1.0 / (self.updates + 2))
+        for i, size_m in enumerate((m.width_m, m.height_m)):
+            rel = size_m / self._mean[i] - 1.0
+            self._mean[i] += a * (size_m - self._mean[i])
+            self._rel_var[i] = (1.0 - w) * self._rel_var[i] + w * rel * rel
+        self.updates += 1
+
+    def prior(self) -> SizePrior:
+        """The current apparent-size estimate (the configured prior until enough updates)."""
+        if self.updates < 10:
+            return self._prior
+        sw, sh = (max(self.min_rel_std, math.sqrt(v)) for v in self._rel_var)
+        return SizePrior(self._mean[0], sw, self._mean[1], sh)
+
+
+def range_from_size(
+    w_px: float, h_px: float, focal_px: float, prior: SizePrior, edge_jitter_px: float
+) -> tuple[float, float] | None:
+    """Range (m) and its relative variance from the box size, fusing width and height in log range.
+
+    Each side's relative error combines the size's own spread and two box edges' jitter over its length.
+    """
+    log_sum = 0.0
+    weight = 0.0
+    for size_px, size_m, rel_std in (
+        (w_px, prior.width_m, prior.width_rel_std),
+        (h_px, prior.height_m, prior.height_rel_std),
+    ):
+        if size_px < _MIN_SIZE_RANGE_PX:
+            continue
+        rel_var = rel_std * rel_std + 2.0 * (edge_jitter_px / size_px) ** 2
+        log_sum += math.log(focal_px * size_m / size_px) / rel_var
+        weight += 1.0 / rel_var
+    if weight == 0.0:
+        return None
+    return math.exp(log_sum / weight), 1.0 / weight
 
 
 def measure_leader(
@@ -175,21 +332,16 @@ def measure_leader(
     *,
     leader: LeaderConfig,
     cfg: PoseConfig,
+    size_prior: SizePrior | None = None,
+    down_cam: Vec3 | None = None,
 ) -> LeaderMeasurement | None:
-    """The leader's centre in the camera frame from one detection, or None without enough depth."""
-    bounds = box_bounds(det.box_xyxy_px, intr.width_px, intr.height_px)
-    # A quad's visible surface spans about its motor-to-motor span in depth at the worst yaw.
-    cluster = robust_depth(depth_m, bounds, focal_px=intr.fx_px, body_depth_m=leader.span_m, cfg=cfg)
-    if cluster is None:
-        return None
-    u, v = det.center_px
-    a = (u - intr.cx_px) / intr.fx_px
-    b = (v - intr.cy_px) / intr.fy_px
-    cos_ray = 1.0 / math.sqrt(1.0 + a * a + b * b)
-    # The centre is surface_to_centre_m further along the ray than the visible surface.
-    z = cluster.z_m + leader.surface_to_centre_m * cos_ray
-    p_cam = np.array([a * z, b * z, z], dtype=np.float64)
+    """The leader's centre in the camera frame from one detection, or None without a usable range.
 
+    Range comes from the box's depth cluster; without one (beyond the stereo range, a depth hole) and
+    with a ``size_prior``, from the box size, with the size's uncertainty. The box centre's point is
+    moved up by ``leader.box_centre_below_m`` along ``down_cam`` (gravity in the camera frame at the
+    frame's attitude; the camera's own y axis when None) to reach the leader's centre.
+    """
     w_px, h_px = det.size_px
     x0, y0, x1, y1 = det.box_xyxy_px
     truncated = x0 <= 0.5 or y0 <= 0.5 or x1 >= intr.width_px - 1.5 or y1 >= intr.height_px - 1.5
@@ -197,8 +349,35 @@ def measure_leader(
     jitter = cfg.box_jitter_px + cfg.box_jitter_frac * size_px
     if truncated:  # the visible part's centre can be off by up to half the missing part
         jitter = max(jitter, 0.25 * size_px)
-    n_eff = min(cluster.n_px, cfg.independent_depth_px)
-    var_z = depth_sigma_m(z, intr.fx_px, cfg) ** 2 / n_eff + cfg.surface_model_std_m**2
+    u, v = det.center_px
+    a = (u - intr.cx_px) / intr.fx_px
+    b = (v - intr.cy_px) / intr.fy_px
+
+    bounds = box_bounds(det.box_xyxy_px, intr.width_px, intr.height_px)
+    # A quad's visible surface spans about its motor-to-motor span in depth at the worst yaw.
+    cluster = robust_depth(depth_m, bounds, focal_px=intr.fx_px, body_depth_m=leader.span_m, cfg=cfg)
+    if cluster is not None:
+        cos_ray = 1.0 / math.sqrt(1.0 + a * a + b * b)
+        # The centre is surface_to_centre_m further along the ray than the visible surface.
+        z = cluster.z_m + leader.surface_to_centre_m * cos_ray
+        # A truncated sample has fewer effective pixels for the same count.
+        n_eff = min(cluster.n_px, cfg.independent_depth_px) * cluster.kept_fraction
+        var_z = depth_sigma_m(z, intr.fx_px, cfg) ** 2 / n_eff + cfg.surface_model_std_m**2
+        source, surface_m, n_px = "depth", cluster.z_m, cluster.n_px
+    elif size_prior is not None and not truncated:
+        ranged = range_from_size(w_px, h_px, intr.fx_px, size_prior, cfg.box_jitter_px)
+        if ranged is None:
+            return None
+        z, rel_var = ranged
+        # Size errors persist for about a second (yaw, pixel quantisation): the filter must not average
+        # them as if independent, so they count as fewer, larger ones.
+        var_z = z * z * rel_var * _SIZE_ERROR_PERSISTENCE
+        source, surface_m, n_px = "size", math.nan, 0
+    else:
+        return None
+    p_cam = np.array([a * z, b * z, z], dtype=np.float64)
+    if leader.box_centre_below_m != 0.0:
+        p_cam = p_cam - leader.box_centre_below_m * (_CAM_DOWN if down_cam is None else down_cam)
     # p = (a z, b z, z) with a = (u - cx) / fx, b = (v - cy) / fy: Jacobian wrt (u, v, z).
     J = np.array([[z / intr.fx_px, 0.0, a], [0.0, z / intr.fy_px, b], [0.0, 0.0, 1.0]])
     cov = (J * np.array([jitter * jitter, jitter * jitter, var_z])) @ J.T
@@ -207,14 +386,17 @@ def measure_leader(
         stamp_s=stamp_s,
         p_cam_leader_m=p_cam,
         cov_cam_m2=0.5 * (cov + cov.T),
-        depth_surface_m=cluster.z_m,
-        n_depth_px=cluster.n_px,
+        depth_surface_m=surface_m,
+        n_depth_px=n_px,
         size_ratio=size_px * z / (intr.fx_px * leader.span_m),
         azimuth_rad=az,
         elevation_rad=el,
         score=det.score,
         box_xyxy_px=det.box_xyxy_px,
         truncated=truncated,
+        range_source=source,
+        width_m=w_px * z / intr.fx_px,
+        height_m=h_px * z / intr.fy_px,
     )
 
 
@@ -226,11 +408,15 @@ def measure_all(
     *,
     leader: LeaderConfig,
     cfg: PoseConfig,
+    size_prior: SizePrior | None = None,
+    down_cam: Vec3 | None = None,
 ) -> list[LeaderMeasurement]:
-    """:func:`measure_leader` for every detection of a frame; boxes without usable depth are dropped."""
+    """:func:`measure_leader` for every detection of a frame; boxes without a usable range are dropped."""
     out = []
     for det in detections:
-        m = measure_leader(depth_m, intr, det, stamp_s, leader=leader, cfg=cfg)
+        m = measure_leader(
+            depth_m, intr, det, stamp_s, leader=leader, cfg=cfg, size_prior=size_prior, down_cam=down_cam
+        )
         if m is not None:
             out.append(m)
     return out

@@ -47,6 +47,8 @@ CSV_FIELDS = [
     "meas_x_m",
     "meas_y_m",
     "meas_z_m",
+    "meas_source",
+    "meas_px",
     "est_x_m",
     "est_y_m",
     "est_z_m",
@@ -112,6 +114,8 @@ def evaluate_frame(
     m = state.measurement
     if m is not None:
         row.update(
+            meas_source=m.range_source,
+            meas_px=str(m.n_depth_px),
             meas_x_m=_fmt(m.p_cam_leader_m[0]),
             meas_y_m=_fmt(m.p_cam_leader_m[1]),
             meas_z_m=_fmt(m.p_cam_leader_m[2]),

@@ -28,8 +28,13 @@ def rows(path: Path) -> list[dict[str, str]]:
 
 
 def test_replay_writes_estimates_and_errors(
-    recording: Path, tmp_path: Path, repo_root: Path, capsys: pytest.CaptureFixture[str]
+    recording: Path,
+    tmp_path: Path,
+    repo_root: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    monkeypatch.setenv("WINGMAN_LEADER__BOX_CENTRE_BELOW_M", "0.0")  # the synthetic quad has no legs
     out, js = tmp_path / "est.csv", tmp_path / "sum.json"
     cfg = str(repo_root / "config/wingman.toml")
     rc = main(["replay", "--config", cfg, "--source", f"file:{recording}", "--detector", "truth",

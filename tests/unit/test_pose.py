@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from companion.config import LeaderConfig, PoseConfig
 from companion.perception.pose import (
+    SizeCalibrator,
     back_project,
     bearing,
     box_bounds,
@@ -20,8 +21,8 @@ from companion.perception.pose import (
 from companion.perception.types import Detection, Intrinsics
 from tests.synthetic import D435_COLOR, render
 
-LEADER = LeaderConfig()
-POSE = PoseConfig()
+LEADER = LeaderConfig(box_centre_below_m=0.0)  # the synthetic quad's silhouette is centred
+POSE = PoseConfig(depth_max_m=20.0)  # the synthetic camera has no range cut-off unless asked
 
 
 @given(st.floats(0.0, 639.0), st.floats(0.0, 479.0), st.floats(0.3, 30.0), st.floats(300.0, 900.0))
@@ -149,3 +150,52 @@ def test_size_ratio_flags_a_box_that_does_not_fit_its_depth() -> None:
     assert huge is not None
     assert 0.6 < good.size_ratio < 1.8
     assert huge.size_ratio > 2.5
+
+
+def test_range_limit_truncation_is_undone() -> None:
+    # At 9.7 m with a 10 m cut-off a third of the leader's noisy pixels are dropped (all of them far):
+    # a plain mean of the rest reads ~0.2 m short; the truncated-normal correction removes that.
+    rng = np.random.default_rng(11)
+    cfg = PoseConfig(depth_max_m=10.0)
+    errs, naive = [], []
+    for _ in range(40):
+        p = np.array([0.0, 0.0, 9.7])
+        view = render(p, rng=rng, yaw_rad=rng.uniform(0, math.pi), depth_max_m=10.0, background_m=None)
+        m = measure_leader(
+            view.depth_m, D435_COLOR, Detection(view.box_xyxy_px, 0.9), 0.0, leader=LEADER, cfg=cfg
+        )
+        assert m is not None
+        errs.append(m.p_cam_leader_m[2] - 9.7)
+        vals = view.depth_m[view.leader_mask]
+        naive.append(vals[vals > 0].mean() + LEADER.surface_to_centre_m - 9.7)
+    assert np.mean(naive) < -0.12
+    assert abs(np.mean(errs)) < 0.06
+
+
+def test_size_fallback_ranges_beyond_the_stereo_range_after_learning_the_size() -> None:
+    rng = np.random.default_rng(12)
+    cfg = PoseConfig(depth_max_m=10.0)
+    calib = SizeCalibrator(LEADER.span_m, max_depth_m=9.5)
+    yaw = 0.4
+    for k in range(40):  # the track receding from 6 to 9.5 m teaches the leader's apparent size
+        p = np.array([0.3, 0.0, 6.0 + 3.5 * k / 40])
+        view = render(p, rng=rng, yaw_rad=yaw + 0.01 * k)
+        m = measure_leader(
+            view.depth_m, D435_COLOR, Detection(view.box_xyxy_px, 0.9), 0.0, leader=LEADER, cfg=cfg
+        )
+        assert m is not None
+        assert m.range_source == "depth"
+        calib.update(m)
+    prior = calib.prior()
+    assert prior.height_rel_std < 0.2  # box size jitters a lot at 10-40 px; depth does far better
+    view = render((0.5, 0.1, 11.5), rng=rng, yaw_rad=yaw + 0.4, depth_max_m=10.0)
+    det = Detection(view.box_xyxy_px, 0.9)
+    assert measure_leader(view.depth_m, D435_COLOR, det, 0.0, leader=LEADER, cfg=cfg) is None  # no depth
+    m = measure_leader(view.depth_m, D435_COLOR, det, 0.0, leader=LEADER, cfg=cfg, size_prior=prior)
+    assert m is not None
+    assert m.range_source == "size"
+    # Coarse (box size at ~20 px, thin props vanish with range) but honest about it: within 25 %, and
+    # within 3 sigma of its own covariance, so the tracker weighs it accordingly.
+    err_z = m.p_cam_leader_m[2] - 11.5
+    assert abs(err_z) < 0.25 * 11.5
+    assert abs(err_z) < 3.0 * math.sqrt(m.cov_cam_m2[2, 2])

@@ -1,0 +1,206 @@
+"""Per-stage perception latency on 640x480 RGB-D frames: ``companion bench``.
+
+Stages of one frame, each timed separately: decode (PNG -> array; file sources only, a camera delivers
+arrays), preprocess (letterbox + normalise), inference, postprocess (threshold, box decoding, NMS), pose
+(box + depth -> 3D) and filter (tracker step). Every runtime that is available here (torch and ONNX Runtime on
+the CPU; CUDA when present) runs the *same* frames, interleaved frame by frame so that the load of a shared
+machine hits them alike. Figures are p50 / p95 / p99 in ms; ``total`` is the per-frame sum from preprocess to
+filter (the camera path). A stage whose code is not on this branch yet is reported as "not built yet",
+never with a number.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import logging
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config
+from companion.perception.types import Detection, Intrinsics, RgbdFrame
+
+log = logging.getLogger(__name__)
+
+STAGES = ("decode", "preprocess", "inference", "postprocess", "pose", "filter")
+CAMERA_STAGES = STAGES[1:]
+NOT_BUILT = "not built yet"
+
+
+def percentiles_ms(samples_ms: list[float]) -> dict[str, float]:
+    """p50 / p95 / p99 / mean of a list of durations in ms."""
+    a = np.asarray(samples_ms, np.float64)
+    p50, p95, p99 = np.percentile(a, (50, 95, 99))
+    return {
+        "p50_ms": round(float(p50), 3),
+        "p95_ms": round(float(p95), 3),
+        "p99_ms": round(float(p99), 3),
+        "mean_ms": round(float(a.mean()), 3),
+        "n": len(a),
+    }
+
+
+def synthetic_frames(n: int, seed: int = 0, w_px: int = 640, h_px: int = 480) -> list[RgbdFrame]:
+    """Deterministic 640x480 RGB-D frames: sky and ground, sensor noise, a dark quad-like leader at 3-12 m."""
+    import cv2  # noqa: PLC0415
+
+    rng = np.random.default_rng(seed)
+    intr = Intrinsics.from_hfov(w_px, h_px, 69.0)
+    frames = []
+    for i in range(n):
+        t = np.linspace(0.0, 1.0, h_px, dtype=np.float32)[:, None, None]
+        sky = rng.uniform(120, 230, 3).astype(np.float32)
+        rgb = (sky * (1 - 0.4 * t)).repeat(w_px, 1)
+        horizon = int(rng.uniform(0.55, 0.85) * h_px)
+        rgb[horizon:] = rng.uniform(40, 120, 3)
+        rgb += rng.normal(0.0, 3.0, rgb.shape).astype(np.float32)
+        img = np.clip(rgb, 0, 255).astype(np.uint8)
+        depth = np.zeros((h_px, w_px), np.float32)
+        depth[horizon:] = np.linspace(4.0, 25.0, h_px - horizon, dtype=np.float32)[::-1, None]
+        range_m = float(rng.uniform(3.0, 12.0))
+        span = intr.fx_px * 0.45 / range_m
+        cx, cy = rng.uniform(0.2, 0.8) * w_px, rng.uniform(0.2, 0.6) * h_px
+        for ang in (30, 150, 210, 330):
+            a = np.radians(ang)
+            x, y = int(cx + span / 2 * np.cos(a)), int(cy + span / 5 * np.sin(a))
+            cv2.line(img, (int(cx), int(cy)), (x, y), (30, 30, 35), max(1, int(span / 20)))
+            cv2.ellipse(
+                img, (x, y), (max(1, int(span / 7)), max(1, int(span / 20))), 0, 0, 360, (40, 40, 40), -1
+            )
+        x0, y0, x1, y1 = int(cx - span / 2), int(cy - span / 5), int(cx + span / 2), int(cy + span / 5)
+        depth[max(0, y0) : y1, max(0, x0) : x1] = range_m + rng.normal(
+            0, 0.02, (y1 - max(0, y0), x1 - max(0, x0))
+        )
+        frames.append(RgbdFrame(img, depth, intr, stamp_s=i / 30.0, seq=i))
+    return frames
+
+
+@dataclass
+class RuntimeRun:
+    """Samples of one runtime, stage -> list of ms."""
+
+    name: str
+    samples: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in (*STAGES, "total")})
+    detections: int = 0
+
+
+def _perception_stages(
+    cfg: Config,
+) -> tuple[Callable[[RgbdFrame, list[Detection]], Any] | None, Callable[[float, Any], Any] | None, Any]:
+    """The pose and filter stages from the perception package, when it is on this branch."""
+    if importlib.util.find_spec("companion.perception.pipeline") is None:
+        return None, None, None
+    mod: Any = importlib.import_module("companion.perception.pipeline")
+    pipeline = mod.PerceptionPipeline.from_config(cfg)
+    return pipeline.measure, pipeline.track, pipeline
+
+
+def run_bench(
+    cfg: Config,
+    detectors: dict[str, Any],
+    frames: list[RgbdFrame],
+    warmup: int = 10,
+) -> dict[str, Any]:
+    """Time every detector (name -> FrameDetector) and the perception stages over ``frames``."""
+    import cv2  # noqa: PLC0415
+
+    encoded = [cv2.imencode(".png", f.rgb[..., ::-1])[1] for f in frames]
+    runs = {name: RuntimeRun(name) for name in detectors}
+    pose_fns = {name: _perception_stages(cfg) for name in detectors}
+    for i in range(-warmup, len(frames)):
+        k = i % len(frames)
+        frame = frames[k]
+        for name, det in detectors.items():
+            measure, track, _ = pose_fns[name]
+            t0 = time.perf_counter()
+            decoded = cv2.imdecode(encoded[k], cv2.IMREAD_COLOR)
+            t1 = time.perf_counter()
+            result = det.detect(frame.rgb)
+            timing = result.timing
+            pose_ms = filt_ms = float("nan")
+            if measure is not None and track is not None:
+                t2 = time.perf_counter()
+                meas = measure(frame, result.detections)
+                t3 = time.perf_counter()
+                track((i + warmup) / 30.0, meas)  # strictly increasing per runtime, frames repeat
+                t4 = time.perf_counter()
+                pose_ms, filt_ms = (t3 - t2) * 1e3, (t4 - t3) * 1e3
+            del decoded
+            if i < 0:
+                continue
+            r = runs[name]
+            r.detections += len(result.detections)
+            r.samples["decode"].append((t1 - t0) * 1e3)
+            r.samples["preprocess"].append(timing.preprocess_ms)
+            r.samples["inference"].append(timing.inference_ms)
+            r.samples["postprocess"].append(timing.postprocess_ms)
+            total = timing.preprocess_ms + timing.inference_ms + timing.postprocess_ms
+            if measure is not None:
+                r.samples["pose"].append(pose_ms)
+                r.samples["filter"].append(filt_ms)
+                total += pose_ms + filt_ms
+            r.samples["total"].append(total)
+    perception_built = pose_fns and next(iter(pose_fns.values()))[0] is not None
+    out: dict[str, Any] = {
+        "frames": len(frames),
+        "frame_size_px": [frames[0].intrinsics.width_px, frames[0].intrinsics.height_px],
+        "input_size_px": cfg.detector.input_size_px,
+        "threads": cfg.detector.threads,
+        "machine": f"{platform.machine()}, {_cpu_count()} CPUs visible",
+        "total_covers": list(CAMERA_STAGES if perception_built else CAMERA_STAGES[:3]),
+        "runtimes": {},
+    }
+    for name, r in runs.items():
+        stages: dict[str, Any] = {}
+        for s in (*STAGES, "total"):
+            stages[s] = percentiles_ms(r.samples[s]) if r.samples[s] else NOT_BUILT
+        stages["detector"] = percentiles_ms(
+            [
+                a + b + c
+                for a, b, c in zip(
+                    r.samples["preprocess"], r.samples["inference"], r.samples["postprocess"], strict=True
+                )
+            ]
+        )
+        stages["detections_per_frame"] = round(r.detections / max(1, len(frames)), 3)
+        out["runtimes"][name] = stages
+    return out
+
+
+def _cpu_count() -> int:
+    import os  # noqa: PLC0415
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 0)
+
+
+def format_bench(result: dict[str, Any]) -> str:
+    """The benchmark as a fixed-width table (ms)."""
+    names = list(result["runtimes"])
+    lines = [
+        f"{result['frames']} frames {result['frame_size_px'][0]}x{result['frame_size_px'][1]}, input "
+        f"{result['input_size_px']} px, {result['threads']} threads, {result['machine']}",
+        f"{'stage':<22}" + "".join(f"{n:>28}" for n in names),
+        f"{'':<22}" + "".join(f"{'p50 / p95 / p99 ms':>28}" for _ in names),
+    ]
+    for s in (*STAGES, "detector", "total"):
+        cells = []
+        for n in names:
+            v = result["runtimes"][n][s]
+            cells.append(
+                f"{v:>28}"
+                if isinstance(v, str)
+                else f"{v['p50_ms']:>10.2f} /{v['p95_ms']:>6.2f} /{v['p99_ms']:>6.2f}"
+            )
+        label = {
+            "decode": "decode (file src)",
+            "total": "total (camera path)",
+            "detector": "detector (pre+inf+post)",
+        }.get(s, s)
+        lines.append(f"{label:<22}" + "".join(cells))
+    lines.append(f"total = {' + '.join(result['total_covers'])}")
+    return "\n".join(lines)

@@ -1,0 +1,275 @@
+"""Training augmentations (numpy + OpenCV), each a pure function of its inputs and a seeded generator.
+
+Geometry: mosaic (four images around a random centre) or a single image at a random scale and position;
+horizontal flips. Appearance: HSV jitter, Gaussian or motion blur, sensor noise, JPEG artefacts, greyscale,
+and cut-outs (random occluders). Boxes follow the geometry; a box that is mostly cut away loses its label
+*and* its pixels are greyed out, so the network never sees an unlabelled leader as background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.perception.detector.cache import ImageCache
+from companion.perception.detector.dataset import Boxes
+from companion.perception.detector.letterbox import PAD_VALUE, resize_image
+
+Image = NDArray[np.uint8]
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Probabilities and ranges of the augmentations (defaults: the shipped model's recipe)."""
+
+    mosaic_p: float = 0.6
+    #: Image scale relative to the letterbox fit (1.0 = the whole frame fills the input, as at run time).
+    scale_range: tuple[float, float] = (0.5, 1.6)
+    mosaic_scale_range: tuple[float, float] = (0.4, 1.0)
+    hflip_p: float = 0.5
+    hsv_gain: tuple[float, float, float] = (0.02, 0.6, 0.45)
+    blur_p: float = 0.25
+    noise_p: float = 0.3
+    jpeg_p: float = 0.3
+    gray_p: float = 0.05
+    cutout_p: float = 0.4
+    #: Keep a clipped box only when this much of its area stays inside and it is this big.
+    min_visible_fraction: float = 0.35
+    min_box_px: float = 2.0
+
+
+def place_boxes(
+    canvas: Image,
+    boxes: Boxes,
+    region: tuple[int, int, int, int],
+    *,
+    min_visible_fraction: float,
+    min_box_px: float,
+) -> Boxes:
+    """Clip boxes (canvas px) to ``region`` (x0, y0, x1, y1); drop the mostly-hidden and tiny ones.
+
+    A dropped box that still shows pixels is greyed out on ``canvas``.
+    """
+    if len(boxes) == 0:
+        return boxes.reshape(0, 4)
+    x0, y0, x1, y1 = region
+    clipped = boxes.copy()
+    np.clip(clipped[:, 0::2], x0, x1, out=clipped[:, 0::2])  # views: columns 0, 2 and 1, 3
+    np.clip(clipped[:, 1::2], y0, y1, out=clipped[:, 1::2])
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    w, h = clipped[:, 2] - clipped[:, 0], clipped[:, 3] - clipped[:, 1]
+    keep = (w * h >= min_visible_fraction * np.maximum(area, 1e-6)) & (w >= min_box_px) & (h >= min_box_px)
+    for b in clipped[~keep]:
+        bx0, by0 = int(np.floor(b[0])), int(np.floor(b[1]))
+        bx1, by1 = int(np.ceil(b[2])), int(np.ceil(b[3]))
+        if bx1 > bx0 and by1 > by0:
+            canvas[by0:by1, bx0:bx1] = PAD_VALUE
+    return clipped[keep]
+
+
+def random_placement(
+    img: Image,
+    boxes: Boxes,
+    *,
+    size_px: int,
+    ref_px: int,
+    scale: float,
+    rng: np.random.Generator,
+    cfg: AugmentConfig,
+) -> tuple[Image, Boxes]:
+    """One image at a random position on a ``size_px`` square canvas (cropped when it does not fit).
+
+    ``scale`` is relative to the letterbox fit at ``ref_px`` (1.0: the image's longer side is ``ref_px``).
+    """
+    h, w = img.shape[:2]
+    f = scale * ref_px / max(h, w)
+    nw, nh = max(1, round(w * f)), max(1, round(h * f))
+    resized = resize_image(img, nw, nh)
+    canvas = np.full((size_px, size_px, 3), PAD_VALUE, np.uint8)
+    # Offset of the resized image's top-left corner on the canvas (negative: the image is cropped).
+    ox = int(rng.integers(min(0, size_px - nw), max(0, size_px - nw) + 1))
+    oy = int(rng.integers(min(0, size_px - nh), max(0, size_px - nh) + 1))
+    sx0, sy0 = max(0, -ox), max(0, -oy)
+    dx0, dy0 = max(0, ox), max(0, oy)
+    cw, ch = min(nw - sx0, size_px - dx0), min(nh - sy0, size_px - dy0)
+    canvas[dy0 : dy0 + ch, dx0 : dx0 + cw] = resized[sy0 : sy0 + ch, sx0 : sx0 + cw]
+    b = boxes * np.float32(f) + np.array([ox, oy, ox, oy], np.float32)
+    region = (dx0, dy0, dx0 + cw, dy0 + ch)
+    kept = place_boxes(
+        canvas, b, region, min_visible_fraction=cfg.min_visible_fraction, min_box_px=cfg.min_box_px
+    )
+    return canvas, kept
+
+
+def mosaic(
+    images: list[Image],
+    boxes: list[Boxes],
+    *,
+    size_px: int,
+    ref_px: int,
+    rng: np.random.Generator,
+    cfg: AugmentConfig,
+) -> tuple[Image, Boxes]:
+    """Four images meeting at a random centre of a ``size_px`` canvas; each is cropped to its quadrant.
+
+    Image scales are relative to the letterbox fit at ``ref_px``.
+    """
+    canvas = np.full((size_px, size_px, 3), PAD_VALUE, np.uint8)
+    xc = int(rng.uniform(0.3, 0.7) * size_px)
+    yc = int(rng.uniform(0.3, 0.7) * size_px)
+    out: list[Boxes] = []
+    for q, (img, bx) in enumerate(zip(images, boxes, strict=True)):
+        h, w = img.shape[:2]
+        f = rng.uniform(*cfg.mosaic_scale_range) * ref_px / max(h, w)
+        nw, nh = max(1, round(w * f)), max(1, round(h * f))
+        resized = resize_image(img, nw, nh)
+        right, bottom = q in (1, 3), q in (2, 3)
+        # Quadrant on the canvas, and which corner of the image touches the centre.
+        qx0, qx1 = (xc, size_px) if right else (0, xc)
+        qy0, qy1 = (yc, size_px) if bottom else (0, yc)
+        ox = xc if right else xc - nw
+        oy = yc if bottom else yc - nh
+        rx0, ry0 = max(qx0, ox), max(qy0, oy)
+        rx1, ry1 = min(qx1, ox + nw), min(qy1, oy + nh)
+        if rx1 <= rx0 or ry1 <= ry0:
+            continue
+        canvas[ry0:ry1, rx0:rx1] = resized[ry0 - oy : ry1 - oy, rx0 - ox : rx1 - ox]
+        b = bx * np.float32(f) + np.array([ox, oy, ox, oy], np.float32)
+        out.append(
+            place_boxes(
+                canvas,
+                b,
+                (rx0, ry0, rx1, ry1),
+                min_visible_fraction=cfg.min_visible_fraction,
+                min_box_px=cfg.min_box_px,
+            )
+        )
+    return canvas, (np.concatenate(out) if out else np.zeros((0, 4), np.float32))
+
+
+def hflip(img: Image, boxes: Boxes) -> tuple[Image, Boxes]:
+    """Mirror left-right."""
+    w = img.shape[1]
+    b = boxes.copy()
+    b[:, 0], b[:, 2] = w - boxes[:, 2], w - boxes[:, 0]
+    return np.ascontiguousarray(img[:, ::-1]), b
+
+
+def hsv_jitter(img: Image, rng: np.random.Generator, gains: tuple[float, float, float]) -> Image:
+    """Random hue, saturation and value gains through lookup tables."""
+    r = rng.uniform(-1.0, 1.0, 3) * np.asarray(gains) + 1.0
+    hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV)
+    x = np.arange(256, dtype=np.float32)
+    lut_h = ((x * r[0]) % 180).astype(np.uint8)
+    lut_s = np.clip(x * r[1], 0, 255).astype(np.uint8)
+    lut_v = np.clip(x * r[2], 0, 255).astype(np.uint8)
+    hsv = cv2.merge((cv2.LUT(hsv[..., 0], lut_h), cv2.LUT(hsv[..., 1], lut_s), cv2.LUT(hsv[..., 2], lut_v)))
+    return np.asarray(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB), np.uint8)
+
+
+def blur(img: Image, rng: np.random.Generator) -> Image:
+    """Gaussian blur (defocus) or a short linear motion blur at a random angle."""
+    if rng.random() < 0.5:
+        sigma = rng.uniform(0.4, 1.4)
+        return np.asarray(cv2.GaussianBlur(img, (0, 0), sigma), np.uint8)
+    length = int(rng.integers(3, 8))
+    kernel = np.zeros((length, length), np.float32)
+    kernel[length // 2, :] = 1.0 / length
+    rot = cv2.getRotationMatrix2D(((length - 1) / 2, (length - 1) / 2), float(rng.uniform(0, 180)), 1.0)
+    kernel = np.asarray(cv2.warpAffine(kernel, rot, (length, length)), np.float32)
+    kernel /= max(float(kernel.sum()), 1e-6)
+    return np.asarray(cv2.filter2D(img, -1, kernel), np.uint8)
+
+
+def sensor_noise(img: Image, rng: np.random.Generator) -> Image:
+    """Additive Gaussian noise, sigma 2-8 grey levels."""
+    noise = rng.normal(0.0, rng.uniform(2.0, 8.0), img.shape).astype(np.float32)
+    out: Image = np.clip(img.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+    return out
+
+
+def jpeg(img: Image, rng: np.random.Generator) -> Image:
+    """Round trip through JPEG at quality 30-90 (video-compression-like artefacts)."""
+    ok, buf = cv2.imencode(".jpg", img, (cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(30, 91))))
+    return np.asarray(cv2.imdecode(buf, cv2.IMREAD_UNCHANGED), np.uint8) if ok else img
+
+
+def grey(img: Image) -> Image:
+    """Greyscale in three channels."""
+    g = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    return np.repeat(g[..., None], 3, axis=2)
+
+
+def cutout(img: Image, boxes: Boxes, rng: np.random.Generator) -> Boxes:
+    """One to three random occluders (flat colour or noise), in place; drops boxes they hide by > 60%."""
+    s = img.shape[0]
+    keep = np.ones(len(boxes), bool)
+    for _ in range(int(rng.integers(1, 4))):
+        cw, ch = (int(v) for v in rng.uniform(0.04, 0.25, 2) * s)
+        x0, y0 = int(rng.integers(0, s - cw + 1)), int(rng.integers(0, s - ch + 1))
+        if rng.random() < 0.5:
+            img[y0 : y0 + ch, x0 : x0 + cw] = rng.integers(0, 256, 3, dtype=np.uint8)
+        else:
+            img[y0 : y0 + ch, x0 : x0 + cw] = rng.integers(0, 256, (ch, cw, 3), dtype=np.uint8)
+        if len(boxes):
+            iw = np.clip(np.minimum(boxes[:, 2], x0 + cw) - np.maximum(boxes[:, 0], x0), 0, None)
+            ih = np.clip(np.minimum(boxes[:, 3], y0 + ch) - np.maximum(boxes[:, 1], y0), 0, None)
+            area = np.maximum((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]), 1e-6)
+            hidden = iw * ih / area > 0.6
+            for b in boxes[hidden & keep]:
+                img[int(b[1]) : int(np.ceil(b[3])), int(b[0]) : int(np.ceil(b[2]))] = PAD_VALUE
+            keep &= ~hidden
+    return boxes[keep]
+
+
+def training_sample(
+    cache: ImageCache,
+    index: int,
+    *,
+    size_px: int,
+    ref_px: int,
+    rng: np.random.Generator,
+    cfg: AugmentConfig,
+) -> tuple[Image, Boxes]:
+    """An augmented ``size_px`` square RGB image and its leader boxes (px) from cache item ``index``.
+
+    Objects keep the scale they have at run time with input size ``ref_px`` (times the scale jitter), so a
+    ``size_px`` smaller than ``ref_px`` trains on crops: the same objects, fewer pixels, less CPU.
+    """
+    if rng.random() < cfg.mosaic_p:
+        idx = [index, *(int(i) for i in rng.integers(0, len(cache), 3))]
+        img, boxes = mosaic(
+            [cache.image(i) for i in idx],
+            [cache.boxes(i) for i in idx],
+            size_px=size_px,
+            ref_px=ref_px,
+            rng=rng,
+            cfg=cfg,
+        )
+    else:
+        img, boxes = random_placement(
+            cache.image(index),
+            cache.boxes(index),
+            size_px=size_px,
+            ref_px=ref_px,
+            scale=rng.uniform(*cfg.scale_range),
+            rng=rng,
+            cfg=cfg,
+        )
+    if rng.random() < cfg.hflip_p:
+        img, boxes = hflip(img, boxes)
+    if rng.random() < cfg.cutout_p:
+        boxes = cutout(img, boxes, rng)
+    img = hsv_jitter(img, rng, cfg.hsv_gain)
+    if rng.random() < cfg.gray_p:
+        img = grey(img)
+    if rng.random() < cfg.blur_p:
+        img = blur(img, rng)
+    if rng.random() < cfg.noise_p:
+        img = sensor_noise(img, rng)
+    if rng.random() < cfg.jpeg_p:
+        img = jpeg(img, rng)
+    return img, boxes.astype(np.float32)

@@ -1,0 +1,188 @@
+"""Detection datasets on disk: a folder of images with YOLO labels, optional splits and per-image ranges.
+
+Layouts understood (``split`` None means "all images"):
+
+* ``DIR/images/*`` + ``DIR/labels/*.txt`` (e.g. the real-photo validation set);
+* ``DIR/images/SPLIT/*`` + ``DIR/labels/SPLIT/*.txt`` (the usual YOLO layout);
+* ``DIR/SPLIT/images/*`` + ``DIR/SPLIT/labels/*.txt``;
+* ``DIR/SPLIT.txt`` listing image paths (relative to DIR), labels found by swapping ``images`` for ``labels``.
+
+A label file holds ``class cx cy w h`` lines normalised to the image size; class 0 is the leader (other
+classes are ignored). A missing or empty label file means no leader box. Per-image facts come from a
+``manifest.csv`` or ``manifest.jsonl`` in DIR when it has an ``image``/``file`` column: ``range_m`` (leader
+range, for recall by range bin) and ``has_leader`` (0: no leader anywhere in the scene; a frame can have a
+leader and no box when too little of it is visible, and such a frame is not "leader-free").
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+LEADER_CLASS = 0
+
+Boxes = NDArray[np.float32]  # (N, 4) x0 y0 x1 y1, px
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One image of a dataset and its label file (None: no file).
+
+    When the manifest says so: the leader's range (m) and whether a leader is in the scene at all.
+    """
+
+    image_path: Path
+    label_path: Path | None
+    range_m: float | None = None
+    has_leader: bool | None = None
+
+    @property
+    def key(self) -> str:
+        return self.image_path.stem
+
+
+def _images_in(folder: Path) -> list[Path]:
+    return (
+        sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else []
+    )
+
+
+def _label_for(image: Path, images_dir: Path, labels_dir: Path) -> Path | None:
+    label = labels_dir / image.relative_to(images_dir).with_suffix(".txt")
+    return label if label.exists() else None
+
+
+def _swap_images_for_labels(image: Path) -> Path | None:
+    parts = list(image.parts)
+    for i in range(len(parts) - 1, -1, -1):
+        if parts[i] == "images":
+            parts[i] = "labels"
+            label = Path(*parts).with_suffix(".txt")
+            return label if label.exists() else None
+    return None
+
+
+def list_splits(root: Path) -> list[str]:
+    """Split names a dataset folder offers (e.g. ``["test", "train", "val"]``); empty for a flat folder."""
+    names = set()
+    if (root / "images").is_dir():
+        names |= {p.name for p in (root / "images").iterdir() if p.is_dir()}
+    names |= {p.name for p in root.iterdir() if p.is_dir() and (p / "images").is_dir()}
+    names |= {p.stem for p in root.glob("*.txt") if p.stem in ("train", "val", "test")}
+    return sorted(names)
+
+
+def find_samples(root: Path, split: str | None = None) -> list[Sample]:
+    """The samples of ``split`` in ``root`` (any layout of the module docstring); raises if there are none."""
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset folder not found: {root}")
+    pairs: list[tuple[Path, Path | None]] = []
+    if split is None:
+        imgs = _images_in(root / "images")
+        pairs = [(p, _label_for(p, root / "images", root / "labels")) for p in imgs]
+    else:
+        for images_dir, labels_dir in (
+            (root / "images" / split, root / "labels" / split),
+            (root / split / "images", root / split / "labels"),
+        ):
+            imgs = _images_in(images_dir)
+            if imgs:
+                pairs = [(p, _label_for(p, images_dir, labels_dir)) for p in imgs]
+                break
+        else:
+            listing = root / f"{split}.txt"
+            if listing.exists():
+                for line in listing.read_text().splitlines():
+                    if line.strip():
+                        p = (root / line.strip()).resolve()
+                        pairs.append((p, _swap_images_for_labels(p)))
+    if not pairs:
+        where = f"split '{split}' of " if split else ""
+        raise FileNotFoundError(
+            f"no images found in {where}{root} (see companion.perception.detector.dataset)"
+        )
+    facts = read_manifest(root)
+    return [Sample(img, lab, *facts.get(img.stem, (None, None))) for img, lab in pairs]
+
+
+def _number(v: object) -> float | None:
+    try:
+        x = float(str(v))
+    except ValueError:
+        return None
+    return x if math.isfinite(x) else None
+
+
+def read_manifest(root: Path) -> dict[str, tuple[float | None, bool | None]]:
+    """Image stem -> (leader range m, leader in the scene) from ``manifest.csv``/``.jsonl`` in ``root``."""
+    out: dict[str, tuple[float | None, bool | None]] = {}
+    rows: Iterable[dict[str, object]] = []
+    if (root / "manifest.csv").exists():
+        with (root / "manifest.csv").open(newline="") as f:
+            rows = list(csv.DictReader(f))
+    elif (root / "manifest.jsonl").exists():
+        rows = [
+            json.loads(line) for line in (root / "manifest.jsonl").read_text().splitlines() if line.strip()
+        ]
+    for row in rows:
+        name = row.get("image") or row.get("file") or row.get("file_name")
+        if name is None:
+            continue
+        rng = row.get("range_m")
+        has = row.get("has_leader")
+        has_leader = None if has in (None, "") else bool(_number(has))
+        out[Path(str(name)).stem] = (None if rng in (None, "") else _number(rng), has_leader)
+    return out
+
+
+def parse_yolo_labels(text: str, w_px: int, h_px: int) -> Boxes:
+    """Leader boxes (N, 4) in pixels from the text of a YOLO label file."""
+    boxes = []
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) < 5 or int(float(parts[0])) != LEADER_CLASS:
+            continue
+        cx, cy, bw, bh = (float(v) for v in parts[1:5])
+        boxes.append(((cx - bw / 2) * w_px, (cy - bh / 2) * h_px, (cx + bw / 2) * w_px, (cy + bh / 2) * h_px))
+    return np.asarray(boxes, np.float32).reshape(-1, 4)
+
+
+def format_yolo_labels(boxes: Boxes, w_px: int, h_px: int) -> str:
+    """The text of a YOLO label file for leader boxes in pixels."""
+    lines = []
+    for x0, y0, x1, y1 in np.asarray(boxes, np.float64).reshape(-1, 4):
+        lines.append(
+            f"{LEADER_CLASS} {(x0 + x1) / 2 / w_px:.6f} {(y0 + y1) / 2 / h_px:.6f} "
+            f"{(x1 - x0) / w_px:.6f} {(y1 - y0) / h_px:.6f}"
+        )
+    return "".join(f"{line}\n" for line in lines)
+
+
+def read_labels(sample: Sample, w_px: int, h_px: int) -> Boxes:
+    """Leader boxes of a sample in pixels (none when it has no label file)."""
+    if sample.label_path is None:
+        return np.zeros((0, 4), np.float32)
+    return parse_yolo_labels(sample.label_path.read_text(), w_px, h_px)
+
+
+def read_rgb(path: Path) -> NDArray[np.uint8]:
+    """Decode an image file to HxWx3 uint8 RGB."""
+    import cv2  # noqa: PLC0415  (cv2 stays off the CLI's import path)
+
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise OSError(f"cannot decode image {path}")
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def split_keys(samples: Sequence[Sample]) -> set[str]:
+    """Image stems of a list of samples."""
+    return {s.key for s in samples}

@@ -1,0 +1,378 @@
+"""Training: ``companion detector train --data DIR --out DIR``.
+
+AdamW with a linear warm-up and a cosine decay, an exponential moving average (EMA) of the weights (the EMA
+is what gets evaluated and shipped), mixed precision on a CUDA GPU, a checkpoint every epoch (``last.pt``) and
+the best one by validation mAP@0.5 (``best.pt``), exact resume with ``--resume``, and a progress bar.
+
+Everything random is derived from ``seed``: the sample order of epoch ``e`` from ``(seed, e)`` and the
+augmentation of sample ``i`` in epoch ``e`` from ``(seed, e, i)``, so a run is repeatable whatever the number
+of loader workers, and a resumed run sees the same batches it would have seen.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from companion.perception.detector.augment import AugmentConfig, training_sample
+from companion.perception.detector.cache import ImageCache
+from companion.perception.detector.dataset import find_samples
+from companion.perception.detector.letterbox import boxes_to_source, letterbox_geometry, letterbox_uint8
+from companion.perception.detector.loss import DetectionLoss, LossConfig
+from companion.perception.detector.metrics import DetectionStats
+from companion.perception.detector.model import LeaderNet, ModelSpec, count_parameters
+from companion.perception.detector.postprocess import Decoder
+from companion.perception.detector.torch_engine import save_weights
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "wingman-detector-checkpoint/1"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (saved in every checkpoint)."""
+
+    data: str
+    out: str
+    epochs: int = 60
+    batch_size: int = 32
+    input_size_px: int = 320
+    #: Training images are crops of this size from frames scaled as at ``input_size_px`` (about 40% less
+    #: CPU per image than whole 320 px mosaics; the network is fully convolutional).
+    crop_px: int = 256
+    lr: float = 2e-3
+    final_lr_fraction: float = 0.05
+    weight_decay: float = 0.05
+    warmup_epochs: float = 2.0
+    ema_decay: float = 0.999
+    #: Mosaic is switched off for the last epochs so the model ends on whole frames, as at run time.
+    close_mosaic_epochs: int = 8
+    seed: int = 0
+    workers: int = 1
+    device: str = "auto"
+    threads: int = 2
+    train_split: str = "train"
+    val_split: str = "val"
+    val_every: int = 2
+    max_val_images: int = 600
+    #: Limit the training images (0: all); for smoke tests.
+    max_train_images: int = 0
+    spec: ModelSpec = field(default_factory=ModelSpec)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["spec"] = self.spec.to_dict()
+        return d
+
+
+class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
+    """Training samples: (3, S, S) uint8 image and (N, 4) boxes, augmented from ``(seed, epoch, index)``."""
+
+    def __init__(
+        self, cache: ImageCache, size_px: int, ref_px: int, seed: int, augment: AugmentConfig
+    ) -> None:
+        self.cache = cache
+        self.size_px = size_px
+        self.ref_px = ref_px
+        self.seed = seed
+        self.base = augment
+        self.augment = augment
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int, mosaic: bool) -> None:
+        self.epoch = epoch
+        self.augment = self.base if mosaic else replace(self.base, mosaic_p=0.0)
+
+    def __len__(self) -> int:
+        return len(self.cache)
+
+    def __getitem__(self, i: int) -> tuple[Tensor, Tensor]:
+        rng = np.random.default_rng([self.seed, self.epoch, i])
+        img, boxes = training_sample(
+            self.cache, i, size_px=self.size_px, ref_px=self.ref_px, rng=rng, cfg=self.augment
+        )
+        return torch.from_numpy(img).permute(2, 0, 1).contiguous(), torch.from_numpy(boxes)
+
+
+class EpochSampler(Sampler[int]):
+    """A permutation of the indices drawn from ``(seed, epoch)``."""
+
+    def __init__(self, n: int, seed: int) -> None:
+        self.n = n
+        self.seed = seed
+        self.epoch = 0
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(np.random.default_rng([self.seed, self.epoch, 7]).permutation(self.n).tolist())
+
+    def __len__(self) -> int:
+        return self.n
+
+
+def collate(batch: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
+    """Stack images; pad boxes to (B, M, 4) with a (B, M) mask."""
+    images = torch.stack([b[0] for b in batch])
+    m = max((len(b[1]) for b in batch), default=0)
+    boxes = torch.zeros(len(batch), m, 4)
+    mask = torch.zeros(len(batch), m, dtype=torch.bool)
+    for i, (_, bx) in enumerate(batch):
+        boxes[i, : len(bx)] = bx
+        mask[i, : len(bx)] = True
+    return images, boxes, mask
+
+
+def _worker_init(_: int) -> None:
+    import cv2  # noqa: PLC0415
+
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
+
+
+class ModelEMA:
+    """Exponential moving average of the weights; the decay ramps up over the first updates."""
+
+    def __init__(self, model: nn.Module, decay: float, tau_updates: float = 500.0) -> None:
+        self.ema = copy.deepcopy(model).eval()
+        for p in self.ema.parameters():
+            p.requires_grad_(False)
+        self.decay = decay
+        self.tau = tau_updates
+        self.updates = 0
+
+    @torch.no_grad()
+    def update(self, model: nn.Module) -> None:
+        self.updates += 1
+        d = self.decay * (1 - math.exp(-self.updates / self.tau))
+        msd = model.state_dict()
+        for k, v in self.ema.state_dict().items():
+            if v.dtype.is_floating_point:
+                v.mul_(d).add_(msd[k].detach(), alpha=1 - d)
+            else:
+                v.copy_(msd[k])
+
+
+def lr_at(step: int, total_steps: int, warmup_steps: int, cfg: TrainConfig) -> float:
+    """Learning rate of an optimiser step: linear warm-up, then cosine down to ``final_lr_fraction``."""
+    if step < warmup_steps:
+        return cfg.lr * (step + 1) / warmup_steps
+    t = (step - warmup_steps) / max(1, total_steps - warmup_steps)
+    return cfg.lr * (cfg.final_lr_fraction + (1 - cfg.final_lr_fraction) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def make_optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
+    """AdamW; no weight decay on BatchNorm weights and biases."""
+    decay: list[nn.Parameter] = []
+    no_decay: list[nn.Parameter] = []
+    for name, p in model.named_parameters():
+        (no_decay if p.ndim <= 1 or name.endswith(".bias") else decay).append(p)
+    groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+    return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.999))
+
+
+def pick_device(name: str) -> torch.device:
+    """``auto``: CUDA when present, else the CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+@torch.no_grad()
+def validate(
+    model: nn.Module, cache: ImageCache, cfg: TrainConfig, device: torch.device, conf_threshold: float = 0.35
+) -> dict[str, Any]:
+    """MAP and recall of ``model`` on cached validation images letterboxed as at run time."""
+    model.eval()
+    spec: ModelSpec = model.spec  # type: ignore[assignment]
+    decoder = Decoder(spec.strides, spec.reg_max)
+    stats = DetectionStats()
+    for i in range(len(cache)):
+        img = cache.image(i)
+        geom = letterbox_geometry(img.shape[0], img.shape[1], cfg.input_size_px)
+        x = torch.from_numpy(letterbox_uint8(np.asarray(img), geom)).permute(2, 0, 1)[None].to(device)
+        levels = [o.float().cpu().numpy() for o in model(x.float() / 255.0)]
+        boxes, scores = decoder(levels, 0.001, 0.5, max_det=50)
+        boxes_to_source(boxes, geom)
+        stats.add(boxes, scores, cache.boxes(i))
+    return stats.summary(conf_threshold)
+
+
+def save_checkpoint(path: Path, **state: Any) -> None:
+    """Write atomically (a crash mid-write never destroys the previous checkpoint)."""
+    tmp = path.with_suffix(".tmp")
+    torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
+    tmp.replace(path)
+
+
+def train(
+    cfg: TrainConfig, resume: bool = False, progress: bool = True, stop_after_epochs: int | None = None
+) -> dict[str, Any]:
+    """Run (or resume) a training; returns the final summary. Writes everything under ``cfg.out``.
+
+    ``stop_after_epochs`` ends this call after that many epochs (the schedule still spans ``cfg.epochs``),
+    so a long run can be done in slices on a shared machine and continued with ``resume``.
+    """
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = pick_device(cfg.device)
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    data = Path(cfg.data)
+    train_samples = find_samples(data, cfg.train_split)
+    if cfg.max_train_images:
+        train_samples = train_samples[: cfg.max_train_images]
+    val_samples = find_samples(data, cfg.val_split)[: cfg.max_val_images]
+    overlap = {s.key for s in train_samples} & {s.key for s in val_samples}
+    if overlap:
+        raise ValueError(f"{len(overlap)} images are in both the train and val splits")
+    cache_root = out / "cache"
+    train_cache = ImageCache.build(train_samples, cache_root, round(cfg.input_size_px * 1.25), progress)
+    val_cache = ImageCache.build(val_samples, cache_root, cfg.input_size_px, progress)
+
+    # channels-last: about 15% faster convolutions and BatchNorm on the CPU, and the layout tensor cores want.
+    model = LeaderNet(cfg.spec).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    ema = ModelEMA(model, cfg.ema_decay)
+    opt = make_optimizer(model, cfg)
+    use_amp = device.type == "cuda"
+    scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+    criterion = DetectionLoss(model, cfg.loss)
+    dataset = AugmentedSet(train_cache, cfg.crop_px, cfg.input_size_px, cfg.seed, cfg.augment)
+    sampler = EpochSampler(len(dataset), cfg.seed)
+    loader = DataLoader(
+        dataset,
+        batch_size=cfg.batch_size,
+        sampler=sampler,
+        num_workers=cfg.workers,
+        collate_fn=collate,
+        drop_last=len(dataset) > cfg.batch_size,
+        worker_init_fn=_worker_init,
+        persistent_workers=False,
+        prefetch_factor=4 if cfg.workers else None,
+        pin_memory=use_amp,
+    )
+    steps_per_epoch = len(loader)
+    total_steps = steps_per_epoch * cfg.epochs
+    warmup_steps = max(1, min(int(cfg.warmup_epochs * steps_per_epoch), total_steps // 3))
+
+    start_epoch, best_map, history = 0, -1.0, []
+    last = out / "last.pt"
+    if resume:
+        if not last.exists():
+            raise FileNotFoundError(f"--resume: no checkpoint at {last}")
+        ck = torch.load(last, map_location=device, weights_only=False)
+        if ck["config"]["spec"] != cfg.spec.to_dict() or ck["config"]["data"] != cfg.data:
+            raise ValueError(f"--resume: {last} was trained with another model spec or data folder")
+        model.load_state_dict(ck["model"])
+        ema.ema.load_state_dict(ck["ema"])
+        ema.updates = ck["ema_updates"]
+        opt.load_state_dict(ck["optimizer"])
+        scaler.load_state_dict(ck["scaler"])
+        start_epoch, best_map, history = ck["epoch"] + 1, ck["best_map50"], ck["history"]
+        log.info("resuming from epoch %d (best val mAP@0.5 %.3f)", start_epoch, best_map)
+    else:
+        (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+    log.info(
+        "training %d params on %s: %d train / %d val images, %d epochs x %d steps",
+        count_parameters(model),
+        device,
+        len(train_samples),
+        len(val_samples),
+        cfg.epochs,
+        steps_per_epoch,
+    )
+
+    end_epoch = cfg.epochs if stop_after_epochs is None else min(cfg.epochs, start_epoch + stop_after_epochs)
+    for epoch in range(start_epoch, end_epoch):
+        mosaic_on = epoch < cfg.epochs - cfg.close_mosaic_epochs
+        dataset.set_epoch(epoch, mosaic_on)
+        sampler.epoch = epoch
+        model.train()
+        t0 = time.monotonic()
+        sums = {"loss": 0.0, "box": 0.0, "cls": 0.0, "dfl": 0.0}
+        bar = _progress(loader, progress, f"epoch {epoch + 1}/{cfg.epochs}")
+        for k, (images, boxes, mask) in enumerate(bar):
+            step = epoch * steps_per_epoch + k
+            for g in opt.param_groups:
+                g["lr"] = lr_at(step, total_steps, warmup_steps, cfg)
+            x = (
+                images.to(device, non_blocking=True)
+                .float()
+                .div_(255.0)
+                .contiguous(memory_format=torch.channels_last)
+            )
+            with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=use_amp):
+                feats = model(x)
+            loss, parts = criterion(feats, boxes.to(device), mask.to(device))
+            opt.zero_grad(set_to_none=True)
+            scaler.scale(loss).backward()  # type: ignore[no-untyped-call]
+            scaler.unscale_(opt)
+            nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            scaler.step(opt)
+            scaler.update()
+            ema.update(model)
+            sums["loss"] += float(loss.detach())
+            for key, v in parts.items():
+                sums[key] += v
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(loss=f"{sums['loss'] / (k + 1):.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
+        row: dict[str, Any] = {"epoch": epoch + 1, "seconds": round(time.monotonic() - t0, 1)}
+        row.update({k: round(v / max(1, steps_per_epoch), 4) for k, v in sums.items()})
+        last_epoch = epoch == cfg.epochs - 1
+        if (epoch + 1) % cfg.val_every == 0 or last_epoch:
+            val = validate(ema.ema, val_cache, cfg, device)
+            row.update(
+                val_map50=round(val["map50"], 4),
+                val_map50_95=round(val["map50_95"], 4),
+                val_recall=round(val["recall"], 4),
+                val_precision=round(val["precision"], 4),
+            )
+            if val["map50"] > best_map:
+                best_map = val["map50"]
+                save_weights(out / "best.pt", ema.ema, cfg.input_size_px, _meta(cfg, row))  # type: ignore[arg-type]
+        history.append(row)
+        log.info("epoch %s", json.dumps(row))
+        save_checkpoint(
+            last,
+            config=cfg.to_dict(),
+            epoch=epoch,
+            model=model.state_dict(),
+            ema=ema.ema.state_dict(),
+            ema_updates=ema.updates,
+            optimizer=opt.state_dict(),
+            scaler=scaler.state_dict(),
+            best_map50=best_map,
+            history=history,
+        )
+        (out / "history.json").write_text(json.dumps(history, indent=1))
+    finished = end_epoch == cfg.epochs
+    if finished:
+        save_weights(out / "final.pt", ema.ema, cfg.input_size_px, _meta(cfg, history[-1] if history else {}))  # type: ignore[arg-type]
+    return {"best_val_map50": best_map, "epochs_done": end_epoch, "finished": finished, "history": history}
+
+
+def _meta(cfg: TrainConfig, row: dict[str, Any]) -> dict[str, Any]:
+    return {"train_config": json.dumps(cfg.to_dict()), "epoch_stats": json.dumps(row)}
+
+
+def _progress(loader: DataLoader[Any], enabled: bool, desc: str) -> Any:
+    if not enabled:
+        return loader
+    from tqdm import tqdm  # noqa: PLC0415
+
+    tty = sys.stderr.isatty()
+    return tqdm(loader, desc=desc, unit="batch", leave=tty, mininterval=0.5 if tty else 60.0)

@@ -1,0 +1,124 @@
+"""Scripted pilots: fly a vehicle through its own autopilot, as an onboard computer would.
+
+A pilot talks to the autopilot only in MAVLink messages (COMMAND_LONG, SET_POSITION_TARGET_LOCAL_NED)
+from component 191 (MAV_COMP_ID_ONBOARD_COMPUTER) and reads only what HEARTBEAT, SYS_STATUS and
+LOCAL_POSITION_NED carry (:meth:`Autopilot.status`). So the leader in a scenario is flown by PX4-like
+control with PX4's limits, exactly as a real leader would be.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from enum import Enum
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl.autopilot import Autopilot
+from sitl.modes import MAIN_OFFBOARD, NavState
+from sitl.scenario import LeaderSpec
+from sitl.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+COMP_ONBOARD = 191
+SETPOINT_PERIOD_S = 0.05  # 20 Hz, like MAVSDK's offboard plugin
+# type_mask: position + velocity + yaw (ignore acceleration, force, yaw rate).
+_MASK_POS_VEL_YAW = 64 | 128 | 256 | 512 | 2048
+
+
+class PilotPhase(Enum):
+    """Where a scripted pilot is in its flight."""
+
+    WAIT_READY = "wait_ready"
+    ARMING = "arming"
+    CLIMBING = "climbing"
+    HOVER = "hover"
+    FOLLOW_PATH = "follow_path"
+    DONE = "done"
+
+
+class TrajectoryPilot:
+    """Flies a scenario's leader path through the vehicle's autopilot.
+
+    Arms, takes off to ``spec.altitude_m``, holds until ``spec.start_s``, then flies the path in
+    offboard position+velocity control; holds again after ``spec.end_s``.
+    """
+
+    def __init__(self, autopilot: Autopilot, spec: LeaderSpec, trajectory: Trajectory) -> None:
+        self.ap = autopilot
+        self.spec = spec
+        self.trajectory = trajectory
+        self.phase = PilotPhase.WAIT_READY
+        self._next_cmd_s = 0.0
+        self._next_sp_s = 0.0
+        self._next_tick_s = 0.0
+        self._stream_since_s: float | None = None
+        self._anchor: tuple[float, float, float] | None = None
+
+    def _command(self, command: int, *params: float) -> None:
+        p = list(params) + [math.nan] * (7 - len(params))
+        msg = mavlink.MAVLink_command_long_message(self.ap.sysid, 1, command, 0, *p)
+        self.ap.handle_message(msg, None, self.ap.sysid, COMP_ONBOARD)
+
+    def update(self, t_s: float) -> None:
+        """Advance the pilot at sim time ``t_s`` (call at the outer-loop rate; it acts at 20 Hz)."""
+        if t_s < self._next_tick_s:
+            return
+        self._next_tick_s = t_s + SETPOINT_PERIOD_S - 1e-9
+        st = self.ap.status()
+        spec = self.spec
+        if self.phase is PilotPhase.WAIT_READY:
+            if st.global_position_ok and st.home_set:
+                self.phase = PilotPhase.ARMING
+        elif self.phase is PilotPhase.ARMING:
+            if (st.armed and not st.landed) or (st.armed and st.nav_state is NavState.AUTO_TAKEOFF):
+                self.phase = PilotPhase.CLIMBING
+            elif t_s >= self._next_cmd_s:
+                self._next_cmd_s = t_s + 1.0
+                if not st.armed:
+                    self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+                home = self.ap.home
+                if home is not None:
+                    self._command(
+                        mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 6), home.alt_m + spec.altitude_m
+                    )
+        elif self.phase is PilotPhase.CLIMBING:
+            if st.nav_state is NavState.AUTO_LOITER and -st.p_ned_m[2] > spec.altitude_m - 0.5:
+                self.phase = PilotPhase.HOVER
+                home_d = self.ap.home.d_m if self.ap.home is not None else 0.0
+                # Anchor at the commanded altitude, not wherever the takeoff overshoot happens to be.
+                self._anchor = (st.p_ned_m[0], st.p_ned_m[1], home_d - spec.altitude_m)
+        elif self.phase is PilotPhase.HOVER:
+            if t_s >= spec.start_s - 1.0:
+                self.phase = PilotPhase.FOLLOW_PATH
+        elif self.phase is PilotPhase.FOLLOW_PATH:
+            if spec.end_s is not None and t_s >= spec.end_s:
+                self._command(mavlink.MAV_CMD_DO_SET_MODE, 1.0, 4.0, 3.0)
+                self.phase = PilotPhase.DONE
+                return
+            self._stream(t_s, st.nav_state)
+        if not st.armed and self.phase in (PilotPhase.HOVER, PilotPhase.FOLLOW_PATH, PilotPhase.CLIMBING):
+            log.warning("%s pilot: vehicle disarmed during %s; stopping", self.ap.name, self.phase.value)
+            self.phase = PilotPhase.DONE
+
+    def _stream(self, t_s: float, nav: NavState) -> None:
+        if t_s < self._next_sp_s:
+            return
+        self._next_sp_s = t_s + SETPOINT_PERIOD_S - 1e-9
+        if self._anchor is None:
+            return
+        n, e, vn, ve, heading = self.trajectory.sample(t_s - self.spec.start_s)
+        an, ae, ad = self._anchor
+        yaw = heading if self.spec.yaw == "path" else math.radians(self.spec.heading_deg)
+        msg = mavlink.MAVLink_set_position_target_local_ned_message(
+            self.ap.time_boot_ms(), self.ap.sysid, 1, mavlink.MAV_FRAME_LOCAL_NED, _MASK_POS_VEL_YAW,
+            an + n, ae + e, ad, vn, ve, 0.0, 0.0, 0.0, 0.0, yaw, 0.0,
+        )  # fmt: skip
+        self.ap.handle_message(msg, None, self.ap.sysid, COMP_ONBOARD)
+        if self._stream_since_s is None:
+            self._stream_since_s = t_s
+        # PX4 wants the stream running before the switch; ask once a second until it is accepted.
+        if nav is not NavState.OFFBOARD and t_s - self._stream_since_s >= 0.5 and t_s >= self._next_cmd_s:
+            self._next_cmd_s = t_s + 1.0
+            self._command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, float(MAIN_OFFBOARD), 0.0)

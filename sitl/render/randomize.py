@@ -1,0 +1,362 @@
+"""Domain randomisation for detector datasets: seeded samplers of short sequences. Pure numpy, no GL.
+
+A sequence is a few frames of one scene (same world, light, leader look), with the camera and the
+leader moving a little between frames: near-duplicates live inside one sequence, so splitting the
+dataset by sequence keeps them out of different splits. What varies between sequences is chosen with
+real photos of small drones in mind: mostly seen from below or level against bright, hazy or overcast
+sky, tree lines and horizons; sizes from a few pixels to a third of the frame; dark silhouettes with
+faint prop discs; varied exposure, white balance, noise, blur and JPEG compression.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.frames import R_BODY_CAM_LEVEL, Mat3, R_from_euler, Vec3
+from companion.perception.types import Intrinsics
+from sitl.render.config import AIRFRAME_SPAN_M, RGB, LeaderLook, OccluderSpec, VisualConfig
+from sitl.render.geometry import CameraPose, rotation_vector_matrix
+from sitl.render.meshes import F32, Kind, Mesh
+from sitl.render.world import balloon_mesh, bird_mesh, debris_mesh, distractor_vertices, plane_mesh
+
+SPLITS = ("train", "val", "test")
+
+
+def split_of(seed: int, index: int) -> str:
+    """Train, val or test for sequence ``index``: 8/1/1 in every block of ten, shuffled by the seed."""
+    order = np.random.default_rng([seed, 7919]).permutation(10)
+    slot = int(order[index % 10])
+    return "train" if slot < 8 else ("val" if slot == 8 else "test")
+
+
+#: Seconds between frames of a sequence (near-duplicates, but not identical).
+FRAME_DT_S = 0.15
+
+_AIRFRAMES = ("f450", "phantom", "racer", "heavy", "micro")
+_AIRFRAME_P = (0.3, 0.25, 0.15, 0.15, 0.15)
+_BODY_COLOURS: tuple[RGB, ...] = (
+    (0.02, 0.02, 0.02),
+    (0.05, 0.05, 0.055),
+    (0.75, 0.75, 0.73),
+    (0.35, 0.35, 0.36),
+    (0.55, 0.04, 0.03),
+    (0.04, 0.12, 0.45),
+    (0.75, 0.45, 0.02),
+    (0.12, 0.22, 0.05),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class Photometric:
+    """Image-level augmentations applied after rendering (datasets only)."""
+
+    gamma: float
+    saturation: float
+    blur_sigma_px: float
+    jpeg_quality: int
+    #: Downscale factor before scaling back (soft, video-like detail), 1 = none.
+    resample: float
+
+
+@dataclass(frozen=True, slots=True)
+class DistractorTrack:
+    """A non-leader flying thing (bird, balloon, plane, debris) moving at constant velocity."""
+
+    kind: str
+    mesh_size_m: float
+    p0_ned_m: Vec3
+    v_ned_m_s: Vec3
+    yaw_rad: float
+    rgb: RGB
+    flap_hz: float
+
+
+@dataclass(frozen=True, slots=True)
+class SequenceSpec:
+    """Everything needed to render one sequence, deterministic from the dataset seed and its index."""
+
+    index: int
+    split: str
+    visual: VisualConfig
+    cameras: list[CameraPose]
+    #: Camera angular rate per frame (camera frame, rad/s): motion blur.
+    omegas_cam_rad_s: list[Vec3]
+    #: Leader (R_ned_body, p_ned_m) per frame, or None for a leader-free sequence.
+    leaders: list[tuple[Mat3, Vec3]] | None
+    distractors: list[DistractorTrack] = field(default_factory=list)
+    photometric: list[Photometric] = field(default_factory=list)
+    times_s: list[float] = field(default_factory=list)
+
+
+def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+
+def _colour(rng: np.random.Generator) -> RGB:
+    base = _BODY_COLOURS[int(rng.integers(len(_BODY_COLOURS)))]
+    k = float(rng.uniform(0.8, 1.2))
+    return (min(base[0] * k, 0.9), min(base[1] * k, 0.9), min(base[2] * k, 0.9))
+
+
+def sample_leader_look(rng: np.random.Generator) -> LeaderLook:
+    """An airframe with its usual size +-25 % and, half the time, its own colours."""
+    airframe = str(rng.choice(_AIRFRAMES, p=_AIRFRAME_P))
+    span = AIRFRAME_SPAN_M[airframe] * float(rng.uniform(0.8, 1.25))
+    if rng.random() < 0.5:
+        return LeaderLook(airframe=airframe, span_m=span, rotor_rpm=float(rng.uniform(3000, 9000)))
+    return LeaderLook(
+        airframe=airframe,
+        span_m=span,
+        body_rgb=_colour(rng),
+        arm_rgb=_colour(rng),
+        accent_rgb=_colour(rng),
+        prop_rgb=(0.02, 0.02, 0.02) if rng.random() < 0.6 else _colour(rng),
+        rotor_rpm=float(rng.uniform(3000, 9000)),
+    )
+
+
+def sample_visual(rng: np.random.Generator) -> VisualConfig:
+    """Light, weather, ground, structures and camera rendition of one sequence."""
+    dusk = rng.random() < 0.2
+    r = rng.random()
+    cover = (
+        rng.uniform(0.0, 0.15) if r < 0.3 else (rng.uniform(0.2, 0.7) if r < 0.7 else rng.uniform(0.8, 1.0))
+    )
+    f = rng.random()
+    fog = (
+        rng.uniform(0.0, 0.001)
+        if f < 0.7
+        else (rng.uniform(0.001, 0.005) if f < 0.95 else rng.uniform(0.005, 0.02))
+    )
+    mats = ["grass", "field", "dirt", "asphalt", "gravel"]
+    if rng.random() < 0.06:
+        mats.append("snow")
+    chosen = tuple(str(m) for m in rng.choice(mats, size=int(rng.integers(2, 5)), replace=False))
+    clear = float(rng.uniform(20, 80))
+    return VisualConfig(
+        seed=int(rng.integers(0, 2**31 - 1)),
+        time_of_day="dusk" if dusk else "day",
+        sun_elevation_deg=float(rng.uniform(-2, 8) if dusk else rng.uniform(15, 75)),
+        sun_azimuth_deg=float(rng.uniform(0, 360)),
+        cloud_cover=float(cover),
+        fog_density_per_m=float(fog),
+        ground_materials=chosen,
+        road=bool(rng.random() < 0.5),
+        structures=int(rng.integers(10, 80)),
+        clear_radius_m=clear,
+        world_radius_m=float(rng.uniform(max(200.0, clear + 50.0), 450.0)),
+        tree_line=bool(rng.random() < 0.85),
+        hills=bool(rng.random() < 0.6),
+        exposure_ev=float(np.clip(rng.normal(0.0, 0.5), -1.5, 1.5)),
+        white_balance_k=float(rng.uniform(4200, 7500)),
+        sensor_noise=_log_uniform(rng, 0.5, 3.0),
+        vignetting=float(rng.uniform(0.0, 0.5)),
+        contrast=float(rng.uniform(0.8, 1.25)),
+        leader=sample_leader_look(rng),
+    )
+
+
+def _camera_rotation(rng: np.random.Generator) -> Mat3:
+    """A camera orientation biased to look up or level (sky backgrounds), sometimes down."""
+    r = rng.random()
+    pitch = rng.uniform(5, 40) if r < 0.45 else (rng.uniform(-8, 8) if r < 0.8 else rng.uniform(-40, -8))
+    R_ned_body = R_from_euler(
+        math.radians(float(np.clip(rng.normal(0, 5), -15, 15))),
+        math.radians(pitch),
+        rng.uniform(0, 2 * math.pi),
+    )
+    return R_ned_body @ R_BODY_CAM_LEVEL
+
+
+def sample_photometric(rng: np.random.Generator) -> Photometric:
+    """Gamma, saturation, defocus, JPEG and resampling of one frame."""
+    return Photometric(
+        gamma=float(rng.uniform(0.8, 1.25)),
+        saturation=float(rng.uniform(0.6, 1.3)),
+        blur_sigma_px=float(rng.uniform(0.3, 1.4)) if rng.random() < 0.3 else 0.0,
+        jpeg_quality=int(rng.integers(35, 96)),
+        resample=float(rng.uniform(0.5, 0.85)) if rng.random() < 0.2 else 1.0,
+    )
+
+
+def _sample_distractors(rng: np.random.Generator, cam: CameraPose, intr: Intrinsics) -> list[DistractorTrack]:
+    """Birds most often; sometimes balloons, a distant aeroplane or wind-blown debris near the lens."""
+    out: list[DistractorTrack] = []
+    K_inv = np.linalg.inv(intr.K)
+
+    def in_view(r_m: float) -> Vec3:
+        u = rng.uniform(-0.1, 1.1) * intr.width_px
+        v = rng.uniform(-0.1, 1.1) * intr.height_px
+        d = K_inv @ np.array([u, v, 1.0])
+        p: Vec3 = cam.p_ned_cam_m + cam.R_ned_cam @ (r_m * d / np.linalg.norm(d))
+        p[2] = min(p[2], -0.5)
+        return p
+
+    if rng.random() < 0.4:
+        for _ in range(int(rng.integers(1, 6))):
+            dark = rng.random() < 0.75
+            tone = rng.uniform(0.02, 0.1) if dark else rng.uniform(0.5, 0.8)
+            speed = rng.uniform(3, 12)
+            heading = rng.uniform(0, 2 * math.pi)
+            out.append(
+                DistractorTrack(
+                    "bird",
+                    float(rng.uniform(0.2, 1.3)),
+                    in_view(_log_uniform(rng, 2.0, 80.0)),
+                    np.array([speed * math.cos(heading), speed * math.sin(heading), rng.normal(0, 1)]),
+                    heading,
+                    (tone, tone * 0.95, tone * 0.9),
+                    float(rng.uniform(2, 8)),
+                )
+            )
+    if rng.random() < 0.1:
+        out.append(
+            DistractorTrack(
+                "balloon",
+                float(rng.uniform(0.12, 0.4)),
+                in_view(rng.uniform(3.0, 40.0)),
+                np.array([rng.normal(0, 1), rng.normal(0, 1), -rng.uniform(0, 1)]),
+                0.0,
+                _colour(rng),
+                0.0,
+            )
+        )
+    if rng.random() < 0.1:
+        speed = rng.uniform(40, 80)
+        heading = rng.uniform(0, 2 * math.pi)
+        out.append(
+            DistractorTrack(
+                "plane",
+                float(rng.uniform(10, 30)),
+                in_view(rng.uniform(300.0, 2000.0)),
+                np.array([speed * math.cos(heading), speed * math.sin(heading), 0.0]),
+                heading,
+                (0.7, 0.7, 0.72),
+                0.0,
+            )
+        )
+    if rng.random() < 0.1:
+        for _ in range(int(rng.integers(1, 4))):
+            out.append(
+                DistractorTrack(
+                    "debris",
+                    float(rng.uniform(0.03, 0.1)),
+                    in_view(rng.uniform(0.5, 3.0)),
+                    rng.normal(0, 1.5, 3),
+                    float(rng.uniform(0, 6.3)),
+                    (0.1 + 0.3 * rng.random(), 0.08 + 0.2 * rng.random(), 0.03),
+                    float(rng.uniform(1, 5)),
+                )
+            )
+    return out
+
+
+def distractor_frame_vertices(tracks: list[DistractorTrack], t_s: float) -> F32 | None:
+    """Vertices (NED) of all distractors at time t (wings flapping, debris tumbling)."""
+    if not tracks:
+        return None
+    items: list[tuple[Mesh, Mat3, Vec3, RGB, Kind]] = []
+    for tr in tracks:
+        p = tr.p0_ned_m + tr.v_ned_m_s * t_s
+        R = R_from_euler(0.0, 0.0, tr.yaw_rad)
+        if tr.kind == "bird":
+            mesh = bird_mesh(tr.mesh_size_m, 0.7 * math.sin(2 * math.pi * tr.flap_hz * t_s + tr.yaw_rad))
+        elif tr.kind == "balloon":
+            mesh = balloon_mesh(tr.mesh_size_m)
+        elif tr.kind == "plane":
+            mesh = plane_mesh(tr.mesh_size_m)
+        else:
+            mesh = debris_mesh(tr.mesh_size_m)
+            R = R_from_euler(tr.flap_hz * t_s, 0.7 * tr.flap_hz * t_s, tr.yaw_rad)
+        items.append((mesh, R, p, tr.rgb, Kind.PLAIN if tr.kind != "balloon" else Kind.GLOSSY))
+    return distractor_vertices(items)
+
+
+def _occluder_between(rng: np.random.Generator, p_cam: Vec3, p_leader: Vec3) -> OccluderSpec:
+    """A tree, pole, wall or building corner standing across the line of sight to the leader."""
+    frac = rng.uniform(0.3, 0.8)
+    p = p_cam + frac * (p_leader - p_cam)
+    alt = -float(p[2])
+    kind = str(rng.choice(["tree", "conifer", "pole", "wall", "building"], p=[0.35, 0.15, 0.2, 0.15, 0.15]))
+    side = np.cross(p_leader - p_cam, np.array([0.0, 0.0, 1.0]))
+    side /= max(float(np.linalg.norm(side)), 1e-9)
+    if kind in ("tree", "conifer"):
+        width = rng.uniform(2.0, 6.0)
+        height = alt + rng.uniform(-0.2, 0.3) * width + width / 2.0
+        off = rng.uniform(-0.6, 0.6) * width
+        size = (width, 0.0, max(height, 2.0))
+    elif kind == "pole":
+        off = rng.uniform(-0.2, 0.2)
+        size = (rng.uniform(0.08, 0.25), 1.8, alt + rng.uniform(0.5, 4.0))
+    else:
+        w = rng.uniform(3.0, 12.0)
+        off = rng.choice([-1.0, 1.0]) * rng.uniform(0.3, 0.6) * w
+        size = (w, rng.uniform(0.3, 6.0), alt + rng.uniform(-0.5, 3.0))
+    base = p + side * off
+    yaw = math.degrees(math.atan2(side[1], side[0]))
+    return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size, yaw_deg=yaw)
+
+
+def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> SequenceSpec:
+    """Sequence ``index`` of a dataset with ``seed``: the same whatever the dataset's size."""
+    rng = np.random.default_rng([seed, index])
+    split = split_of(seed, index)
+    visual = sample_visual(rng)
+    a = rng.random()
+    alt = rng.uniform(1.2, 2.5) if a < 0.25 else (rng.uniform(3, 30) if a < 0.75 else rng.uniform(30, 80))
+    p_cam0 = np.array([rng.uniform(-10, 10), rng.uniform(-10, 10), -alt])
+    R0 = _camera_rotation(rng)
+    fast = rng.random() < 0.3
+    omega = rng.normal(0.0, math.radians(60.0 if fast else 10.0), 3)
+    v_cam = rng.normal(0.0, 1.5, 3) * np.array([1.0, 1.0, 0.3])
+    times = [i * FRAME_DT_S for i in range(n_frames)]
+    cameras = []
+    for t in times:
+        p = p_cam0 + v_cam * t
+        p[2] = min(p[2], -1.0)
+        cameras.append(CameraPose(R0 @ rotation_vector_matrix(omega * t), p))
+    omegas = [omega.copy() for _ in times]
+
+    leaders: list[tuple[Mat3, Vec3]] | None = None
+    occluders: list[OccluderSpec] = []
+    if rng.random() < 0.86:
+        K_inv = np.linalg.inv(intr.K)
+        p_leader0 = np.zeros(3)
+        for _ in range(20):
+            rng_m = _log_uniform(rng, 1.0, 20.0) if rng.random() < 0.5 else rng.uniform(1.0, 20.0)
+            edge = rng.random() < 0.12
+            lo, hi = (-0.15, 1.15) if edge else (0.02, 0.98)
+            u, v = rng.uniform(lo, hi) * intr.width_px, rng.uniform(lo, hi) * intr.height_px
+            d = K_inv @ np.array([u, v, 1.0])
+            p_leader0 = cameras[0].p_ned_cam_m + cameras[0].R_ned_cam @ (rng_m * d / np.linalg.norm(d))
+            if p_leader0[2] < -0.4:
+                break
+        else:
+            p_leader0[2] = -0.4
+        v_leader = rng.normal(0.0, 2.5, 3) * np.array([1.0, 1.0, 0.3])
+        yaw0 = rng.uniform(0, 2 * math.pi)
+        yaw_rate = rng.normal(0.0, 0.4)
+        tilt = np.clip(rng.normal(0.0, math.radians(12.0), 2), -0.6, 0.6)
+        leaders = []
+        for t in times:
+            p = p_leader0 + v_leader * t
+            p[2] = min(p[2], -0.4)
+            leaders.append((R_from_euler(float(tilt[0]), float(tilt[1]), yaw0 + yaw_rate * t), p))
+        if rng.random() < 0.15:
+            occluders.append(_occluder_between(rng, cameras[0].p_ned_cam_m, p_leader0))
+    if occluders:
+        visual = visual.model_copy(update={"occluders": tuple(occluders)})
+    return SequenceSpec(
+        index=index,
+        split=split,
+        visual=visual,
+        cameras=cameras,
+        omegas_cam_rad_s=omegas,
+        leaders=leaders,
+        distractors=_sample_distractors(rng, cameras[0], intr),
+        photometric=[sample_photometric(rng) for _ in times],
+        times_s=times,
+    )

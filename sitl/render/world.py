@@ -1,0 +1,488 @@
+"""The world around the vehicles, from a :class:`VisualConfig`: light, ground style, static geometry.
+
+Pure numpy: builds vertex arrays and uniform values, uploads nothing. Radiometry is in arbitrary linear
+units where a white surface facing a high sun reflects about 3; the camera's auto exposure scales it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sitl.render.config import RGB, OccluderSpec, VisualConfig
+from sitl.render.meshes import (
+    F32,
+    F64,
+    Kind,
+    Mesh,
+    MeshBuilder,
+    Rx,
+    Rz,
+    box,
+    concat,
+    cone,
+    cylinder,
+    double_sided,
+    ellipsoid,
+    quads_to_mesh,
+)
+
+#: Half side of the square ground plane, m (the far clip plane sits beyond it).
+GROUND_HALF_M = 3500.0
+CLOUD_ALTITUDE_M = 1200.0
+CLOUD_TEXEL_M = 2.5
+
+_GROUND_ALBEDO: dict[str, tuple[RGB, float]] = {
+    # material: (linear albedo, stereo texturedness)
+    "grass": ((0.075, 0.13, 0.035), 1.0),
+    "field": ((0.30, 0.24, 0.12), 0.95),
+    "dirt": ((0.20, 0.14, 0.085), 1.0),
+    "asphalt": ((0.07, 0.07, 0.075), 0.55),
+    "gravel": ((0.26, 0.25, 0.23), 0.9),
+    "snow": ((0.75, 0.77, 0.80), 0.25),
+}
+
+
+def _mix(a: RGB, b: RGB, t: float) -> RGB:
+    return (a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t)
+
+
+def _scale(a: RGB, s: float) -> RGB:
+    return (a[0] * s, a[1] * s, a[2] * s)
+
+
+def _smoothstep(e0: float, e1: float, x: float) -> float:
+    t = min(max((x - e0) / (e1 - e0), 0.0), 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+@dataclass(frozen=True, slots=True)
+class Lighting:
+    """Uniform values for sun, sky, clouds and fog (linear RGB, arbitrary radiometric units)."""
+
+    sun_dir_ned: tuple[float, float, float]
+    sun_rgb: RGB
+    sky_rgb: RGB
+    bounce_rgb: RGB
+    zenith_rgb: RGB
+    horizon_rgb: RGB
+    glow_rgb: RGB
+    haze_rgb: RGB
+    cloud_lit_rgb: RGB
+    cloud_dark_rgb: RGB
+    fog_rgb: RGB
+    #: Mean scene radiance an auto exposure would settle on; seeds the first frame's exposure.
+    typical_radiance: float
+
+
+def lighting(visual: VisualConfig) -> Lighting:
+    """Sun, sky and cloud colours for the time of day, sun elevation and cloud cover."""
+    s = math.sin(math.radians(visual.resolved_sun_elevation_deg))
+    day = _smoothstep(0.0, 0.35, s)  # 0 at the horizon (dusk), 1 by mid-morning
+    cover = visual.cloud_cover
+    overcast = cover**2
+    sun_i = 3.2 * _smoothstep(-0.08, 0.35, s) * (1.0 - 0.85 * cover**1.5)
+    sun_rgb = _scale(_mix((1.0, 0.42, 0.16), (1.0, 0.96, 0.90), day), sun_i)
+    zenith = _mix(
+        _mix((0.05, 0.08, 0.22), (0.16, 0.32, 0.78), day),
+        _scale((0.62, 0.64, 0.68), 0.25 + 0.75 * day),
+        overcast,
+    )
+    horizon = _mix(
+        _mix((0.42, 0.32, 0.30), (0.55, 0.66, 0.82), day),
+        _scale((0.78, 0.79, 0.82), 0.2 + 0.8 * day),
+        overcast,
+    )
+    glow = _scale(_mix((0.9, 0.38, 0.12), (0.25, 0.22, 0.18), day), 1.0 - 0.7 * overcast)
+    sky = _scale(_mix(zenith, horizon, 0.5), 0.9)
+    ground_albedo = 0.15
+    bounce = _scale(_mix(sky, sun_rgb, 0.5), ground_albedo * (0.5 + 0.5 * max(s, 0.0)))
+    lit = _mix(_scale((1.0, 0.62, 0.45), 0.8), (1.25, 1.25, 1.27), day)
+    lit = _mix(lit, _scale((0.85, 0.86, 0.9), 0.25 + 0.75 * day), overcast)
+    dark = _mix(_scale((0.35, 0.32, 0.38), 0.6), (0.58, 0.60, 0.66), day)
+    dark = _mix(dark, _scale((0.5, 0.52, 0.57), 0.25 + 0.75 * day), overcast)
+    fog = visual.fog_rgb or _mix(horizon, glow, 0.15)
+    typical = 0.5 * (zenith[1] + horizon[1]) * 0.7 + 0.3 * 0.15 * (sun_i * 0.6 + sky[1])
+    return Lighting(
+        sun_dir_ned=visual.sun_dir_ned,
+        sun_rgb=sun_rgb,
+        sky_rgb=sky,
+        bounce_rgb=bounce,
+        zenith_rgb=zenith,
+        horizon_rgb=horizon,
+        glow_rgb=glow,
+        haze_rgb=_mix(fog, (0.1, 0.1, 0.1), 0.2),
+        cloud_lit_rgb=lit,
+        cloud_dark_rgb=dark,
+        fog_rgb=fog,
+        typical_radiance=max(typical, 0.01),
+    )
+
+
+#: The ground texture tiles with this period, m (patches, rows and the road are periodic over it).
+GROUND_PERIOD_M = 512.0
+
+
+@dataclass(frozen=True, slots=True)
+class GroundStyle:
+    """Uniform values of the ground bake: up to four materials, a road, field rows."""
+
+    rgb: tuple[RGB, RGB, RGB, RGB]
+    texturedness: tuple[float, float, float, float]
+    n_materials: int
+    #: (axis: 0 runs north / 1 runs east, offset m, half width m (0 = none), unused).
+    road: tuple[float, float, float, float]
+    #: (axis, rows per ground period).
+    rows: tuple[float, float]
+
+
+def ground_style(visual: VisualConfig, rng: np.random.Generator) -> GroundStyle:
+    """Ground materials of the configuration plus a random road and field-row direction."""
+    mats = list(visual.ground_materials)[:4]
+    rgb = [_GROUND_ALBEDO[m][0] for m in mats]
+    tex = [_GROUND_ALBEDO[m][1] for m in mats]
+    while len(rgb) < 4:
+        rgb.append(rgb[-1])
+        tex.append(tex[-1])
+    road = (0.0, 0.0, 0.0, 0.0)
+    if visual.road:
+        off = rng.uniform(visual.clear_radius_m * 0.5, max(visual.clear_radius_m, 60.0))
+        road = (float(rng.integers(2)), float(off % GROUND_PERIOD_M), float(rng.uniform(2.5, 4.0)), 0.0)
+    rows_per_period = float(round(GROUND_PERIOD_M / rng.uniform(0.6, 1.5)))
+    return GroundStyle(
+        (rgb[0], rgb[1], rgb[2], rgb[3]),
+        (tex[0], tex[1], tex[2], tex[3]),
+        len(mats),
+        road,
+        (float(rng.integers(2)), rows_per_period),
+    )
+
+
+_WALL_RGB: tuple[RGB, ...] = (
+    (0.45, 0.44, 0.42),
+    (0.55, 0.50, 0.42),
+    (0.30, 0.12, 0.08),
+    (0.65, 0.65, 0.62),
+    (0.25, 0.27, 0.30),
+)
+_ROOF_RGB: tuple[RGB, ...] = ((0.12, 0.05, 0.04), (0.08, 0.08, 0.09), (0.25, 0.24, 0.22), (0.05, 0.07, 0.10))
+_CROWN_RGB: tuple[RGB, ...] = (
+    (0.05, 0.10, 0.03),
+    (0.07, 0.12, 0.04),
+    (0.16, 0.13, 0.10),
+    (0.22, 0.12, 0.04),
+    (0.12, 0.11, 0.10),
+)
+
+
+def _prism_roof(w: float, d: float, h: float) -> Mesh:
+    """A gable roof over a w x d footprint (ridge along x), base at z = 0, apex at z = -h (NED up)."""
+    x, y = w / 2.0, d / 2.0
+    slopes = np.array(
+        [
+            [[x, -y, 0.0], [-x, -y, 0.0], [-x, 0.0, -h], [x, 0.0, -h]],
+            [[-x, y, 0.0], [x, y, 0.0], [x, 0.0, -h], [-x, 0.0, -h]],
+        ]
+    )
+    uv = np.array([[[0.0, 0.0], [w, 0.0], [w, y], [0.0, y]]] * 2)
+    roof = quads_to_mesh(slopes, uv)
+    gables = np.array(
+        [[[x, y, 0.0], [x, -y, 0.0], [x, 0.0, -h]], [[-x, -y, 0.0], [-x, y, 0.0], [-x, 0.0, -h]]]
+    )
+    pos = gables.reshape(-1, 3)
+    nrm = np.repeat(np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]), 3, axis=0)
+    gm = Mesh(pos, nrm, pos[:, [1, 2]] * np.array([1.0, -1.0]))
+    return concat([roof, gm])
+
+
+def add_structure(b: MeshBuilder, spec: OccluderSpec, rng: np.random.Generator) -> None:
+    """One building, tree, pole or wall standing at ``spec.p_ned_m``."""
+    R = Rz(math.radians(spec.yaw_deg))
+    t = np.asarray(spec.p_ned_m, dtype=np.float64)
+    w, d, h = spec.resolved_size_m
+    if spec.kind == "branch":
+        b.add(box((w, d, h)).transformed(R, t), spec.rgb or (0.09, 0.07, 0.05), Kind.BARK)
+        return
+    t[2] = 0.0  # everything else stands on the ground
+    if spec.kind in ("building", "wall"):
+        wall = spec.rgb or _WALL_RGB[int(rng.integers(len(_WALL_RGB)))]
+        kind = Kind.WALL if spec.kind == "building" else Kind.PLAIN
+        b.add(box((w, d, h), (0.0, 0.0, -h / 2.0)).transformed(R, t), wall, kind)
+        if spec.kind == "building":
+            roof_rgb = _ROOF_RGB[int(rng.integers(len(_ROOF_RGB)))]
+            if h < 12.0 and rng.random() < 0.6:
+                roof = _prism_roof(w * 1.05, d * 1.05, min(w, d) * rng.uniform(0.25, 0.45))
+                b.add(roof.transformed(R, t + R @ np.array([0.0, 0.0, -h])), roof_rgb, Kind.ROOF)
+            else:
+                b.add(box((w, d, 0.3), (0.0, 0.0, -h - 0.15)).transformed(R, t), roof_rgb, Kind.ROOF)
+    elif spec.kind == "pole":
+        radius = max(w, 0.05)
+        rgb = spec.rgb or ((0.22, 0.16, 0.10) if rng.random() < 0.5 else (0.35, 0.35, 0.34))
+        b.add(cylinder(radius, -h, 0.0, 8).transformed(R, t), rgb, Kind.BARK)
+        b.add(box((0.12, max(d, 1.6), 0.12), (0.0, 0.0, -h + 0.6)).transformed(R, t), rgb, Kind.BARK)
+    else:
+        crown_w = w
+        trunk_r = max(0.08, 0.03 * crown_w)
+        sparse = float(rng.uniform(0.05, 0.45))
+        rgb = spec.rgb or _CROWN_RGB[int(rng.integers(len(_CROWN_RGB)))]
+        bark = (0.10, 0.08, 0.06)
+        if spec.kind == "conifer":
+            rgb = spec.rgb or (0.03, 0.065, 0.03)
+            b.add(cylinder(trunk_r, -h * 0.3, 0.0, 6).transformed(R, t), bark, Kind.BARK)
+            for j, (z0, z1, r) in enumerate(((-0.15, -0.55, 0.5), (-0.4, -0.8, 0.38), (-0.65, -1.0, 0.25))):
+                crown = cone(crown_w * r, z0 * h, z1 * h, 10)
+                b.add(crown.transformed(R @ Rz(j * 0.7), t), rgb, _foliage_kind(0.1 * sparse))
+        else:
+            trunk_h = h * rng.uniform(0.3, 0.45)
+            b.add(cylinder(trunk_r, -trunk_h - 0.5, 0.0, 6).transformed(R, t), bark, Kind.BARK)
+            crown_h = h - trunk_h
+            n_blobs = int(rng.integers(1, 4))
+            for _ in range(n_blobs):
+                off = rng.normal(0.0, crown_w * 0.12, 3) * np.array([1.0, 1.0, 0.5])
+                radii = (
+                    crown_w / 2.0 * rng.uniform(0.7, 1.0),
+                    crown_w / 2.0 * rng.uniform(0.7, 1.0),
+                    crown_h / 2.0,
+                )
+                centre = t + R @ (np.array([0.0, 0.0, -trunk_h - crown_h / 2.0]) + off)
+                b.add(
+                    ellipsoid(radii, 9, 6).transformed(Rz(rng.uniform(0, 6.3)), centre),
+                    rgb,
+                    _foliage_kind(sparse),
+                )
+
+
+def _foliage_kind(sparse: float) -> float:
+    """Foliage kind with a sparsity in its fractional part (the shader reads fract(kind))."""
+    return float(Kind.FOLIAGE) + min(max(sparse, 0.0), 0.95)
+
+
+def _ring(radius: float, heights: F64, rgb: RGB, kind: float, b: MeshBuilder) -> None:
+    """A vertical band around the origin facing inwards, top edge at the given heights (m, up)."""
+    n = heights.size
+    th = np.linspace(0.0, 2.0 * math.pi, n + 1)
+    hh = np.append(heights, heights[0])
+    x, y = radius * np.cos(th), radius * np.sin(th)
+    quads = np.zeros((n, 4, 3))
+    uv = np.zeros((n, 4, 2))
+    hmax = max(float(heights.max()), 1e-3)
+    for i in range(n):
+        j = i + 1
+        # Counter-clockwise seen from the centre (the inside): i bottom, i top, j top, j bottom.
+        quads[i] = [[x[i], y[i], 2.0], [x[i], y[i], -hh[i]], [x[j], y[j], -hh[j]], [x[j], y[j], 2.0]]
+        arc_i, arc_j = radius * th[i], radius * th[j]
+        uv[i] = [[arc_i, 0.0], [arc_i, hh[i] / hmax], [arc_j, hh[j] / hmax], [arc_j, 0.0]]
+    m = quads_to_mesh(quads, uv)
+    # Normals must point to the centre: flip any that do not.
+    inward = -np.column_stack([m.pos[:, 0], m.pos[:, 1], np.zeros(len(m.pos))])
+    if float(np.mean(np.sum(m.nrm * inward, axis=1))) < 0:
+        idx = np.arange(m.n_vertices).reshape(-1, 3)[:, ::-1].reshape(-1)
+        m = Mesh(m.pos[idx], -m.nrm[idx], m.uv[idx])
+    b.add(m, rgb, kind)
+
+
+def _smooth_profile(rng: np.random.Generator, n: int, octaves: int = 5) -> F64:
+    """A periodic random profile in [0, 1] over n samples."""
+    th = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    p = np.zeros(n)
+    for o in range(octaves):
+        f = 2**o * 2
+        p += (0.6**o) * np.sin(f * th + rng.uniform(0, 2 * math.pi))
+    out: F64 = (p - p.min()) / (p.max() - p.min() + 1e-9)
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class World:
+    """Static geometry (NED, m) and shading parameters of one visual configuration."""
+
+    #: Sorted by shader group: ground, generic, foliage (see ``groups``).
+    vertices: F32
+    #: (first vertex, vertex count) of the ground, generic and foliage groups.
+    groups: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
+    lighting: Lighting
+    ground: GroundStyle
+    cloud_threshold: tuple[float, float]
+    cloud_offset_texels: tuple[float, float]
+
+
+def shader_group(kind: NDArray[np.float32]) -> NDArray[np.int64]:
+    """0 ground, 1 generic, 2 foliage: which scene program draws each vertex kind."""
+    k = np.floor(kind).astype(np.int64)
+    return np.where(k == Kind.GROUND, 0, np.where((k == Kind.FOLIAGE) | (k == Kind.DISTANT), 2, 1))
+
+
+def sort_by_group(vertices: F32) -> tuple[F32, tuple[tuple[int, int], tuple[int, int], tuple[int, int]]]:
+    """Vertices reordered by shader group (whole triangles stay together) and each group's range."""
+    group = shader_group(vertices[::3, 11])
+    order = np.argsort(group, kind="stable")
+    idx = (order[:, None] * 3 + np.arange(3)[None, :]).reshape(-1)
+    counts = np.bincount(group, minlength=3) * 3
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    ranges = tuple((int(s), int(c)) for s, c in zip(starts, counts, strict=True))
+    return vertices[idx], (ranges[0], ranges[1], ranges[2])
+
+
+def random_structures(visual: VisualConfig, rng: np.random.Generator) -> list[OccluderSpec]:
+    """Scatter ``visual.structures`` buildings, trees and poles in the annulus around home."""
+    out: list[OccluderSpec] = []
+    kinds = ("building", "tree", "conifer", "pole")
+    probs = (0.22, 0.45, 0.18, 0.15)
+    for _ in range(visual.structures):
+        kind = kinds[int(rng.choice(4, p=probs))]
+        r = math.sqrt(rng.uniform(visual.clear_radius_m**2, visual.world_radius_m**2))
+        a = rng.uniform(0.0, 2.0 * math.pi)
+        p = (r * math.cos(a), r * math.sin(a), 0.0)
+        if kind == "building":
+            size = (rng.uniform(6, 22), rng.uniform(6, 22), rng.uniform(4, 24))
+        elif kind in ("tree", "conifer"):
+            hgt = rng.uniform(6, 22)
+            size = (hgt * rng.uniform(0.35, 0.7), 0.0, hgt)
+        else:
+            size = (rng.uniform(0.1, 0.2), rng.uniform(1.2, 2.4), rng.uniform(7, 12))
+        out.append(OccluderSpec(kind=kind, p_ned_m=p, size_m=size, yaw_deg=float(rng.uniform(0, 360))))
+    return out
+
+
+def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
+    """Geometry and shading of a visual configuration (deterministic in ``visual.seed``).
+
+    ``pattern_dens_quantile`` are the 0..100th percentiles of the cloud density the sky shader computes
+    from the pattern texture; coverage thresholds are picked from them so ``cloud_cover`` is an area.
+    """
+    rng = np.random.default_rng(visual.seed)
+    b = MeshBuilder()
+    g = 2.0 * GROUND_HALF_M
+    ground = quads_to_mesh(
+        np.array(
+            [
+                [
+                    [-GROUND_HALF_M, -GROUND_HALF_M, 0.0],
+                    [-GROUND_HALF_M, GROUND_HALF_M, 0.0],
+                    [GROUND_HALF_M, GROUND_HALF_M, 0.0],
+                    [GROUND_HALF_M, -GROUND_HALF_M, 0.0],
+                ]
+            ]
+        ),
+        np.array([[[0.0, 0.0], [0.0, g], [g, g], [g, 0.0]]]),
+    )
+    if ground.nrm[0, 2] > 0:  # must face up (-z in NED)
+        ground = Mesh(ground.pos[[0, 2, 1, 3, 5, 4]], -ground.nrm, ground.uv[[0, 2, 1, 3, 5, 4]])
+    b.add(ground, (1.0, 1.0, 1.0), Kind.GROUND)
+    for spec in (*random_structures(visual, rng), *visual.occluders):
+        add_structure(b, spec, rng)
+    if visual.tree_line:
+        n = 720
+        base = 8.0 + 14.0 * _smooth_profile(rng, n)
+        bumps = rng.uniform(0.0, 4.0, n)
+        gaps = _smooth_profile(rng, n, 4) < rng.uniform(0.1, 0.3)
+        heights = np.where(gaps, 0.5, base + bumps)
+        crown = _CROWN_RGB[int(rng.integers(len(_CROWN_RGB)))]
+        _ring(
+            visual.world_radius_m * rng.uniform(1.1, 1.6), heights, _scale(crown, 0.8), float(Kind.DISTANT), b
+        )
+    if visual.hills:
+        n = 256
+        heights = 30.0 + 160.0 * _smooth_profile(rng, n) ** 1.5
+        _ring(2600.0, heights, (0.05, 0.08, 0.04), float(Kind.PLAIN), b)
+    cover = visual.cloud_cover
+    lo_q = float(
+        np.interp(
+            100.0 * (1.0 - cover), np.linspace(0, 100, pattern_dens_quantile.size), pattern_dens_quantile
+        )
+    )
+    thr = (lo_q - 0.03, lo_q + 0.05) if cover < 0.999 else (-1.0, -0.9)
+    vertices, groups = sort_by_group(b.build())
+    return World(
+        vertices=vertices,
+        groups=groups,
+        lighting=lighting(visual),
+        ground=ground_style(visual, rng),
+        cloud_threshold=thr,
+        cloud_offset_texels=(float(rng.uniform(0, 1024)), float(rng.uniform(0, 1024))),
+    )
+
+
+def bird_mesh(span_m: float, flap_rad: float) -> Mesh:
+    """A bird in its own frame (x forward, z down): slim body, two wings raised by ``flap_rad``."""
+    body = ellipsoid((span_m * 0.22, span_m * 0.06, span_m * 0.06), 8, 4)
+    half = span_m / 2.0
+    chord = span_m * 0.22
+    wing = np.array(
+        [
+            [
+                [chord * 0.4, 0.0, 0.0],
+                [chord * 0.1, half, 0.0],
+                [-chord * 0.3, half * 0.9, 0.0],
+                [-chord * 0.6, 0.0, 0.0],
+            ]
+        ]
+    )
+    w_mesh = double_sided(quads_to_mesh(wing))
+    right = w_mesh.transformed(Rx(-flap_rad))
+    left = w_mesh.transformed(np.diag([1.0, -1.0, 1.0])).transformed(Rx(flap_rad))
+    left = Mesh(left.pos[np.arange(left.n_vertices).reshape(-1, 3)[:, ::-1].reshape(-1)], -left.nrm, left.uv)
+    tail = double_sided(
+        quads_to_mesh(
+            np.array(
+                [
+                    [
+                        [-chord * 0.5, -span_m * 0.04, 0.0],
+                        [-chord * 0.5, span_m * 0.04, 0.0],
+                        [-chord * 1.1, span_m * 0.07, 0.0],
+                        [-chord * 1.1, -span_m * 0.07, 0.0],
+                    ]
+                ]
+            )
+        )
+    )
+    return concat([body, right, left, tail])
+
+
+def balloon_mesh(radius_m: float) -> Mesh:
+    """A party balloon with a short string hanging below it (+z)."""
+    return concat(
+        [
+            ellipsoid((radius_m, radius_m, radius_m * 1.15), 10, 6),
+            cylinder(radius_m * 0.02, 0.0, radius_m * 4.0, 4, caps=False).transformed(t=(0.0, 0.0, radius_m)),
+        ]
+    )
+
+
+def plane_mesh(span_m: float) -> Mesh:
+    """A small aeroplane: fuselage, wing, tailplane, fin."""
+    length = span_m * 0.8
+    return concat(
+        [
+            ellipsoid((length / 2.0, span_m * 0.05, span_m * 0.06), 10, 5),
+            box((span_m * 0.16, span_m, span_m * 0.015)),
+            box((span_m * 0.08, span_m * 0.35, span_m * 0.01), (-length * 0.42, 0.0, 0.0)),
+            box((span_m * 0.1, span_m * 0.01, span_m * 0.14), (-length * 0.42, 0.0, -span_m * 0.07)),
+        ]
+    )
+
+
+def debris_mesh(size_m: float) -> Mesh:
+    """A tumbling leaf or plastic scrap: a crumpled double-sided quad."""
+    q = np.array(
+        [
+            [
+                [size_m, 0.0, 0.0],
+                [0.0, size_m * 0.6, size_m * 0.2],
+                [-size_m, 0.0, 0.0],
+                [0.0, -size_m * 0.6, -size_m * 0.2],
+            ]
+        ]
+    )
+    return double_sided(quads_to_mesh(q))
+
+
+def distractor_vertices(items: list[tuple[Mesh, F64, F64, RGB, Kind]]) -> F32:
+    """Vertex array of placed distractor meshes: (mesh, R_ned_obj, p_ned_m, rgb, kind) each."""
+    b = MeshBuilder()
+    for mesh, R, p, rgb, kind in items:
+        b.add(mesh.transformed(R, p), rgb, kind)
+    return b.build()

@@ -1,0 +1,463 @@
+"""``sitl serve``: the lockstep :class:`~sitl.world.World` in real time x speed, on MAVLink/UDP.
+
+Each vehicle ``i`` (MAVLink system ``i + 1``) gets PX4 SITL's two links:
+
+* API link: a socket bound to ``api_local_port_base + i`` (14580 + i) that sends to
+  ``remote_host:api_remote_port_base + i`` (127.0.0.1:14540 + i), so MAVSDK's
+  ``udpin://0.0.0.0:14540`` finds the vehicle exactly as it finds PX4 SITL;
+* GCS link: bound to ``gcs_local_port_base + i`` (18570 + i), sending to ``remote_host:14550``
+  (QGroundControl, MAVProxy ``--master=udpin:0.0.0.0:14550``).
+
+Besides the default remote, a link also answers any peer that sent it a valid MAVLink packet in the
+last 10 s (e.g. pymavlink's ``udpout:127.0.0.1:14580``); PX4 instead locks onto the first peer.
+Datagrams are parsed one by one with a fresh pymavlink parser, so a truncated or corrupt datagram
+can never poison the next one; bad CRCs, unknown messages and junk are counted and dropped.
+
+Components: anything else that must live in this process and see the simulation (the renderer's
+camera server) is an async callable ``component(sim: SimHandle) -> None`` named in
+``[serve] components = ["module:callable"]`` or ``--component module:callable``; it runs in the same
+TaskGroup and reads ground truth through :class:`SimHandle` (``truth(name)``, ``t_s``,
+``wait_until(t_s)``). Ctrl-C or SIGTERM stops everything cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import importlib
+import logging
+import math
+import signal
+import time
+from collections import Counter
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, cast
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import CompanionError, ConfigError
+from companion.logs import setup_logging
+from sitl.config import SitlConfig, load_sitl_config
+from sitl.dynamics import VehicleTruth
+from sitl.links import MessageLink
+from sitl.scenario import Scenario, load_scenario
+from sitl.world import LINK_API, LINK_GCS, World
+
+log = logging.getLogger(__name__)
+
+PEER_TIMEOUT_S = 10.0
+MAX_PEERS = 8
+#: If the host cannot keep up, give up on catching up beyond this much sim time (then slip).
+MAX_CATCH_UP_S = 0.1
+LOOP_PERIOD_S = 0.002
+#: UDP payload budget per packet (below a 1500-byte MTU, as PX4's network buffer).
+DATAGRAM_BYTES = 1400
+
+Component = Callable[["SimHandle"], Awaitable[None]]
+
+
+class BindError(CompanionError):
+    """A UDP port the simulator needs is taken."""
+
+    exit_code = 3
+
+
+class SimHandle:
+    """What an in-process component may see: the sim clock and ground truth.
+
+    ``truth(name)`` is the true state (world NED frame) at the current sim time; ``t_s`` the sim
+    time; ``wait_until(t_s)`` sleeps until the simulation has reached ``t_s``.
+    """
+
+    def __init__(self, world: World, speed_factor: float, scenario: Scenario | None) -> None:
+        self._world = world
+        self.speed_factor = speed_factor
+        self.scenario = scenario
+        self._advanced = asyncio.Event()
+
+    @property
+    def t_s(self) -> float:
+        return self._world.t_s
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self._world.names
+
+    def truth(self, name: str) -> VehicleTruth:
+        return self._world.truth(name)
+
+    def _notify(self) -> None:
+        self._advanced.set()
+        self._advanced = asyncio.Event()
+
+    async def wait_until(self, t_s: float) -> None:
+        """Return once sim time >= ``t_s``."""
+        while self._world.t_s < t_s:
+            await self._advanced.wait()
+
+
+class UdpLink(asyncio.DatagramProtocol):
+    """One vehicle link on one UDP port: datagrams <-> :class:`MessageLink`."""
+
+    def __init__(self, link: MessageLink, sysid: int, default_remote: tuple[str, int], label: str) -> None:
+        self.link = link
+        self.sysid = sysid
+        self.default_remote = default_remote
+        self.label = label
+        self.transport: asyncio.DatagramTransport | None = None
+        self._packer = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=1)
+        self._peers: dict[tuple[str, int], float] = {}
+        self.counters: Counter[str] = Counter()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = cast(asyncio.DatagramTransport, transport)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable when nobody listens on the remote port: normal for SITL.
+        self.counters["send_errors"] += 1
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        self.counters["datagrams_in"] += 1
+        frames, junk = split_frames(data)
+        if junk:
+            self.counters["junk_bytes"] += junk
+        msgs: list[Any] = []
+        for frame in frames:
+            parser = mavlink.MAVLink(None)
+            parser.robust_parsing = True
+            try:
+                msgs.extend(parser.parse_buffer(frame) or [])
+            except Exception:
+                # Hostile input boundary: pymavlink can raise on odd bytes; never let it kill a link.
+                self.counters["bad_messages"] += 1
+        good = 0
+        for msg in msgs:
+            if isinstance(msg, mavlink.MAVLink_bad_data) or msg.get_type() in ("BAD_DATA", "UNKNOWN"):
+                self.counters["bad_messages"] += 1
+                continue
+            src_system, src_component = msg.get_srcSystem(), msg.get_srcComponent()
+            if src_system == self.sysid and src_component == 1:
+                continue  # our own echo (a client relaying everything back)
+            good += 1
+            self.link.send(msg, src_system, src_component)
+        if good:
+            self.counters["messages_in"] += good
+            self._peers[(str(addr[0]), int(addr[1]))] = time.monotonic()
+            if len(self._peers) > MAX_PEERS:
+                oldest = min(self._peers, key=self._peers.__getitem__)
+                del self._peers[oldest]
+        elif not msgs:
+            self.counters["bad_datagrams"] += 1
+
+    def destinations(self) -> list[tuple[str, int]]:
+        now = time.monotonic()
+        for addr in [a for a, seen in self._peers.items() if now - seen > PEER_TIMEOUT_S]:
+            del self._peers[addr]
+        out = [self.default_remote]
+        out.extend(a for a in self._peers if a != self.default_remote)
+        return out
+
+    def flush(self) -> None:
+        """Pack and send everything the autopilot queued on this link."""
+        msgs = self.link.receive()
+        if not msgs or self.transport is None:
+            return
+        dests = self.destinations()
+        sendto = self.transport.sendto
+        # PX4 fills each UDP packet with as many MAVLink messages as fit (mavlink_main's network
+        # buffer); so do we: a tenth of the syscalls, and every MAVLink parser reads them fine.
+        chunk = bytearray()
+        for msg in msgs:
+            try:
+                buf = msg.pack(self._packer)
+            except Exception:
+                self.counters["pack_errors"] += 1
+                log.exception("%s: cannot pack %s", self.label, msg.get_type())
+                continue
+            if len(chunk) + len(buf) > DATAGRAM_BYTES and chunk:
+                for addr in dests:
+                    sendto(bytes(chunk), addr)
+                chunk.clear()
+            chunk += buf
+            self.counters["messages_out"] += 1
+        if chunk:
+            for addr in dests:
+                sendto(bytes(chunk), addr)
+
+
+_MAGIC_V2 = 0xFD
+_MAGIC_V1 = 0xFE
+
+
+def split_frames(data: bytes) -> tuple[list[bytes], int]:
+    """Cut a datagram into candidate MAVLink frames by their headers; returns (frames, junk bytes).
+
+    Bytes before a start marker are skipped (counted as junk) and an incomplete frame at the end is
+    dropped, so each frame goes to the CRC check on its own. This is much cheaper than letting
+    pymavlink's robust parser resynchronise byte by byte through garbage, which matters when someone
+    floods the port.
+    """
+    frames: list[bytes] = []
+    junk = 0
+    i, n = 0, len(data)
+    while i < n:
+        b = data[i]
+        if b == _MAGIC_V2 and i + 10 <= n:
+            size = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+        elif b == _MAGIC_V1 and i + 6 <= n:
+            size = 8 + data[i + 1]
+        else:
+            nxt = min(
+                (p for p in (data.find(b"\xfd", i + 1), data.find(b"\xfe", i + 1)) if p >= 0), default=n
+            )
+            junk += nxt - i
+            i = nxt
+            continue
+        if i + size > n:
+            junk += n - i
+            break
+        frames.append(data[i : i + size])
+        i += size
+    return frames, junk
+
+
+@dataclass(frozen=True, slots=True)
+class Endpoint:
+    """Where one link talks (for the startup banner)."""
+
+    vehicle: str
+    sysid: int
+    kind: str
+    bind: tuple[str, int]
+    remote: tuple[str, int]
+
+
+def endpoints(cfg: SitlConfig) -> list[Endpoint]:
+    """Every UDP endpoint ``cfg`` asks for, PX4 SITL's numbering."""
+    m = cfg.mavlink
+    out = []
+    for i, v in enumerate(cfg.vehicles):
+        out.append(
+            Endpoint(
+                v.name,
+                i + 1,
+                "api",
+                (m.bind_host, m.api_local_port_base + i),
+                (m.remote_host, m.api_remote_port_base + i),
+            )
+        )
+        if m.gcs_enabled:
+            out.append(
+                Endpoint(
+                    v.name,
+                    i + 1,
+                    "gcs",
+                    (m.bind_host, m.gcs_local_port_base + i),
+                    (m.remote_host, m.gcs_remote_port),
+                )
+            )
+    return out
+
+
+class Server:
+    """Runs a :class:`World` against the wall clock and puts its links on UDP."""
+
+    def __init__(
+        self,
+        cfg: SitlConfig,
+        scenario: Scenario | None,
+        *,
+        speed_factor: float,
+        seed: int | None = None,
+        components: Sequence[Component] = (),
+    ) -> None:
+        self.cfg = cfg
+        self.speed_factor = speed_factor
+        self.world = World(cfg, scenario, seed=seed, speed_factor=speed_factor, epoch_unix_s=time.time())
+        self.sim = SimHandle(self.world, speed_factor, scenario)
+        self.components = tuple(components)
+        self.udp: list[UdpLink] = []
+        self.overruns = 0
+
+    async def _open(self) -> None:
+        loop = asyncio.get_running_loop()
+        for ep in endpoints(self.cfg):
+            index = LINK_API if ep.kind == "api" else LINK_GCS
+            link = self.world.link(ep.vehicle, index)
+            proto = UdpLink(link, ep.sysid, ep.remote, f"{ep.vehicle}/{ep.kind}")
+            try:
+                await loop.create_datagram_endpoint(lambda p=proto: p, local_addr=ep.bind)  # type: ignore[misc]
+            except OSError as exc:
+                raise BindError(
+                    f"cannot bind UDP {ep.bind[0]}:{ep.bind[1]} ({ep.vehicle} {ep.kind}): {exc.strerror}"
+                ) from None
+            self.udp.append(proto)
+
+    def _close(self) -> None:
+        for proto in self.udp:
+            if proto.transport is not None:
+                proto.transport.close()
+
+    def banner(self) -> list[str]:
+        lines = []
+        by_vehicle: dict[str, list[Endpoint]] = {}
+        for ep in endpoints(self.cfg):
+            by_vehicle.setdefault(ep.vehicle, []).append(ep)
+        for name, eps in by_vehicle.items():
+            parts = []
+            for ep in eps:
+                hint = f" (MAVSDK: udpin://0.0.0.0:{ep.remote[1]})" if ep.kind == "api" else ""
+                parts.append(
+                    f"{ep.kind.upper()} udp {ep.bind[0]}:{ep.bind[1]} -> {ep.remote[0]}:{ep.remote[1]}{hint}"
+                )
+            lines.append(f"sitl: {name} (system {eps[0].sysid}): " + ", ".join(parts))
+        return lines
+
+    async def _run_sim(self) -> None:
+        loop = asyncio.get_running_loop()
+        world = self.world
+        dt = world.dt_s
+        speed = self.speed_factor
+        wall0 = loop.time()
+        sim0 = world.t_s
+        while True:
+            now = loop.time()
+            target = sim0 + (now - wall0) * speed
+            behind = target - world.t_s
+            if behind > MAX_CATCH_UP_S:
+                # The host cannot keep up: slip instead of bursting (sim time stays smooth).
+                self.overruns += 1
+                if self.overruns in (1, 10, 100) or self.overruns % 1000 == 0:
+                    log.warning("sitl: host too slow for %.1fx; slipped %d times", speed, self.overruns)
+                sim0 = world.t_s
+                wall0 = now
+                target = world.t_s + dt
+            n = int((target - world.t_s) / dt + 1e-9)
+            for i in range(n):
+                world.step()
+                if i & 1:
+                    # Let waiting datagrams in between ticks: asyncio hands a datagram protocol
+                    # one packet per loop iteration, so a long batch would starve the sockets.
+                    await asyncio.sleep(0)
+            if n:
+                for proto in self.udp:
+                    proto.flush()
+                self.sim._notify()
+            next_wall = wall0 + (world.t_s + dt - sim0) / speed
+            await asyncio.sleep(max(LOOP_PERIOD_S * 0.5, min(LOOP_PERIOD_S, next_wall - loop.time())))
+
+    async def run(self, stop: asyncio.Event, on_ready: Callable[[], None] | None = None) -> None:
+        """Serve until ``stop`` is set."""
+        await self._open()
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tasks = [tg.create_task(self._run_sim(), name="sitl.sim")]
+                for i, comp in enumerate(self.components):
+                    name = getattr(comp, "__qualname__", f"component{i}")
+                    tasks.append(
+                        tg.create_task(_run_component(comp, self.sim), name=f"sitl.component.{name}")
+                    )
+                if on_ready is not None:
+                    on_ready()
+                tg.create_task(_stop_when(stop, tasks), name="sitl.stop")
+        finally:
+            self._close()
+            self._log_counters()
+
+    def _log_counters(self) -> None:
+        for proto in self.udp:
+            c = proto.counters
+            log.info(
+                "%s: datagrams in %d (bad %d), messages in %d, bad messages %d, out %d, send errors %d",
+                proto.label,
+                c["datagrams_in"],
+                c["bad_datagrams"],
+                c["messages_in"],
+                c["bad_messages"],
+                c["messages_out"],
+                c["send_errors"],
+            )
+        for v in self.world.vehicles:
+            c = v.autopilot.counters
+            log.info(
+                "%s autopilot: messages %d, handler errors %d, setpoints %d (refused %d)",
+                v.name,
+                c["messages_in"],
+                c["handler_errors"],
+                c["setpoints"],
+                c["setpoints_refused"],
+            )
+        if self.overruns:
+            log.info("sitl: slipped real time %d times", self.overruns)
+
+
+async def _run_component(component: Component, sim: SimHandle) -> None:
+    await component(sim)
+
+
+async def _stop_when(stop: asyncio.Event, tasks: list[asyncio.Task[None]]) -> None:
+    await stop.wait()
+    for task in tasks:
+        task.cancel()
+
+
+def load_component(spec: str) -> Component:
+    """``module:callable`` -> the callable (imported now, so a typo fails at startup)."""
+    module_name, _, attr = spec.partition(":")
+    if not module_name or not attr:
+        raise ConfigError(spec, ["a component is 'module:callable'"])
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        raise ConfigError(spec, [f"cannot import {module_name}: {exc}"]) from None
+    component = getattr(module, attr, None)
+    if not callable(component):
+        raise ConfigError(spec, [f"{module_name} has no callable {attr}"])
+    return component  # type: ignore[no-any-return]
+
+
+def main(args: argparse.Namespace) -> int:
+    """Entry point of ``sitl serve``."""
+    setup_logging(args.log_format, args.log_level)
+    cfg = load_sitl_config(args.config)
+    scenario = load_scenario(args.scenario) if args.scenario is not None else None
+    speed = args.speed if args.speed is not None else cfg.world.speed_factor
+    if not (math.isfinite(speed) and 0 < speed <= 100):
+        raise ConfigError("--speed", [f"must be in (0, 100] (got {speed})"])
+    specs = list(cfg.serve.components) + list(getattr(args, "component", None) or [])
+    components = [load_component(s) for s in specs]
+    server = Server(
+        cfg, scenario, speed_factor=speed, seed=getattr(args, "seed", None), components=components
+    )
+    asyncio.run(_serve(server, scenario))
+    return 0
+
+
+async def _serve(server: Server, scenario: Scenario | None) -> None:
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+
+    def ready() -> None:
+        for line in server.banner():
+            print(line, flush=True)
+        what = f"scenario {scenario.name}" if scenario is not None else "no scenario"
+        print(
+            f"sitl: running at {server.speed_factor:g}x real time ({what}, seed {server.world.seed}); "
+            "Ctrl-C stops",
+            flush=True,
+        )
+
+    try:
+        await server.run(stop, on_ready=ready)
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(Exception):
+                loop.remove_signal_handler(sig)
+    print("sitl: stopped", flush=True)
+
+
+__all__ = ["BindError", "Component", "Server", "SimHandle", "main"]

@@ -1,0 +1,105 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.perception.detector.augment import (
+    AugmentConfig,
+    cutout,
+    hflip,
+    mosaic,
+    place_boxes,
+    random_placement,
+    training_sample,
+)
+from companion.perception.detector.cache import ImageCache
+from companion.perception.detector.dataset import find_samples
+
+GEOMETRY_ONLY = AugmentConfig(hsv_gain=(0, 0, 0), blur_p=0, noise_p=0, jpeg_p=0, gray_p=0, cutout_p=0)
+
+
+def _object_image(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Black image with one white rectangle; its box is the label."""
+    h, w = int(rng.integers(80, 200)), int(rng.integers(80, 200))
+    img = np.zeros((h, w, 3), np.uint8)
+    x0, y0 = int(rng.integers(0, w - 20)), int(rng.integers(0, h - 20))
+    x1, y1 = x0 + int(rng.integers(8, 20)), y0 + int(rng.integers(8, 20))
+    img[y0:y1, x0:x1] = 255
+    return img, np.array([[x0, y0, x1, y1]], np.float32)
+
+
+def _assert_boxes_hold_the_white_pixels(img: np.ndarray, boxes: np.ndarray) -> None:
+    white = img[..., 0] > 128
+    covered = np.zeros_like(white)
+    for x0, y0, x1, y1 in boxes:
+        assert 0 <= x0 < x1 <= img.shape[1]
+        assert 0 <= y0 < y1 <= img.shape[0]
+        covered[int(np.floor(y0)) : int(np.ceil(y1)), int(np.floor(x0)) : int(np.ceil(x1))] = True
+        inside = white[int(np.ceil(y0)) : int(y1), int(np.ceil(x0)) : int(x1)]
+        assert inside.mean() > 0.5  # a labelled box shows its object
+    assert not (white & ~covered).any()  # no unlabelled object pixels (dropped boxes are greyed out)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_geometry_keeps_boxes_on_their_objects(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    pairs = [_object_image(rng) for _ in range(4)]
+    img, boxes = mosaic(
+        [p[0] for p in pairs], [p[1] for p in pairs], size_px=128, ref_px=160, rng=rng, cfg=GEOMETRY_ONLY
+    )
+    _assert_boxes_hold_the_white_pixels(img, boxes)
+    img, boxes = random_placement(
+        pairs[0][0],
+        pairs[0][1],
+        size_px=128,
+        ref_px=160,
+        scale=rng.uniform(0.5, 2.0),
+        rng=rng,
+        cfg=GEOMETRY_ONLY,
+    )
+    _assert_boxes_hold_the_white_pixels(img, boxes)
+    img, boxes = hflip(img, boxes)
+    _assert_boxes_hold_the_white_pixels(img, boxes)
+
+
+def test_mostly_clipped_box_is_dropped_and_greyed() -> None:
+    canvas = np.full((50, 50, 3), 255, np.uint8)
+    kept = place_boxes(
+        canvas,
+        np.array([[40.0, 10.0, 60.0, 20.0]], np.float32),
+        (0, 0, 50, 50),
+        min_visible_fraction=0.6,
+        min_box_px=2.0,
+    )
+    assert kept.shape == (0, 4)
+    assert (canvas[10:20, 40:50] == 114).all()
+
+
+def test_cutout_drops_hidden_boxes_only() -> None:
+    rng = np.random.default_rng(0)
+    img = np.zeros((64, 64, 3), np.uint8)
+    boxes = np.array([[0, 0, 64, 64], [10, 10, 12, 12]], np.float32)
+    out = cutout(img, boxes, rng)
+    assert len(out) >= 1
+    assert any(np.array_equal(b, boxes[0]) for b in out)
+
+
+def test_training_sample_is_a_pure_function_of_its_seed(tiny_dataset: Path, tmp_path: Path) -> None:
+    cache = ImageCache.build(find_samples(tiny_dataset, "train"), tmp_path, 200, progress=False)
+    a = training_sample(
+        cache, 3, size_px=96, ref_px=128, rng=np.random.default_rng([1, 2, 3]), cfg=AugmentConfig()
+    )
+    b = training_sample(
+        cache, 3, size_px=96, ref_px=128, rng=np.random.default_rng([1, 2, 3]), cfg=AugmentConfig()
+    )
+    assert a[0].shape == (96, 96, 3)
+    assert a[0].dtype == np.uint8
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    # a second build finds the cache instead of decoding again
+    assert (
+        ImageCache.build(find_samples(tiny_dataset, "train"), tmp_path, 200, progress=False).keys
+        == cache.keys
+    )

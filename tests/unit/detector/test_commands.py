@@ -1,0 +1,86 @@
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from companion.cli import main
+from companion.perception.bench import NOT_BUILT, percentiles_ms, run_bench, synthetic_frames
+
+
+def test_eval_command_writes_every_figure(
+    tiny_dataset: Path, shipped_model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "eval.json"
+    code = main(["detector", "eval", "--data", str(tiny_dataset), "--model", str(shipped_model),
+                 "--json", str(out), "--no-progress"])  # fmt: skip
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "[test]" in text
+    assert "mAP@0.5" in text
+    assert "leader-free" in text
+    s = json.loads(out.read_text())
+    assert s["split"] == "test"
+    assert s["images"] == 10
+    for key in ("precision", "recall", "map50", "map50_95", "recall_by_range_m", "leader_free_fp_rate"):
+        assert key in s
+    assert set(s["recall_by_range_m"]) == {"0-5", "5-10", "10-15", "15-20"}
+
+
+def test_eval_of_a_flat_folder_without_ranges(
+    tiny_dataset: Path, shipped_model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    (flat / "images").symlink_to(tiny_dataset / "images" / "val")
+    (flat / "labels").symlink_to(tiny_dataset / "labels" / "val")
+    assert (
+        main(["detector", "eval", "--data", str(flat), "--model", str(shipped_model), "--no-progress"]) == 0
+    )
+    assert "no ranges known" in capsys.readouterr().out
+
+
+def test_eval_missing_folder_is_a_usage_error(shipped_model: Path, tmp_path: Path) -> None:
+    assert main(["detector", "eval", "--data", str(tmp_path / "none"), "--model", str(shipped_model)]) == 2
+
+
+def test_bench_reports_every_stage_for_both_runtimes(shipped_model: Path) -> None:
+    from companion.config import Config
+    from companion.perception.detector import load_detector
+
+    cfg = Config().model_copy(
+        update={"detector": Config().detector.model_copy(update={"model_path": str(shipped_model)})}
+    )
+    dets = {"torch-cpu": load_detector(cfg.detector, runtime="torch"),
+            "onnxruntime-cpu": load_detector(cfg.detector, runtime="onnx")}  # fmt: skip
+    result = run_bench(cfg, dets, synthetic_frames(4), warmup=1)
+    assert result["frame_size_px"] == [640, 480]
+    for name in dets:
+        stages = result["runtimes"][name]
+        for stage in ("decode", "preprocess", "inference", "postprocess", "pose", "filter", "total"):
+            v = stages[stage]
+            assert v == NOT_BUILT or (v["n"] == 4 and v["p50_ms"] <= v["p95_ms"] <= v["p99_ms"])
+        assert isinstance(stages["inference"], dict)
+
+
+def test_percentiles() -> None:
+    p = percentiles_ms([float(i) for i in range(1, 101)])
+    assert p["p50_ms"] == pytest.approx(50.5)
+    assert p["p99_ms"] == pytest.approx(99.01)
+    assert p["n"] == 100
+
+
+def test_manifest_facts_reach_the_samples(tmp_path: Path) -> None:
+    from companion.perception.detector.dataset import find_samples
+
+    (tmp_path / "images" / "test").mkdir(parents=True)
+    for n in ("a", "b", "c"):
+        (tmp_path / "images" / "test" / f"{n}.jpg").write_bytes(b"")
+    (tmp_path / "manifest.csv").write_text(
+        "image,split,has_leader,range_m\nimages/test/a.jpg,test,1,7.5\nimages/test/b.jpg,test,0,\n"
+    )
+    s = {x.key: x for x in find_samples(tmp_path, "test")}
+    assert (s["a"].range_m, s["a"].has_leader) == (7.5, True)
+    assert (s["b"].range_m, s["b"].has_leader) == (None, False)
+    assert (s["c"].range_m, s["c"].has_leader, s["c"].label_path) == (None, None, None)
