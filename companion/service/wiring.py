@@ -42,6 +42,7 @@ from companion.service.ports import (
     StateChange,
     VehicleSummary,
 )
+from companion.service.stamps import ServiceClockSource
 from companion.telemetry.leader import OriginTracker
 from companion.telemetry.payloads import LeaderPositionMsg
 from companion.vehicle.link import VehicleLink
@@ -310,14 +311,35 @@ def make_parts_factory(cfg: Config, clock: Clock) -> PartsFactory:
     """The factory ``FollowerService`` calls to open the parts on its exit stack."""
 
     async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
-        missing = missing_modules(PERCEPTION_MODULES)
+        needed = dict(PERCEPTION_MODULES)
+        if cfg.detector.runtime == "truth":
+            del needed["companion.perception.detector"]
+        missing = missing_modules(needed)
         if missing:
             raise NotBuiltError("run: not built yet: waiting on " + ", ".join(missing))
+        # Cheapest to fail first: the model (exit 2), then the camera (exit 3), then the link.
+        detect = await asyncio.to_thread(load_detect, cfg)  # reads and checks the weights: off the loop
+        pipeline_mod: Any = importlib.import_module("companion.perception.pipeline")
+        sources_mod: Any = importlib.import_module("companion.perception.sources")
+        pipeline = pipeline_mod.PerceptionPipeline.from_config(cfg)
+        source: Any = sources_mod.open_source(cfg.camera, clock=ctx.clock)
+        if cfg.camera.source != "realsense":  # the RealSense source already stamps on arrival, our clock
+            source = ServiceClockSource(source, ctx.clock)
+        source = await stack.enter_async_context(source)
+
         from companion.vehicle.mavsdk_link import MavsdkVehicleLink  # noqa: PLC0415 (mavsdk: heavy)
 
         link = await stack.enter_async_context(MavsdkVehicleLink(cfg.link, clock))
         flight = FlightAdapter(cfg, link, clock)
-        perception, pipeline = await _open_perception(cfg, ctx, stack, flight)
+
+        def process(frame: RgbdFrame, result: DetectorResult) -> Any:
+            track = pipeline.process(frame, result.detections)
+            flight.submit_track(track)
+            return track
+
+        perception: PerceptionLoop[Any] = PerceptionLoop(
+            source, detect, process, clock=ctx.clock, latency=ctx.latency, health=ctx.health
+        )
         return Parts(
             mission=flight,
             gcs=LinkGcs(link),
@@ -332,27 +354,18 @@ def make_parts_factory(cfg: Config, clock: Clock) -> PartsFactory:
     return open_parts
 
 
-async def _open_perception(
-    cfg: Config, ctx: PartsContext, stack: contextlib.AsyncExitStack, flight: FlightAdapter
-) -> tuple[PerceptionLoop[Any], Any]:
+def load_detect(cfg: Config) -> Callable[[RgbdFrame], DetectorResult]:
+    """The per-frame detection function ``detector.runtime`` selects (blocking: loads the weights)."""
+    if cfg.detector.runtime == "truth":
+        evaluate: Any = importlib.import_module("companion.perception.evaluate")
+        truth = evaluate.TruthDetector()
+        log.warning(
+            "detector: ground-truth boxes from the simulator (detector.runtime = truth), not the network"
+        )
+        return truth.detect_frame  # type: ignore[no-any-return]
     detector_mod: Any = importlib.import_module("companion.perception.detector")
-    pipeline_mod: Any = importlib.import_module("companion.perception.pipeline")
-    sources_mod: Any = importlib.import_module("companion.perception.sources")
-    detector = await asyncio.to_thread(
-        detector_mod.load_detector, cfg.detector
-    )  # reads and checks the weights
-    pipeline = pipeline_mod.PerceptionPipeline.from_config(cfg)
-    source = await stack.enter_async_context(sources_mod.open_source(cfg.camera, clock=ctx.clock))
-
-    def process(frame: RgbdFrame, result: DetectorResult) -> Any:
-        track = pipeline.process(frame, result.detections)
-        flight.submit_track(track)
-        return track
-
-    loop: PerceptionLoop[Any] = PerceptionLoop(
-        source, detector, process, clock=ctx.clock, latency=ctx.latency, health=ctx.health
-    )
-    return loop, pipeline
+    detector = detector_mod.load_detector(cfg.detector)
+    return lambda frame: detector.detect(frame.rgb)
 
 
 def autopilot_probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
