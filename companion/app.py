@@ -447,6 +447,10 @@ class FollowerService:
                 "reason": snap.reason,
                 "detail": snap.detail,
                 "state_age_s": round(snap.state_age_s, 3),
+                #: Seconds since the mission's last control step (it steps at link.setpoint_rate_hz).
+                "step_age_s": _r(self.clock.now_s() - snap.last_step_s)
+                if snap.last_step_s is not None
+                else None,
                 "transitions": self.transitions,
                 "formation_error_ned_m": snap.formation_error_ned_m,
             },

@@ -6,6 +6,12 @@ stamps frames on the *sim* clock, a recording on its own: :class:`StampMapper` m
 ``arrival - stamp`` at its minimum over a sliding window. The minimum is the transport delay without
 the queueing jitter (the idea behind NTP's clock filter), so relative timing between frames is kept
 exactly and a source that slips (a simulator falling behind real time) is followed within the window.
+
+Why not simply the arrival time: on a loaded host the rendered camera arrives 0.3-0.8 s after the
+instant it shows (measured on the 2-core test machine), while telemetry arrives within milliseconds.
+Stamped on arrival, a frame would be paired with an attitude 0.3-0.8 s too new (wrong NED measurements
+while the follower manoeuvres) and would look fresher than it is; mapped, it is paired with the right
+attitude and its true age reaches the mission, which hovers on a stale estimate as it should.
 """
 
 from __future__ import annotations

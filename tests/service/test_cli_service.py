@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -85,3 +86,26 @@ def test_health_without_a_service_reports_every_check(tmp_path: Path, repo_root:
     assert not checks["autopilot"]["ok"]
     assert "no heartbeat" in checks["autopilot"]["detail"]
     assert checks["broker"]["detail"] == "MQTT disabled"
+
+
+def test_exit_guard_ends_a_process_that_a_stuck_thread_keeps_alive(repo_root: Path) -> None:
+    code = (
+        "import threading, time\n"
+        "from companion.commands.run import ExitGuard\n"
+        "threading.Thread(target=time.sleep, args=(3600,), name='stuck-native-call').start()\n"
+        "ExitGuard().arm(0.5, 7, 'teardown')\n"
+    )
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=repo_root,
+        env={**os.environ, "PYTHONPATH": str(repo_root)},
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+    assert r.returncode == 7
+    assert time.monotonic() - t0 < 10
+    assert "teardown did not finish within 0 s; thread stacks follow; exiting 7" in r.stderr
+    assert "Thread 0x" in r.stderr  # faulthandler's dump of every thread

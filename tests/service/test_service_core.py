@@ -227,3 +227,12 @@ def test_stamp_mapper_keeps_relative_timing_and_follows_slips() -> None:
         t = 0.5 + 0.1 * i
         last = m.map(t, t + 100.5 + 0.005)
     assert last == pytest.approx(0.5 + 2.9 + 100.505)
+
+
+def test_describe_flattens_task_group_errors() -> None:
+    from companion.service.supervise import describe
+
+    eg = ExceptionGroup(
+        "unhandled errors in a TaskGroup", [ValueError("bad frame"), ExceptionGroup("x", [KeyError("k")])]
+    )
+    assert describe(eg) == "ValueError: bad frame; KeyError: 'k'"
