@@ -7,7 +7,8 @@ objects through :meth:`Autopilot.handle_message` and collect what it sends from 
 
 Loops (PX4's, at the rates PX4 SITL runs them):
 
-* every physics tick (250 Hz): :meth:`inner_update` - attitude and rate control and the mixer;
+* every physics tick (200 Hz, PX4's IMU_INTEG_RATE): :meth:`inner_update` - attitude and rate
+  control and the mixer;
 * 50 Hz: :meth:`outer_update` - sensors (GPS 10 Hz), the estimator, the commander (arming, modes,
   failsafes, auto-disarm), the navigator or offboard setpoint, the position controller;
 * streams: :meth:`service_links` sends each link's default streams at PX4's rates, but only for
@@ -87,6 +88,9 @@ _MOTORS_OFF = (0.0, 0.0, 0.0, 0.0)
 #: Armed on the ground, PX4 spins the motors at idle.
 _MOTORS_IDLE = (0.03, 0.03, 0.03, 0.03)
 _STATUSTEXT_REPEAT_S = 1.0
+#: Frames PX4 accepts external-vision poses in: LOCAL_NED 1, LOCAL_FRD 20, and the deprecated
+#: MOCAP_NED 14 / VISION_NED 16 that older clients still send (gone from pymavlink's common).
+_EV_FRAMES = frozenset({1, 20, 14, 16})
 
 
 @dataclass(slots=True)
@@ -646,7 +650,7 @@ class Autopilot:
             sp = self.offboard_sp
             if sp.kind is SetpointKind.TRAJECTORY:
                 traj = sp.trajectory
-                if not traj.is_valid():
+                if not sp.valid:
                     # PX4: invalid position-control input -> hold level and stop vertically.
                     traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, 0.0))
             else:
@@ -1076,10 +1080,7 @@ class Autopilot:
         self.counters["vision"] += 1
 
     def _on_odometry(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
-        if int(msg.frame_id) not in (
-            mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_VISION_NED,
-            mavlink.MAV_FRAME_MOCAP_NED,
-        ):  # fmt: skip
+        if int(msg.frame_id) not in _EV_FRAMES:
             self.counters["vision_refused"] += 1
             return
         x, y, z = _fin(msg.x), _fin(msg.y), _fin(msg.z)
@@ -1177,9 +1178,7 @@ class Autopilot:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         mission_type = int(getattr(msg, "mission_type", 0) or 0)
-        self._reply(
-            link, mavlink.MAVLink_mission_count_message(src_system, src_component, 0, mission_type, 0)
-        )
+        self._reply(link, mavlink.MAVLink_mission_count_message(src_system, src_component, 0, mission_type))
 
     def _on_mission_count(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
@@ -1188,7 +1187,7 @@ class Autopilot:
         self._reply(
             link,
             mavlink.MAVLink_mission_ack_message(
-                src_system, src_component, mavlink.MAV_MISSION_UNSUPPORTED, mission_type, 0
+                src_system, src_component, mavlink.MAV_MISSION_UNSUPPORTED, mission_type
             ),
         )
 

@@ -23,7 +23,9 @@ class WorldConfig(Section):
 
     speed_factor: float = Field(1.0, gt=0, le=100)
     seed: int = Field(0, ge=0, le=2**32 - 1)
-    physics_rate_hz: float = Field(250.0, ge=100, le=2000)
+    #: Physics and inner-loop rate. 200 Hz is PX4's IMU_INTEG_RATE: the rate at which EKF2 publishes
+    #: attitude and mc_att_control runs; the rate loop runs on the same samples here.
+    physics_rate_hz: float = Field(200.0, ge=100, le=2000)
     #: Home of the world frame (on the ground); vehicles spawn relative to it.
     home_lat_deg: float = Field(47.397742, ge=-80, le=80)
     home_lon_deg: float = Field(8.545594, ge=-180, le=180)

@@ -346,9 +346,14 @@ class InnerLoop:
     * Allocation: quad-X mixer with PX4-like desaturation (airmode off): roll/pitch keep priority,
       collective thrust shifts to make room, yaw gets what is left.
 
-    Everything is inlined in one method on purpose: this is the simulator's hottest code and Python
-    function calls cost as much as the arithmetic they wrap.
+    Each stage is one method of inlined plain-float arithmetic on purpose: this is the simulator's
+    hottest code, and Python function calls cost as much as the arithmetic they wrap.
     """
+
+    __slots__ = (
+        "_fmax", "_int_p", "_int_q", "_int_r", "_ixx", "_iyy", "_izz", "_k_rp", "_k_y", "_prev_p",
+        "_prev_q", "gains",
+    )  # fmt: skip
 
     KP_RP = 20.0
     KI_RP = 10.0
@@ -367,8 +372,6 @@ class InnerLoop:
         self._k_y = 1.0 / (4.0 * model.yaw_moment_per_thrust_m)
         self._int_p = self._int_q = self._int_r = 0.0
         self._prev_p = self._prev_q = 0.0
-        #: Last body-rate setpoint, rad/s (for telemetry).
-        self.rates_sp: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def reset_integrators(self) -> None:
         self._int_p = self._int_q = self._int_r = 0.0
@@ -405,8 +408,8 @@ class InnerLoop:
         mz = rw_ * sz - rx_ * sy + ry_ * sx - rz_ * sw
         if mw < 0.0:
             mw, mz = -mw, -mz
-        mw = min(1.0, max(-1.0, mw))
-        mz = min(1.0, max(-1.0, mz))
+        mw = 1.0 if mw > 1.0 else (-1.0 if mw < -1.0 else mw)
+        mz = 1.0 if mz > 1.0 else (-1.0 if mz < -1.0 else mz)
         yw = g.yaw_weight
         bw, bz = math.cos(yw * math.acos(mw)), math.sin(yw * math.asin(mz))
         # qd = qd_red * (bw, 0, 0, bz)
@@ -449,7 +452,6 @@ class InnerLoop:
         integrate: bool,
     ) -> tuple[float, float, float, float]:
         """Rate PID + allocation: motor commands 0..1 in PX4 order (FR, RL, FL, RR)."""
-        self.rates_sp = (sp_p, sp_q, sp_r)
         ep, eq, er = sp_p - p, sp_q - q, sp_r - r
         dp = (p - self._prev_p) / dt_s
         dq = (q - self._prev_q) / dt_s

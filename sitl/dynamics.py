@@ -7,11 +7,13 @@ control allocation needs (PX4 has them as CA_* parameters).
 
 Speed matters here: a physics tick is one ``FGFDMExec.run()`` plus a handful of property reads through
 pre-fetched property nodes (about 12 us), and everything else in this module is plain-float Python.
+The JSBSim step is whatever ``dt_s`` the world passes (``[world] physics_rate_hz``, 200 Hz by default).
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import math
 import os
 import sys
@@ -90,6 +92,9 @@ def silenced_stdio() -> Iterator[None]:
         os.dup2(devnull, 2)
         yield
     finally:
+        # C stdio may still hold JSBSim's text in its buffer: flush it into /dev/null first.
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None).fflush(None)
         os.dup2(saved[0], 1)
         os.dup2(saved[1], 2)
         for fd in (*saved, devnull):

@@ -65,6 +65,8 @@ class OffboardSetpoint:
     rates_sp: tuple[float, float, float] = (NAN, NAN, NAN)
     thrust: float = 0.0
     yawspeed_rad_s: float = NAN
+    #: For trajectories: PX4's position-controller input check, done once on arrival.
+    valid: bool = True
 
 
 def _fin(x: Any) -> float:
@@ -171,6 +173,7 @@ def _trajectory(
         kind=SetpointKind.TRAJECTORY, t_s=t_s, position=has_pos, velocity=has_vel, acceleration=has_acc
     )
     sp.trajectory.set(pos=pos, vel=vel, acc=acc, yaw=yaw, yawspeed=yawspeed)
+    sp.valid = sp.trajectory.is_valid()
     return sp
 
 

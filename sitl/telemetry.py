@@ -102,9 +102,14 @@ NORMAL_RATES_HZ: Final[dict[int, float]] = {
 
 
 def _clip_i(x: float, lo: int, hi: int) -> int:
-    if not math.isfinite(x):
-        return lo if x < 0 else hi
-    return int(min(hi, max(lo, round(x))))
+    """A float field as a MAVLink integer: truncated like PX4's casts, clamped to the type's range."""
+    if x >= hi:
+        return hi
+    if x <= lo:
+        return lo
+    if x != x:  # NaN  # noqa: PLR0124 - the cheapest NaN test, and this runs for every field
+        return 0
+    return int(x)
 
 
 def heartbeat(ap: Autopilot) -> mavlink.MAVLink_message:

@@ -3,9 +3,9 @@
 Gusts are MIL-F-8785C "1 - cosine" shapes: each rises and falls smoothly over its duration, peaks at
 an amplitude drawn up to ``gust_max_m_s``, and blows within +-30 deg of the mean direction. They
 arrive as a Poisson process with mean spacing ``gust_interval_s``; overlapping gusts are capped at
-``gust_max_m_s`` together, so the wind never exceeds mean + gust_max (plus turbulence). Turbulence is
-a first-order Gauss-Markov process per axis. The field is uniform in space (vehicles metres apart feel
-the same air), which is what matters for a formation.
+``gust_max_m_s`` together, so the wind never exceeds mean + gust_max (plus turbulence). Turbulence
+is a first-order Gauss-Markov process per axis. The field is uniform in space (vehicles metres
+apart feel the same air), which is what matters for a formation.
 """
 
 from __future__ import annotations

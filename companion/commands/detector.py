@@ -25,7 +25,7 @@ def register(sub: Any) -> None:
     add_config_arg(t)
     t.add_argument("--data", required=True, help="dataset folder")
     t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
-    t.add_argument("--epochs", type=int, default=60)
+    t.add_argument("--epochs", type=int, default=30)
     t.add_argument("--batch-size", type=int, default=32)
     t.add_argument("--input-size", type=int, default=320, help="letterbox size the model is trained for, px")
     t.add_argument("--crop", type=int, default=256, help="training crop size, px (<= --input-size)")
@@ -34,7 +34,11 @@ def register(sub: Any) -> None:
     t.add_argument("--workers", type=int, default=1, help="augmentation worker processes")
     t.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     t.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    t.add_argument("--val-every", type=int, default=2, help="validate every N epochs")
+    t.add_argument("--val-every", type=int, default=3, help="validate every N epochs")
+    t.add_argument("--close-mosaic", type=int, default=5, help="last N epochs without mosaic")
+    t.add_argument(
+        "--stop-after", type=int, default=None, help="stop after N epochs of this call (resume later)"
+    )
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(handler=_train)
@@ -85,13 +89,19 @@ def _train(args: argparse.Namespace) -> int:
         threads=args.threads,
         device=args.device,
         val_every=args.val_every,
+        close_mosaic_epochs=args.close_mosaic,
     )
     try:
-        result = train(cfg, resume=args.resume, progress=not args.no_progress)
+        result = train(
+            cfg, resume=args.resume, progress=not args.no_progress, stop_after_epochs=args.stop_after
+        )
     except (FileNotFoundError, ValueError) as exc:
         print(f"companion detector train: {exc}", file=sys.stderr)
         return 2
-    print(f"best validation mAP@0.5 {result['best_val_map50']:.3f}; weights in {args.out}/best.pt")
+    state = (
+        "done" if result["finished"] else f"stopped after epoch {result['epochs_done']} (--resume to go on)"
+    )
+    print(f"{state}; best validation mAP@0.5 {result['best_val_map50']:.3f}; weights in {args.out}/best.pt")
     return 0
 
 

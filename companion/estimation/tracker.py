@@ -222,6 +222,21 @@ class TargetTracker:
         self._window.clear()
         self._hits = 0
 
+    def predict_cam(self, stamp_s: float, R_ned_body: Mat3) -> tuple[Vec3, Mat3] | None:
+        """Where a usable track expects the leader at ``stamp_s`` (camera frame, m) and its covariance.
+
+        Does not change the track. None without a confirmed track or once it is lost.
+        """
+        kf = self._kf
+        if kf is None or not self._confirmed or stamp_s - self._last_meas_s > self.cfg.coast_timeout_s:
+            return None
+        dt = max(0.0, stamp_s - self._stamp_s)
+        F = _EYE6 + dt * _F_DT
+        x = F @ kf.x[:, 0]
+        P = F @ kf.P @ F.T + self._Q(dt)
+        est = RelativeEstimate(x[:3], x[3:], P, R_ned_body, self.camera)
+        return est.p_cam_leader_m, est.cov_cam_m2
+
     def step(self, stamp_s: float, measurements: Sequence[LeaderMeasurement], R_ned_body: Mat3) -> TrackState:
         """Advance to ``stamp_s`` with this frame's measurements (may be empty) and attitude.
 
@@ -309,12 +324,14 @@ class TargetTracker:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
-        F = _EYE6 + dt * _F_DT
-        q = self.cfg.process_accel_std_m_s2**2
-        # Discrete white-noise acceleration, per axis [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q.
-        Q = (q * dt * dt) * (_Q_PP * (dt * dt / 4.0) + _Q_PV * (dt / 2.0) + _Q_VV)
-        kf.predict(F=F, Q=Q)
+        kf.predict(F=_EYE6 + dt * _F_DT, Q=self._Q(dt))
         self._stamp_s = stamp_s
+
+    def _Q(self, dt: float) -> Mat6:
+        """Discrete white-noise acceleration, per axis ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q``."""
+        q = self.cfg.process_accel_std_m_s2**2
+        Q: Mat6 = (q * dt * dt) * (_Q_PP * (dt * dt / 4.0) + _Q_PV * (dt / 2.0) + _Q_VV)
+        return Q
 
     def _update(self, kf: KalmanFilter, c: _Candidate) -> None:
         kf.update(c.p_ned_m.reshape(3, 1), R=c.R_ned_m2)

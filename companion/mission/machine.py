@@ -31,7 +31,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.frames import Vec3, wrap_pi
-from companion.mission.formation import FollowerState, FormationLaw
+from companion.mission.formation import FollowerState, FormationLaw, Slot
 from companion.mission.safety import SafetyLimits
 from companion.mission.types import (
     Command,
@@ -40,6 +40,7 @@ from companion.mission.types import (
     LeaderEstimate,
     MissionInputs,
     MissionState,
+    OperatorCommand,
     Reason,
     StepOutput,
     TrackStatus,
@@ -310,6 +311,8 @@ class MissionMachine:
             self._shutting_down = True
             self._on_shutdown(veh)
             return
+        if inp.operator is not None and self._on_operator(inp.operator, veh):
+            return
         if (
             st in OFFBOARD_STATES
             and self._offboard_confirmed
@@ -354,6 +357,41 @@ class MissionMachine:
             self._transitions.append(Transition(self._now_s, st, st, Reason.SHUTDOWN_REQUESTED))
         else:
             self._go_px4(MissionState.PX4_HOLD, Reason.SHUTDOWN_REQUESTED, action)
+
+    def _on_operator(self, cmd: OperatorCommand, veh: VehicleState) -> bool:
+        """An operator's land or hold, in flight only. True when it changed the state."""
+        st = self.state
+        if st not in AIRBORNE_STATES or not veh.in_air:
+            return False
+        if cmd == OperatorCommand.LAND:
+            if not self._gps_ok:
+                self._go(MissionState.CONTROLLED_LANDING, Reason.OPERATOR_LAND, "no GPS")
+            elif st != MissionState.PX4_LAND:
+                self._go_px4(MissionState.PX4_LAND, Reason.OPERATOR_LAND)
+            return True
+        if cmd == OperatorCommand.HOLD and self._gps_ok and st != MissionState.PX4_HOLD:
+            self._go_px4(MissionState.PX4_HOLD, Reason.OPERATOR_HOLD)
+            return True
+        return False  # hold without GPS is impossible on PX4: refused (the runner says so)
+
+    def set_slot(self, offset_cam_m: tuple[float, float, float]) -> str | None:
+        """Change the formation slot in flight. Returns why it is refused, or None when applied.
+
+        The slot must lie ahead of the camera (the leader stays in view) and outside the separation bubble
+        with a metre to spare, so the law and the separation barrier never fight at rest.
+        """
+        slot = Slot.from_offset_cam(offset_cam_m)
+        if not all(math.isfinite(c) for c in offset_cam_m):
+            return "offset must be finite"
+        if slot.forward_m <= 0.0:
+            return "the leader must be ahead of the camera (z > 0)"
+        dist = math.sqrt(slot.forward_m**2 + slot.right_m**2 + slot.down_m**2)
+        if dist < self.limits.min_separation_m + 1.0:
+            return f"slot {dist:.1f} m from the leader: closer than min_separation_m + 1 m"
+        if abs(slot.bearing_offset_rad) > math.radians(30.0):
+            return "the leader would leave the image (more than 30 deg off the axis)"
+        self.law.slot = slot
+        return None
 
     def _ready_to_exit(self, veh: VehicleState) -> bool:
         if not self._shutting_down:
@@ -802,7 +840,13 @@ class MissionMachine:
         if not veh.armed:
             self._go(MissionState.DISARMED, Reason.DISARMED)
             return None
-        if not self._in_flight(CommandKind.DISARM) and self._now_s - self._last_attempt_s >= DISARM_RETRY_S:
+        # PX4 refuses to disarm before its land detector agrees; give it a moment before insisting.
+        on_ground = veh.landed_state == LandedState.ON_GROUND or self._t_in_state() > DISARM_RETRY_S
+        if (
+            on_ground
+            and not self._in_flight(CommandKind.DISARM)
+            and self._now_s - self._last_attempt_s >= DISARM_RETRY_S
+        ):
             self._last_attempt_s = self._now_s
             self._send(CommandKind.DISARM)
         if self._streaming:

@@ -24,6 +24,7 @@ from companion.mission.types import (
     LeaderEstimate,
     MissionInputs,
     MissionState,
+    OperatorCommand,
     SharedLeaderPosition,
     StepOutput,
     Transition,
@@ -83,6 +84,8 @@ class MissionRunner:
         self._results: list[CommandResult] = []
         self._last_setpoint: Setpoint | None = None
         self._setpoint_failures = 0
+        self._operator: OperatorCommand | None = None
+        self.last_transition: Transition | None = None
 
     # ------------------------------------------------------------------ inputs
     def submit_leader(self, estimate: LeaderEstimate) -> None:
@@ -98,6 +101,29 @@ class MissionRunner:
     def request_shutdown(self) -> None:
         """Ask for the configured safe action; :meth:`run` returns once it is under way."""
         self._shutdown = True
+
+    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
+        """An operator command: ``land``, ``hold`` or ``set_offset``; returns what was done, in words.
+
+        Land and hold take effect on the next tick (their transition is then reported like any other);
+        a new offset applies at once if it is a safe slot.
+        """
+        if name == "set_offset":
+            if offset_cam_m is None:
+                return "refused: set_offset needs offset_cam_m"
+            why = self.machine.set_slot(offset_cam_m)
+            if why is not None:
+                return f"refused: {why}"
+            log.info("mission: operator set the slot to %s (camera frame, m)", offset_cam_m)
+            return f"slot set to {tuple(round(c, 2) for c in offset_cam_m)}"
+        try:
+            cmd = OperatorCommand(name)
+        except ValueError:
+            return f"refused: unknown command {name!r}"
+        if cmd == OperatorCommand.HOLD and not self.machine.gps_ok:
+            return "refused: hold needs GPS (PX4 cannot hold without a position)"
+        self._operator = cmd
+        return f"{cmd.value} requested"
 
     @property
     def state(self) -> MissionState:
@@ -130,6 +156,7 @@ class MissionRunner:
         """One control step: inputs -> machine -> setpoint, commands, external fix, events."""
         now_s = self.clock.now_s()
         results, self._results = tuple(self._results), []
+        operator, self._operator = self._operator, None
         inputs = MissionInputs(
             vehicle=self.link.snapshot(),
             leader=self._leader,
@@ -137,6 +164,7 @@ class MissionRunner:
             start_requested=self._start,
             shutdown_requested=self._shutdown,
             command_results=results,
+            operator=operator,
         )
         out = self.machine.step(inputs, now_s)
         self.last_output = out
@@ -157,6 +185,7 @@ class MissionRunner:
         return out
 
     def _report(self, tr: Transition) -> None:
+        self.last_transition = tr
         detail = f" ({tr.detail})" if tr.detail else ""
         log.log(
             _LOG_LEVEL[tr.severity],

@@ -85,6 +85,13 @@ class CommandResult:
     detail: str = ""
 
 
+class OperatorCommand(StrEnum):
+    """What an operator may ask for in flight (over MQTT or the status socket)."""
+
+    LAND = "land"
+    HOLD = "hold"
+
+
 @dataclass(frozen=True, slots=True)
 class MissionInputs:
     """Everything one step of the machine reads.
@@ -99,6 +106,8 @@ class MissionInputs:
     start_requested: bool = False
     shutdown_requested: bool = False
     command_results: tuple[CommandResult, ...] = ()
+    #: A one-shot operator request, delivered on one step only.
+    operator: OperatorCommand | None = None
 
 
 class MissionState(StrEnum):
@@ -156,6 +165,8 @@ class Reason(StrEnum):
     DISARMED = "disarmed"
     SHUTDOWN_REQUESTED = "shutdown requested"
     HOLD_TIMEOUT = "shutdown hold elapsed: landing"
+    OPERATOR_LAND = "operator asked to land"
+    OPERATOR_HOLD = "operator asked to hold"
 
 
 #: How each reason is reported to the ground station.
@@ -176,6 +187,8 @@ REASON_SEVERITY: dict[Reason, Severity] = {
     Reason.MODE_CHANGED_EXTERNALLY: Severity.WARNING,
     Reason.PX4_MODE_REFUSED: Severity.ERROR,
     Reason.SHUTDOWN_REQUESTED: Severity.NOTICE,
+    Reason.OPERATOR_LAND: Severity.NOTICE,
+    Reason.OPERATOR_HOLD: Severity.NOTICE,
 }
 
 

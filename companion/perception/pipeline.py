@@ -66,7 +66,9 @@ class PerceptionPipeline:
     def measure(self, frame: RgbdFrame, detections: Sequence[Detection]) -> list[LeaderMeasurement]:
         """Pose stage: the leader's camera-frame position for every detection with a usable range."""
         R = self._attitude_at(frame.stamp_s)
-        down_cam = self.camera.R_ned_cam(R if R is not None else self._last_R_ned_body)[2]
+        R_ned_body = R if R is not None else self._last_R_ned_body
+        down_cam = self.camera.R_ned_cam(R_ned_body)[2]
+        predicted = self.tracker.predict_cam(frame.stamp_s, R_ned_body)
         return measure_all(
             frame.depth_m,
             frame.intrinsics,
@@ -76,6 +78,8 @@ class PerceptionPipeline:
             cfg=self.pose_cfg,
             size_prior=None if self.size is None else self.size.prior(),
             down_cam=down_cam,
+            z_hint_m=None if predicted is None else float(predicted[0][2]),
+            z_hint_std_m=math.inf if predicted is None else math.sqrt(float(predicted[1][2, 2])),
         )
 
     def _attitude_at(self, stamp_s: float) -> Mat3 | None:

@@ -45,6 +45,10 @@ _CAM_DOWN = np.array([0.0, 1.0, 0.0])
 _SIZE_ERROR_PERSISTENCE = 4.0
 #: Smallest box side used for ranging from size, px (a pixel of box error is then under 15 %).
 _MIN_SIZE_RANGE_PX = 7.0
+#: Depth clusters considered inside one box (leader, occluders in front, background behind).
+_MAX_CLUSTERS = 3
+#: A cluster fits the tracker's predicted depth within this many combined standard deviations.
+_HINT_SIGMAS = 3.0
 #: A cluster with less than this modelled fraction inside the valid range is too truncated to trust.
 _MIN_KEPT_FRACTION = 0.3
 #: Above this many valid pixels, the cluster search runs on an even subsample (the mean uses all).
@@ -138,11 +142,15 @@ def robust_depth(
     focal_px: float,
     body_depth_m: float,
     cfg: PoseConfig,
+    z_hint_m: float | None = None,
+    z_hint_std_m: float = math.inf,
 ) -> DepthCluster | None:
-    """Depth of the nearest dense cluster of valid pixels inside ``bounds`` (the leader), or None.
+    """Depth of the leader's cluster of valid pixels inside ``bounds``, or None.
 
-    Background between the arms is farther than the leader, isolated near pixels are too few to form
-    a dense window, and the stereo noise sets how wide a window the leader occupies at its range.
+    The leader is the nearest dense cluster: background between the arms is farther, isolated near
+    pixels are too few to form a dense window, and the stereo noise sets how wide a window the leader
+    occupies at its range. When something nearer covers part of the box (a branch, another aircraft),
+    the tracker's predicted depth ``z_hint_m`` (with its standard deviation) picks the cluster instead.
 
     Args:
         depth_m: H x W depth along the optical axis, m, 0 = invalid (not copied).
@@ -150,6 +158,8 @@ def robust_depth(
         focal_px: focal length for the noise model, px.
         body_depth_m: the leader's own extent along the view, m.
         cfg: valid range, noise model and minimum pixel count.
+        z_hint_m: predicted depth of the leader's centre, m (None: no track to predict from).
+        z_hint_std_m: its standard deviation, m.
     """
     x0, y0, x1, y1 = bounds
     if x1 <= x0 or y1 <= y0:
@@ -171,9 +181,24 @@ def robust_depth(
     dense = counts >= need
     if not dense.any():
         return None
-    i = int(np.argmax(dense))
-    i += int(np.argmax(counts[i : i + int(counts[i])]))
-    centre_m = float(s[i + (int(counts[i]) - 1) // 2])
+    centres: list[float] = []
+    start = 0
+    while len(centres) < _MAX_CLUSTERS and start < s.size:
+        hits = np.flatnonzero(dense[start:])
+        if hits.size == 0:
+            break
+        i = start + int(hits[0])
+        i += int(np.argmax(counts[i : i + int(counts[i])]))
+        centres.append(float(s[i + (int(counts[i]) - 1) // 2]))
+        start = i + int(counts[i])  # the next candidate lies beyond this cluster's window
+    centre_m = centres[0]
+    if z_hint_m is not None and len(centres) > 1:
+        # Nearest cluster that fits the prediction; the nearest overall when none does.
+        for c in centres:
+            tol = math.hypot(z_hint_std_m, k_noise * c * c, 0.5 * body_depth_m)
+            if abs(c - z_hint_m) <= _HINT_SIGMAS * tol:
+                centre_m = c
+                break
     # Refine in disparity (fB / z), where stereo noise is Gaussian with a constant sigma: the trimmed
     # mean there is unbiased, and the range limit is a plain lower truncation that can be undone.
     fb = focal_px * cfg.stereo_baseline_m
@@ -334,13 +359,16 @@ def measure_leader(
     cfg: PoseConfig,
     size_prior: SizePrior | None = None,
     down_cam: Vec3 | None = None,
+    z_hint_m: float | None = None,
+    z_hint_std_m: float = math.inf,
 ) -> LeaderMeasurement | None:
     """The leader's centre in the camera frame from one detection, or None without a usable range.
 
     Range comes from the box's depth cluster; without one (beyond the stereo range, a depth hole) and
     with a ``size_prior``, from the box size, with the size's uncertainty. The box centre's point is
     moved up by ``leader.box_centre_below_m`` along ``down_cam`` (gravity in the camera frame at the
-    frame's attitude; the camera's own y axis when None) to reach the leader's centre.
+    frame's attitude; the camera's own y axis when None) to reach the leader's centre. ``z_hint_m``
+    (the tracker's prediction) picks the leader's depth cluster when several share the box.
     """
     w_px, h_px = det.size_px
     x0, y0, x1, y1 = det.box_xyxy_px
@@ -355,7 +383,15 @@ def measure_leader(
 
     bounds = box_bounds(det.box_xyxy_px, intr.width_px, intr.height_px)
     # A quad's visible surface spans about its motor-to-motor span in depth at the worst yaw.
-    cluster = robust_depth(depth_m, bounds, focal_px=intr.fx_px, body_depth_m=leader.span_m, cfg=cfg)
+    cluster = robust_depth(
+        depth_m,
+        bounds,
+        focal_px=intr.fx_px,
+        body_depth_m=leader.span_m,
+        cfg=cfg,
+        z_hint_m=z_hint_m,
+        z_hint_std_m=z_hint_std_m,
+    )
     if cluster is not None:
         cos_ray = 1.0 / math.sqrt(1.0 + a * a + b * b)
         # The centre is surface_to_centre_m further along the ray than the visible surface.
@@ -369,9 +405,11 @@ def measure_leader(
         if ranged is None:
             return None
         z, rel_var = ranged
-        # Size errors persist for about a second (yaw, pixel quantisation): the filter must not average
-        # them as if independent, so they count as fewer, larger ones.
-        var_z = z * z * rel_var * _SIZE_ERROR_PERSISTENCE
+        # The error is relative to range; scale it by the predicted range when there is one, never by
+        # this noisy range (short readings would weigh more and drag the track in). Size errors persist
+        # for about a second (yaw, pixel quantisation), so they count as fewer, larger ones.
+        z_ref = z if z_hint_m is None else z_hint_m
+        var_z = z_ref * z_ref * rel_var * _SIZE_ERROR_PERSISTENCE
         source, surface_m, n_px = "size", math.nan, 0
     else:
         return None
@@ -410,12 +448,23 @@ def measure_all(
     cfg: PoseConfig,
     size_prior: SizePrior | None = None,
     down_cam: Vec3 | None = None,
+    z_hint_m: float | None = None,
+    z_hint_std_m: float = math.inf,
 ) -> list[LeaderMeasurement]:
     """:func:`measure_leader` for every detection of a frame; boxes without a usable range are dropped."""
     out = []
     for det in detections:
         m = measure_leader(
-            depth_m, intr, det, stamp_s, leader=leader, cfg=cfg, size_prior=size_prior, down_cam=down_cam
+            depth_m,
+            intr,
+            det,
+            stamp_s,
+            leader=leader,
+            cfg=cfg,
+            size_prior=size_prior,
+            down_cam=down_cam,
+            z_hint_m=z_hint_m,
+            z_hint_std_m=z_hint_std_m,
         )
         if m is not None:
             out.append(m)

@@ -6,7 +6,8 @@ paper's centre-patch depth on the same boxes, and per-stage time. ``--detector t
 recording's ground-truth boxes (with ``--box-jitter-px``) to measure pose + tracker on their own.
 
 record: any source (``sim``, ``realsense``, ``file:PATH``) to the folder format, or to a RealSense
-``.bag`` when ``--out`` ends in ``.bag``; ground truth is kept when the source has it.
+``.bag`` when ``--out`` ends in ``.bag``; a folder keeps the ground truth when the source has
+some (a .bag has no place for it).
 """
 
 from __future__ import annotations

@@ -16,6 +16,10 @@ MAVSDK quirks handled here:
   ``set_*`` and ``start()``, and ``start()`` then fails with NO_SETPOINT_SET: each start attempt sets the
   setpoint right before ``start()`` and retries on that error.
 * **Its stdout logging.** MAVSDK's log lines go to the ``companion.vehicle.mavsdk`` logger instead.
+* **Blocking calls.** The asyncio wrappers run commands as blocking C calls on executor threads; one that
+  never returns (seen with ``stop()`` around teardown) pins a thread that interpreter exit then waits for.
+  Commands here use the plugins' ``*_async`` callbacks instead, awaited with a timeout, and setpoints are
+  plain non-blocking sends on the loop thread; telemetry uses the asyncio subscriptions.
 * **Link loss.** A lost link is a state (``VehicleState.connected``, stale stamps), never an exception from
   telemetry; commands without a link raise :class:`~companion.errors.LinkLostError`.
 """
@@ -27,32 +31,21 @@ import contextlib
 import json
 import logging
 import math
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
+import time
+from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import replace
 from types import TracebackType
 from typing import Any, Self, TypeVar
 
 from mavsdk import LogLevel, log_subscribe, log_unsubscribe
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
-from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
-from mavsdk.asyncio.plugins.mocap import (
-    AngleBody,
-    Covariance,
-    MocapAsync,
-    PositionBody,
-    VisionPositionEstimate,
-)
-from mavsdk.asyncio.plugins.offboard import (
-    Attitude,
-    OffboardAsync,
-    OffboardResult,
-    VelocityBodyYawspeed,
-    VelocityNedYaw,
-)
 from mavsdk.asyncio.plugins.param import ParamAsync
-from mavsdk.asyncio.plugins.server_utility import ServerUtilityAsync, StatusTextType
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+from mavsdk.plugins.action import Action, ActionResult
+from mavsdk.plugins.mocap import AngleBody, Covariance, Mocap, PositionBody, VisionPositionEstimate
+from mavsdk.plugins.offboard import Attitude, Offboard, OffboardResult, VelocityBodyYawspeed, VelocityNedYaw
+from mavsdk.plugins.server_utility import ServerUtility, StatusTextType
 
 from companion.clock import Clock
 from companion.config import LinkConfig
@@ -81,6 +74,8 @@ _EST_POS_VEL_FLAGS = 2 | 8
 _GUARD_PERIOD_S = 0.05
 _START_ATTEMPTS = 3
 _DISCOVERY_LOG_EVERY_S = 10.0
+#: A MAVSDK "_async" start that holds the loop longer than this is reported (it should return at once).
+_BLOCKING_WARN_S = 0.02
 
 _MAVSDK_LEVEL = {
     LogLevel.DEBUG: logging.DEBUG,
@@ -106,6 +101,11 @@ def _route_mavsdk_log(level: Any, message: str, file: str | None, line: int) -> 
     del file, line
     mavsdk_log.log(_MAVSDK_LEVEL.get(level, logging.INFO), "%s", message)
     return True
+
+
+def _settle(fut: asyncio.Future[Any], result: Any) -> None:
+    if not fut.done():
+        fut.set_result(result)
 
 
 def _result_name(exc: MavsdkError) -> str:
@@ -161,9 +161,8 @@ class MavsdkVehicleLink:
             if self._stream_active and self._offboard is not None:
                 # Deliberate end of the stream (PX4 Hold): never leave MAVSDK resending a last setpoint.
                 self._stream_active = False
-                with contextlib.suppress(MavsdkError, TimeoutError):
-                    async with asyncio.timeout(self.cfg.command_timeout_s):
-                        await self._offboard.stop()
+                with contextlib.suppress(CommandRejectedError):
+                    await self._result_of("stop_offboard", self._offboard.stop_async, OffboardResult.SUCCESS)
         finally:
             if self._sdk is not None:
                 self._sdk.destroy()
@@ -175,12 +174,15 @@ class MavsdkVehicleLink:
         system = await self._discover()
         self._system = system
         self._telemetry = TelemetryAsync(system)
-        self._action = ActionAsync(system)
-        self._offboard = OffboardAsync(system)
-        self._mocap = MocapAsync(system)
         self._param = ParamAsync(system)
-        self._server_utility = ServerUtilityAsync(system)
         self._direct = MavlinkDirectAsync(system)
+        # Commands and sends on the plain plugins (callbacks, no executor threads); mavsdk>=4,<5 keeps the
+        # plain System on the asyncio wrapper as ``_system``.
+        raw = system._system
+        self._action = Action(raw)
+        self._offboard = Offboard(raw)
+        self._mocap = Mocap(raw)
+        self._server_utility = ServerUtility(raw)
         self._update(connected=True, heartbeat_stamp_s=self.clock.now_s())
         self._ready.set()
         t = self._telemetry
@@ -341,60 +343,83 @@ class MavsdkVehicleLink:
             raise LinkLostError("no autopilot connected")
         return plugin
 
-    async def _call(self, what: str, coro: Awaitable[Any]) -> Any:
+    async def _result_of(self, what: str, start: Callable[..., None], success: Any, *args: Any) -> None:
+        """Start a MAVSDK ``*_async`` call and await its result callback, bounded in time."""
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[Any] = loop.create_future()
+
+        def done(result: Any, _user_data: Any) -> None:  # on MAVSDK's thread
+            with contextlib.suppress(RuntimeError):  # the loop may be closed by the time a late reply comes
+                loop.call_soon_threadsafe(_settle, fut, result)
+
+        t0_s = time.monotonic()
+        start(*args, done)
+        blocked_s = time.monotonic() - t0_s
+        if blocked_s > _BLOCKING_WARN_S:
+            log.warning("vehicle link: MAVSDK %s blocked the event loop for %.3f s", what, blocked_s)
         try:
             async with asyncio.timeout(self.cfg.command_timeout_s * 2):
-                return await coro
-        except MavsdkError as exc:
-            raise CommandRejectedError(what, _result_name(exc)) from exc
-        except TimeoutError as exc:
-            raise CommandRejectedError(what, "TIMEOUT") from exc
+                result = await fut
+        except TimeoutError:
+            raise CommandRejectedError(what, "TIMEOUT") from None
+        if result != success:
+            raise CommandRejectedError(what, getattr(result, "name", str(result)))
+
+    async def _action_call(self, what: str, method: str, *args: Any) -> None:
+        action = self._require(self._action)
+        await self._result_of(what, getattr(action, f"{method}_async"), ActionResult.SUCCESS, *args)
 
     async def arm(self) -> None:
-        await self._call("arm", self._require(self._action).arm())
+        await self._action_call("arm", "arm")
 
     async def disarm(self) -> None:
-        await self._call("disarm", self._require(self._action).disarm())
+        await self._action_call("disarm", "disarm")
 
     async def takeoff(self, altitude_m: float) -> None:
         action = self._require(self._action)
         try:
-            await self._call("set_takeoff_altitude", action.set_takeoff_altitude(float(altitude_m)))
-        except CommandRejectedError as exc:
-            log.warning("vehicle link: takeoff altitude not set (%s); PX4 uses MIS_TAKEOFF_ALT", exc.result)
-        await self._call("takeoff", action.takeoff())
+            # A parameter write: MAVSDK's "_async" variant of it blocks the calling thread through its
+            # retries, so it goes to a worker thread (it always ends: MAVSDK times the write out itself).
+            async with asyncio.timeout(self.cfg.command_timeout_s * 4):
+                await asyncio.to_thread(action.set_takeoff_altitude, float(altitude_m))
+        except (MavsdkError, TimeoutError) as exc:
+            why = _result_name(exc) if isinstance(exc, MavsdkError) else "TIMEOUT"
+            log.warning("vehicle link: takeoff altitude not set (%s); PX4 uses MIS_TAKEOFF_ALT", why)
+        await self._action_call("takeoff", "takeoff")
 
     async def land(self) -> None:
-        await self._call("land", self._require(self._action).land())
+        await self._action_call("land", "land")
 
     async def hold(self) -> None:
-        await self._call("hold", self._require(self._action).hold())
+        await self._action_call("hold", "hold")
 
     async def return_to_launch(self) -> None:
-        await self._call("return_to_launch", self._require(self._action).return_to_launch())
+        await self._action_call("return_to_launch", "return_to_launch")
 
     # ------------------------------------------------------------------ offboard
     async def set_setpoint(self, setpoint: Setpoint) -> None:
         offboard = self._require(self._offboard)
-        if isinstance(setpoint, VelocityBodySetpoint):
-            f, r, d = setpoint.v_body_m_s
-            call = offboard.set_velocity_body(
-                VelocityBodyYawspeed(f, r, d, math.degrees(setpoint.yaw_rate_rad_s))
-            )
-        elif isinstance(setpoint, VelocityNedSetpoint):
-            n, e, d = setpoint.v_ned_m_s
-            call = offboard.set_velocity_ned(VelocityNedYaw(n, e, d, math.degrees(setpoint.yaw_rad)))
-        else:
-            a: AttitudeSetpoint = setpoint
-            call = offboard.set_attitude(
-                Attitude(
-                    math.degrees(a.roll_rad),
-                    math.degrees(a.pitch_rad),
-                    math.degrees(a.yaw_rad),
-                    a.thrust_norm,
+        try:
+            if isinstance(setpoint, VelocityBodySetpoint):
+                f, r, d = setpoint.v_body_m_s
+                offboard.set_velocity_body(
+                    VelocityBodyYawspeed(f, r, d, math.degrees(setpoint.yaw_rate_rad_s))
                 )
-            )
-        await self._call("set_setpoint", call)
+            elif isinstance(setpoint, VelocityNedSetpoint):
+                n, e, d = setpoint.v_ned_m_s
+                offboard.set_velocity_ned(VelocityNedYaw(n, e, d, math.degrees(setpoint.yaw_rad)))
+            else:
+                a: AttitudeSetpoint = setpoint
+                offboard.set_attitude(
+                    Attitude(
+                        math.degrees(a.roll_rad),
+                        math.degrees(a.pitch_rad),
+                        math.degrees(a.yaw_rad),
+                        a.thrust_norm,
+                    )
+                )
+        except MavsdkError as exc:
+            raise CommandRejectedError("set_setpoint", _result_name(exc)) from exc
         self._last_setpoint_s = self.clock.now_s()
         self._stream_active = True
 
@@ -404,17 +429,13 @@ class MavsdkVehicleLink:
         for attempt in range(1, _START_ATTEMPTS + 1):
             await self.set_setpoint(setpoint)
             try:
-                async with asyncio.timeout(self.cfg.command_timeout_s * 2):
-                    await offboard.start()
-            except MavsdkError as exc:
-                result = getattr(exc, "result", None)
-                if result == OffboardResult.NO_SETPOINT_SET and attempt < _START_ATTEMPTS:
+                await self._result_of("start_offboard", offboard.start_async, OffboardResult.SUCCESS)
+            except CommandRejectedError as exc:
+                if exc.result == OffboardResult.NO_SETPOINT_SET.name and attempt < _START_ATTEMPTS:
                     log.info("vehicle link: offboard start raced MAVSDK's watchdog; retrying (%d)", attempt)
                     await asyncio.sleep(0.1)
                     continue
-                raise CommandRejectedError("start_offboard", _result_name(exc)) from exc
-            except TimeoutError as exc:
-                raise CommandRejectedError("start_offboard", "TIMEOUT") from exc
+                raise
             return
 
     async def stop_offboard(self) -> None:
@@ -426,7 +447,7 @@ class MavsdkVehicleLink:
         self._stream_active = False
         if self._offboard is None:
             raise LinkLostError("no autopilot connected")
-        await self._call("stop_offboard", self._offboard.stop())
+        await self._result_of("stop_offboard", self._offboard.stop_async, OffboardResult.SUCCESS)
 
     async def release_offboard(self) -> None:
         self._stream_active = False
@@ -444,10 +465,9 @@ class MavsdkVehicleLink:
             self.guard_trips += 1
             log.error("vehicle link: no fresh setpoint for %.2f s: stopping offboard (PX4 Hold)", age_s)
             try:
-                async with asyncio.timeout(self.cfg.command_timeout_s):
-                    await self._offboard.stop()
-            except (MavsdkError, TimeoutError) as exc:
-                log.error("vehicle link: offboard stop failed: %s", exc)
+                await self._result_of("stop_offboard", self._offboard.stop_async, OffboardResult.SUCCESS)
+            except CommandRejectedError as exc:
+                log.error("vehicle link: offboard stop: %s", exc.result)
 
     # ------------------------------------------------------------------ estimator input, GCS text
     async def send_external_position(self, fix: ExternalPosition) -> None:
@@ -462,8 +482,14 @@ class MavsdkVehicleLink:
             pose_covariance=Covariance(cov),
             reset_counter=fix.reset_counter,
         )
-        await self._call("vision_position_estimate", mocap.set_vision_position_estimate(estimate))
+        try:
+            mocap.set_vision_position_estimate(estimate)  # a plain send: returns at once
+        except MavsdkError as exc:
+            raise CommandRejectedError("vision_position_estimate", _result_name(exc)) from exc
 
     async def send_status_text(self, text: str, severity: Severity) -> None:
         su = self._require(self._server_utility)
-        await self._call("status_text", su.send_status_text(_STATUSTEXT_SEVERITY[severity], text[:50]))
+        try:
+            su.send_status_text(_STATUSTEXT_SEVERITY[severity], text[:50])  # a plain send
+        except MavsdkError as exc:
+            raise CommandRejectedError("status_text", _result_name(exc)) from exc

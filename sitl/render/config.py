@@ -157,7 +157,6 @@ class VisualConfig(Section):
         "grass",
         "field",
         "dirt",
-        "gravel",
     )
     road: bool = True
     #: Random structures (buildings, trees, poles) scattered between clear_radius_m and world_radius_m.

@@ -135,7 +135,7 @@ def project(intr: Intrinsics, p_cam_m: Vec3) -> tuple[float, float]:
     )
 
 
-def box_from_mask(mask: NDArray[np.uint8]) -> tuple[Box | None, int]:
+def box_from_mask(mask: NDArray[np.uint8] | NDArray[np.bool_]) -> tuple[Box | None, int]:
     """Tight box (edge convention, px) of a mask's nonzero pixels and their count."""
     rows = np.flatnonzero(mask.any(axis=1))
     if rows.size == 0:

@@ -131,10 +131,9 @@ def sample_visual(rng: np.random.Generator) -> VisualConfig:
         if f < 0.7
         else (rng.uniform(0.001, 0.005) if f < 0.95 else rng.uniform(0.005, 0.02))
     )
-    mats = ["grass", "field", "dirt", "asphalt", "gravel"]
-    if rng.random() < 0.06:
-        mats.append("snow")
-    chosen = tuple(str(m) for m in rng.choice(mats, size=int(rng.integers(2, 5)), replace=False))
+    mats = ["grass", "field", "dirt", "asphalt", "gravel", "snow"]
+    p_mat = np.array([0.36, 0.3, 0.2, 0.04, 0.07, 0.03])
+    chosen = tuple(str(m) for m in rng.choice(mats, size=int(rng.integers(2, 5)), replace=False, p=p_mat))
     clear = float(rng.uniform(20, 80))
     return VisualConfig(
         seed=int(rng.integers(0, 2**31 - 1)),
@@ -150,9 +149,9 @@ def sample_visual(rng: np.random.Generator) -> VisualConfig:
         world_radius_m=float(rng.uniform(max(200.0, clear + 50.0), 450.0)),
         tree_line=bool(rng.random() < 0.85),
         hills=bool(rng.random() < 0.6),
-        exposure_ev=float(np.clip(rng.normal(0.0, 0.5), -1.5, 1.5)),
-        white_balance_k=float(rng.uniform(4200, 7500)),
-        sensor_noise=_log_uniform(rng, 0.5, 3.0),
+        exposure_ev=float(np.clip(rng.normal(0.3, 0.5), -1.2, 1.5)),
+        white_balance_k=float(rng.uniform(4800, 6500)),
+        sensor_noise=_log_uniform(rng, 0.3, 1.5),
         vignetting=float(rng.uniform(0.0, 0.5)),
         contrast=float(rng.uniform(0.8, 1.25)),
         leader=sample_leader_look(rng),
@@ -341,8 +340,13 @@ def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> S
         yaw_rate = rng.normal(0.0, 0.4)
         tilt = np.clip(rng.normal(0.0, math.radians(12.0), 2), -0.6, 0.6)
         leaders = []
-        for t in times:
+        for t, cam in zip(times, cameras, strict=True):
             p = p_leader0 + v_leader * t
+            p[2] = min(p[2], -0.4)
+            # Both move during the sequence: keep the range within 1-20 m in every frame.
+            rel = p - cam.p_ned_cam_m
+            dist = float(np.linalg.norm(rel))
+            p = cam.p_ned_cam_m + rel * (min(max(dist, 1.0), 20.0) / max(dist, 1e-9))
             p[2] = min(p[2], -0.4)
             leaders.append((R_from_euler(float(tilt[0]), float(tilt[1]), yaw0 + yaw_rate * t), p))
         if rng.random() < 0.15:

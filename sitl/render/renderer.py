@@ -138,6 +138,41 @@ def _mat_bytes(M: NDArray[np.float64]) -> bytes:
     return np.ascontiguousarray(M.T, dtype=np.float32).tobytes()
 
 
+def _set(prog: moderngl.Program, name: str, value: Any) -> None:
+    """Set a uniform if the linker kept it (unused uniforms are optimised away)."""
+    try:
+        member = prog[name]
+    except KeyError:
+        return
+    if isinstance(value, bytes):
+        member.write(value)  # type: ignore[union-attr]
+    else:
+        member.value = value  # type: ignore[union-attr]
+
+
+@dataclass(slots=True)
+class _ScenePrograms:
+    """The scene pass's programs, compiled either for the post pass or DIRECT (sensor in the scene)."""
+
+    ground: moderngl.Program
+    generic: moderngl.Program
+    foliage: moderngl.Program
+    rotor: moderngl.Program
+    sky: moderngl.Program
+    sky_vao: moderngl.VertexArray
+    world_vaos: tuple[moderngl.VertexArray, ...] = ()
+    leader_vaos: tuple[moderngl.VertexArray, ...] = ()
+    dyn_vao: moderngl.VertexArray | None = None
+
+    @property
+    def all(self) -> tuple[moderngl.Program, ...]:
+        return (self.ground, self.generic, self.foliage, self.rotor, self.sky)
+
+    @property
+    def meshes(self) -> tuple[moderngl.Program, ...]:
+        return (self.ground, self.generic, self.foliage, self.rotor)
+
+
 class Renderer:
     """Renders the follower's RGB-D camera with the leader, the world and a D435i-like sensor model.
 
@@ -148,6 +183,7 @@ class Renderer:
         supersample: 1 (real time) or 2 (datasets: 4 samples per pixel, smoother edges of small leaders).
         seed: seeds the noise fields and the per-frame noise offsets (frames repeat exactly).
         backend: moderngl context backend ("egl" for headless; None lets moderngl choose).
+        auto_exposure: meter each frame to expose the next; off keeps the first frame's estimate.
     """
 
     def __init__(
@@ -208,6 +244,11 @@ class Renderer:
             ctx.release()
             self._ctx = None  # type: ignore[assignment]
 
+    @property
+    def gl_renderer(self) -> str:
+        """The OpenGL renderer string (llvmpipe on CPU machines, the GPU's name otherwise)."""
+        return str(self._ctx.info.get("GL_RENDERER", "?"))
+
     # ---- set-up ----------------------------------------------------------------------------------------
 
     def _init_gl(self, seed: int) -> None:
@@ -219,7 +260,7 @@ class Renderer:
         self._pattern.build_mipmaps()
         self._pattern.filter = (moderngl.NEAREST_MIPMAP_NEAREST, moderngl.NEAREST)
         p = pattern[::4, ::4].astype(np.float32) / 255.0
-        dens = 0.55 * p[..., 0] + 0.3 * p[..., 1] + 0.15 * p[..., 2]
+        dens = 0.8 * p[..., 0] + 0.12 * p[..., 1] + 0.08 * p[..., 1]
         self._cloud_quantiles = np.percentile(dens, np.linspace(0, 100, 101))
         noise = sensor_noise_field(seed + 1, self.camera.depth_noise_corr_px)
         self._noise = ctx.texture((FIELD_PX, FIELD_PX), 4, noise.tobytes())
@@ -239,20 +280,25 @@ class Renderer:
         self._face_tex = ctx.texture((self._sky_face_px, self._sky_face_px), 4)
         self._face_fbo = ctx.framebuffer([self._face_tex])
         self._sky_cube: moderngl.TextureCube | None = None
+        # Scene: S0 colour, S1 aux (packed disparity, leader + texturedness); DIRECT adds final depth.
         self._sdepth = ctx.depth_renderbuffer((W * s, H * s))
         self._scene_fbo = ctx.framebuffer([self._s0, self._s1], self._sdepth)
+        self._d_depth = ctx.texture((W, H), 1, dtype="f4")
+        # DIRECT (real time, no supersampling) writes final depth in the scene pass.
+        self._direct_fbo = (
+            ctx.framebuffer([self._s0, self._s1, self._d_depth], self._sdepth) if s == 1 else None
+        )
+        self._edges_fbo = ctx.framebuffer([self._d_depth])
+        # Post: final colour, depth and leader coverage.
         self._p_rgb = ctx.texture((W, H), 4)
         self._p_depth = ctx.texture((W, H), 1, dtype="f4")
         self._p_mask = ctx.texture((W, H), 1)
         self._post_fbo = ctx.framebuffer([self._p_rgb, self._p_depth, self._p_mask])
 
+        self._tri = ctx.buffer(np.array([-1.0, -1.0, 3.0, -1.0, -1.0, 3.0], dtype=np.float32).tobytes())
+        self._programs = self._scene_programs(direct=False)
+        self._programs_direct = self._scene_programs(direct=True) if s == 1 else None
         vs = shaders.SCENE_VS
-        self._ground_prog = ctx.program(vertex_shader=vs, fragment_shader=shaders.SCENE_GROUND_FS)
-        self._generic_prog = ctx.program(vertex_shader=vs, fragment_shader=shaders.SCENE_GENERIC_FS)
-        self._foliage_prog = ctx.program(vertex_shader=vs, fragment_shader=shaders.SCENE_FOLIAGE_FS)
-        self._rotor_prog = ctx.program(vertex_shader=vs, fragment_shader=shaders.SCENE_ROTOR_FS)
-        self._scene_progs = (self._ground_prog, self._generic_prog, self._foliage_prog, self._rotor_prog)
-        self._sky_prog = ctx.program(vertex_shader=shaders.FULLSCREEN_VS, fragment_shader=shaders.SKY_FS)
         self._sky_bake_prog = ctx.program(
             vertex_shader=shaders.FULLSCREEN_VS, fragment_shader=shaders.SKY_BAKE_FS
         )
@@ -260,68 +306,94 @@ class Renderer:
             vertex_shader=shaders.FULLSCREEN_VS, fragment_shader=shaders.GROUND_BAKE_FS
         )
         self._mask_prog = ctx.program(vertex_shader=vs, fragment_shader=shaders.MASK_FS)
-        self._tri = ctx.buffer(np.array([-1.0, -1.0, 3.0, -1.0, -1.0, 3.0], dtype=np.float32).tobytes())
-        self._sky_vao = ctx.vertex_array(self._sky_prog, [(self._tri, "2f", "in_xy")])
         self._sky_bake_vao = ctx.vertex_array(self._sky_bake_prog, [(self._tri, "2f", "in_xy")])
         self._ground_bake_vao = ctx.vertex_array(self._ground_bake_prog, [(self._tri, "2f", "in_xy")])
-        self._post_variants: dict[tuple[int, int, int], tuple[moderngl.Program, moderngl.VertexArray]] = {}
-        for prog in (*self._scene_progs, self._sky_bake_prog, self._ground_bake_prog):
-            self._set(prog, "u_tex", 4)
-            self._set(prog, "u_fB", self.camera.focal_baseline_px_m)
-        self._set(self._ground_prog, "u_ground", 5)
-        self._set(self._sky_prog, "u_sky", 6)
-        self._set(self._sky_prog, "u_z", 1.0)
-        self._set(self._sky_bake_prog, "u_z", 0.0)
-        self._set(self._ground_bake_prog, "u_z", 0.0)
+        self._post_variants: dict[
+            tuple[int, int, int, int], tuple[moderngl.Program, moderngl.VertexArray]
+        ] = {}
+        for prog in (self._sky_bake_prog, self._ground_bake_prog):
+            _set(prog, "u_tex", 4)
+            _set(prog, "u_z", 0.0)
         self._P = projection_matrix(self.intrinsics, NEAR_M, FAR_M, s)
         # Framebuffer pixel (x, y) at scale s is intrinsics pixel ((x + 0.5) / s - 0.5, ...).
         S = np.array([[1.0 / s, 0.0, 0.5 / s - 0.5], [0.0, 1.0 / s, 0.5 / s - 0.5], [0.0, 0.0, 1.0]])
         self._Kinv_fb = np.linalg.inv(self.intrinsics.K) @ S
-        self._leader_vaos: tuple[moderngl.VertexArray, ...] = ()
-        self._world_vaos: tuple[moderngl.VertexArray, ...] = ()
+        self._mask_vaos: tuple[moderngl.VertexArray, ...] = ()
         self._dyn_buf = ctx.buffer(reserve=VERTEX_FLOATS * 4 * 3 * 2048, dynamic=True)
-        self._dyn_vao = self._vao(self._generic_prog, self._dyn_buf)
+        for progs in self._program_sets:
+            progs.dyn_vao = self._vao(progs.generic, self._dyn_buf)
         self._mask_fbos: dict[int, tuple[moderngl.Framebuffer, U8]] = {}
         self._resources: list[Any] = []
 
+    @property
+    def _program_sets(self) -> tuple[_ScenePrograms, ...]:
+        return (self._programs,) if self._programs_direct is None else (self._programs, self._programs_direct)
+
+    def _scene_programs(self, direct: bool) -> _ScenePrograms:
+        ctx = self._ctx
+        d = int(direct)
+
+        def mesh(fs: str) -> moderngl.Program:
+            return ctx.program(
+                vertex_shader=shaders.SCENE_VS, fragment_shader=shaders.with_defines(fs, DIRECT=d)
+            )
+
+        sky = ctx.program(
+            vertex_shader=shaders.FULLSCREEN_VS,
+            fragment_shader=shaders.with_defines(shaders.SKY_FS, DIRECT=d),
+        )
+        progs = _ScenePrograms(
+            ground=mesh(shaders.SCENE_GROUND_FS),
+            generic=mesh(shaders.SCENE_GENERIC_FS),
+            foliage=mesh(shaders.SCENE_FOLIAGE_FS),
+            rotor=mesh(shaders.SCENE_ROTOR_FS),
+            sky=sky,
+            sky_vao=ctx.vertex_array(sky, [(self._tri, "2f", "in_xy")]),
+        )
+        cam = self.camera
+        for prog in progs.all:
+            _set(prog, "u_tex", 4)
+            _set(prog, "u_fB", cam.focal_baseline_px_m)
+            if direct:
+                self._sensor_constants(prog)
+        _set(progs.ground, "u_ground", 5)
+        _set(progs.sky, "u_sky", 6)
+        _set(progs.sky, "u_z", 1.0)
+        return progs
+
+    def _sensor_constants(self, prog: moderngl.Program) -> None:
+        """Uniforms of the sensor model that never change for a camera (see shaders._SENSOR)."""
+        cam = self.camera
+        _set(prog, "u_noise", 2)
+        _set(prog, "u_half_size", (self.intrinsics.width_px / 2.0, self.intrinsics.height_px / 2.0))
+        _set(prog, "u_subpix", cam.subpixel_px if cam.depth_noise else 0.0)
+        _set(prog, "u_zrange", (cam.depth_min_m, cam.depth_max_m))
+        _set(prog, "u_hole_p", (0.004, 0.10) if cam.depth_holes else (0.0, 0.0))
+
     def _post_variant(
-        self, edges: bool, shadow_px: int, blur_n: int
+        self, edges: bool, shadow_px: int, blur_n: int, depth_only: bool = False
     ) -> tuple[moderngl.Program, moderngl.VertexArray]:
         """The post program for one combination of switches, compiled on first use."""
-        key = (int(edges), shadow_px if edges else 0, blur_n)
+        key = (int(edges), shadow_px if edges else 0, blur_n, int(depth_only))
         if key not in self._post_variants:
             prog = self._ctx.program(
                 vertex_shader=shaders.FULLSCREEN_VS,
-                fragment_shader=shaders.post_fs(self.supersample, edges, key[1], blur_n),
+                fragment_shader=shaders.post_fs(self.supersample, edges, key[1], blur_n, depth_only),
             )
-            cam = self.camera
-            self._set(prog, "u_z", 0.0)
-            for name, unit in (("u_col", 0), ("u_aux", 1), ("u_noise", 2)):
-                self._set(prog, name, unit)
-            self._set(prog, "u_size", (self.intrinsics.width_px, self.intrinsics.height_px))
-            self._set(prog, "u_fB", cam.focal_baseline_px_m)
-            self._set(prog, "u_subpix", cam.subpixel_px if cam.depth_noise else 0.0)
-            self._set(prog, "u_zrange", (cam.depth_min_m, cam.depth_max_m))
+            _set(prog, "u_z", 0.0)
+            _set(prog, "u_col", 0)
+            _set(prog, "u_aux", 1)
+            _set(prog, "u_size", (self.intrinsics.width_px, self.intrinsics.height_px))
+            _set(prog, "u_fB", self.camera.focal_baseline_px_m)
+            self._sensor_constants(prog)
             self._post_variants[key] = (prog, self._ctx.vertex_array(prog, [(self._tri, "2f", "in_xy")]))
         return self._post_variants[key]
 
     def _vao(self, prog: moderngl.Program, buf: moderngl.Buffer) -> moderngl.VertexArray:
         return self._ctx.vertex_array(prog, [(buf, VERTEX_FORMAT, *VERTEX_ATTRIBUTES)], skip_errors=True)
 
-    @staticmethod
-    def _set(prog: moderngl.Program, name: str, value: Any) -> None:
-        """Set a uniform if the linker kept it (unused uniforms are optimised away)."""
-        try:
-            member = prog[name]
-        except KeyError:
-            return
-        if isinstance(value, bytes):
-            member.write(value)  # type: ignore[union-attr]
-        else:
-            member.value = value  # type: ignore[union-attr]
-
     def set_visual(self, visual: VisualConfig) -> None:
-        """Rebuild the world and the leader for a new visual configuration (tens of ms)."""
+        """Rebuild the world and the leader for a new visual configuration (about half a second)."""
         self.visual = visual
         self.world: World = build_world(visual, self._cloud_quantiles)
         self.leader_model: LeaderModel = build_leader(visual.leader)
@@ -329,26 +401,28 @@ class Renderer:
             res.release()
         ctx = self._ctx
         world_buf = ctx.buffer(self.world.vertices.tobytes())
-        self._world_vaos = tuple(self._vao(p, world_buf) for p in self._scene_progs[:3])
         opaque = ctx.buffer(self.leader_model.opaque.tobytes())
         rotors = ctx.buffer(self.leader_model.rotors.tobytes())
-        self._leader_vaos = (
-            self._vao(self._generic_prog, opaque),
-            self._vao(self._rotor_prog, rotors),
-            self._vao(self._mask_prog, opaque),
-            self._vao(self._mask_prog, rotors),
-        )
-        self._resources = [world_buf, *self._world_vaos, opaque, rotors, *self._leader_vaos]
+        self._resources = [world_buf, opaque, rotors]
+        for progs in self._program_sets:
+            progs.world_vaos = tuple(
+                self._vao(p, world_buf) for p in (progs.ground, progs.generic, progs.foliage)
+            )
+            progs.leader_vaos = (self._vao(progs.generic, opaque), self._vao(progs.rotor, rotors))
+            self._resources += [*progs.world_vaos, *progs.leader_vaos]
+        self._mask_vaos = (self._vao(self._mask_prog, opaque), self._vao(self._mask_prog, rotors))
+        self._resources += list(self._mask_vaos)
         L = self.world.lighting
-        for prog in self._scene_progs:
-            self._set(prog, "u_sun_dir", L.sun_dir_ned)
-            self._set(prog, "u_sun_rgb", L.sun_rgb)
-            self._set(prog, "u_sky_rgb", L.sky_rgb)
-            self._set(prog, "u_bounce_rgb", L.bounce_rgb)
-            self._set(prog, "u_fog_rgb", L.fog_rgb)
-            self._set(prog, "u_fog_density", visual.fog_density_per_m)
         ground_light = np.asarray(L.sun_rgb) * max(-L.sun_dir_ned[2], 0.0) + np.asarray(L.sky_rgb)
-        self._set(self._ground_prog, "u_ground_light", tuple(float(c) for c in ground_light))
+        for progs in self._program_sets:
+            for prog in progs.meshes:
+                _set(prog, "u_sun_dir", L.sun_dir_ned)
+                _set(prog, "u_sun_rgb", L.sun_rgb)
+                _set(prog, "u_sky_rgb", L.sky_rgb)
+                _set(prog, "u_bounce_rgb", L.bounce_rgb)
+                _set(prog, "u_fog_rgb", L.fog_rgb)
+                _set(prog, "u_fog_density", visual.fog_density_per_m)
+            _set(progs.ground, "u_ground_light", tuple(float(c) for c in ground_light))
         self._bake_ground()
         self._bake_sky()
         self._wb = white_balance_gains(visual.white_balance_k)
@@ -362,12 +436,12 @@ class Renderer:
         """Render the world's ground materials into the periodic ground texture (+ mipmaps)."""
         G = self.world.ground
         bp = self._ground_bake_prog
-        self._set(bp, "u_ground_rgb", np.asarray(G.rgb, dtype=np.float32).tobytes())
-        self._set(bp, "u_ground_texture", G.texturedness)
-        self._set(bp, "u_ground_n", G.n_materials)
-        self._set(bp, "u_road", G.road)
-        self._set(bp, "u_rows", G.rows)
-        self._set(bp, "u_texel_m", GROUND_PERIOD_M / GROUND_TEX_PX)
+        _set(bp, "u_ground_rgb", np.asarray(G.rgb, dtype=np.float32).tobytes())
+        _set(bp, "u_ground_texture", G.texturedness)
+        _set(bp, "u_ground_n", G.n_materials)
+        _set(bp, "u_road", G.road)
+        _set(bp, "u_rows", G.rows)
+        _set(bp, "u_texel_m", GROUND_PERIOD_M / GROUND_TEX_PX)
         self._ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
         self._pattern.use(4)
         self._ground_fbo.use()
@@ -377,37 +451,36 @@ class Renderer:
         self._ground_tex.repeat_x = self._ground_tex.repeat_y = True
 
     def _bake_sky(self) -> None:
-        """Render the six faces of the world's sky cube map (gradient, sun, glow, clouds)."""
+        """Render the six faces of the world's sky cube map (gradient, sun, glow, clouds, fog)."""
         L = self.world.lighting
         kp = self._sky_bake_prog
-        self._set(kp, "u_sun_dir", L.sun_dir_ned)
-        self._set(kp, "u_sun_rgb", L.sun_rgb)
-        self._set(kp, "u_sun_cos", math.cos(math.radians(0.35)))
+        _set(kp, "u_sun_dir", L.sun_dir_ned)
+        _set(kp, "u_sun_rgb", L.sun_rgb)
+        _set(kp, "u_sun_cos", math.cos(math.radians(0.35)))
         for name in ("zenith", "horizon", "glow", "haze", "cloud_lit", "cloud_dark"):
-            self._set(kp, f"u_{name}_rgb", getattr(L, f"{name}_rgb"))
-        self._set(kp, "u_cloud", (CLOUD_ALTITUDE_M, CLOUD_TEXEL_M, *self.world.cloud_threshold))
-        self._set(kp, "u_cloud_off", self.world.cloud_offset_texels)
+            _set(kp, f"u_{name}_rgb", getattr(L, f"{name}_rgb"))
+        _set(kp, "u_cloud", (CLOUD_ALTITUDE_M, CLOUD_TEXEL_M, *self.world.cloud_threshold))
+        _set(kp, "u_cloud_off", self.world.cloud_offset_texels)
         face = self._sky_face_px
-        self._set(kp, "u_face_px", float(face))
-        self._set(kp, "u_sky_scale", SKY_SCALE)
-        self._set(kp, "u_fog_rgb", L.fog_rgb)
-        self._set(kp, "u_fog_density", self.visual.fog_density_per_m)
+        _set(kp, "u_face_px", float(face))
+        _set(kp, "u_sky_scale", SKY_SCALE)
+        _set(kp, "u_fog_rgb", L.fog_rgb)
+        _set(kp, "u_fog_density", self.visual.fog_density_per_m)
         self._ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
         self._pattern.use(4)
         faces = np.empty((6, face, face, 4), dtype=np.uint8)
         self._face_fbo.use()
         for i, rows in enumerate(_CUBE_FACES):
-            self._set(kp, "u_dir_from_st", _mat_bytes(np.array(rows, dtype=np.float64)))
+            _set(kp, "u_dir_from_st", _mat_bytes(np.array(rows, dtype=np.float64)))
             self._sky_bake_vao.render(moderngl.TRIANGLES)
             self._face_fbo.read_into(faces[i], components=4)
         if self._sky_cube is None:
             self._sky_cube = self._ctx.texture_cube((face, face), 4)
         for i in range(6):
             self._sky_cube.write(i, faces[i].tobytes())
+        linear = self.supersample > 1
         self._sky_cube.filter = (
-            (moderngl.LINEAR, moderngl.LINEAR)
-            if self.supersample > 1
-            else (moderngl.NEAREST, moderngl.NEAREST)
+            (moderngl.LINEAR, moderngl.LINEAR) if linear else (moderngl.NEAREST, moderngl.NEAREST)
         )
 
     # ---- exposure --------------------------------------------------------------------------------------
@@ -435,34 +508,27 @@ class Renderer:
         Without a leader the truth has no box, visible fraction 0 and NaN position and yaw.
         """
         cam = camera_pose(follower, self.mount)
-        R_ned_follower = R_from_quat(np.asarray(follower.q_ned_body_wxyz, dtype=np.float64))
+        q_follower = np.asarray(follower.q_ned_body_wxyz, dtype=np.float64)
+        R_ned_follower = R_from_quat(q_follower)
         omega_body = getattr(follower, "omega_body_rad_s", None)
         omega_cam = None if omega_body is None else self._R_body_cam.T @ as_vec3(omega_body)
         lp = None
         if leader is not None:
-            lp = LeaderPose(
-                R_from_quat(np.asarray(leader.q_ned_body_wxyz, dtype=np.float64)), as_vec3(leader.p_ned_m)
-            )
+            R_ned_leader = R_from_quat(np.asarray(leader.q_ned_body_wxyz, dtype=np.float64))
+            lp = LeaderPose(R_ned_leader, as_vec3(leader.p_ned_m))
         view = self.render_view(cam, lp, t_s, omega_cam_rad_s=omega_cam)
+        p_follower = as_vec3(follower.p_ned_m)
         if lp is None:
-            truth = GroundTruth(
-                None,
-                0.0,
-                np.full(3, np.nan),
-                math.nan,
-                p_ned_follower_m=as_vec3(follower.p_ned_m),
-                p_ned_leader_m=None,
-                q_ned_follower_wxyz=np.asarray(follower.q_ned_body_wxyz, dtype=np.float64),
-            )
+            truth = GroundTruth(None, 0.0, np.full(3, np.nan), math.nan, p_follower, None, q_follower)
         else:
             truth = GroundTruth(
                 view.box_xyxy_px,
                 view.visible_fraction,
                 cam.to_cam(lp.p_ned_m),
                 yaw_rel_rad(lp.R_ned_body, R_ned_follower),
-                p_ned_follower_m=as_vec3(follower.p_ned_m),
-                p_ned_leader_m=lp.p_ned_m,
-                q_ned_follower_wxyz=np.asarray(follower.q_ned_body_wxyz, dtype=np.float64),
+                p_follower,
+                lp.p_ned_m,
+                q_follower,
             )
         self._seq += 1
         return RgbdFrame(view.rgb, view.depth_m, self.intrinsics, float(t_s), self._seq, truth)
@@ -479,16 +545,130 @@ class Renderer:
     ) -> RenderedView:
         """Render from an explicit camera pose; ``extra_vertices`` are distractors (NED, never leader)."""
         ctx = self._ctx
+        W, H = self.intrinsics.width_px, self.intrinsics.height_px
         gain = self.exposure_gain
-        shutter = min(gain / GAIN_AT_MAX_SHUTTER, 1.0)
-        exposure_s = max(self.camera.exposure_max_s * shutter, 1.0 / 8000.0)
+        exposure_s = max(self.camera.exposure_max_s * min(gain / GAIN_AT_MAX_SHUTTER, 1.0), 1.0 / 8000.0)
         analog = max(1.0, gain / GAIN_AT_MAX_SHUTTER)
+        blur_n, H0, H1 = 0, np.eye(3), np.eye(3)
+        if omega_cam_rad_s is not None and self.camera.motion_blur:
+            H0, H1, streak = blur_homographies(self.intrinsics, omega_cam_rad_s, exposure_s)
+            if streak > 0.75:
+                blur_n = 4 if streak <= 4.0 else (8 if streak <= 8.0 else 16)
+        # Real time: the sensor model runs inside the scene pass (no full-screen post pass).
+        direct = self._programs_direct is not None and blur_n == 0
+        progs = self._programs_direct if direct and self._programs_direct is not None else self._programs
+        holes = self.camera.depth_holes
+        shadow_px = self._shadow_search_px(cam, leader, extra_vertices)
+        region = self._near_region(cam, leader, extra_vertices, shadow_px) if holes else None
+        offs = self._rng.integers(0, FIELD_PX, 2)
+        k = self.visual.sensor_noise if self.camera.colour_noise else 0.0
+        a, b = 0.0008 * analog * k, (0.002 * analog * k) ** 2
+        sensor = {
+            "u_off": (int(offs[0]), int(offs[1])),
+            "u_noise_sd": (0.5 * math.sqrt(a), 0.5 * math.sqrt(b), max(b**0.25, 1e-3)),
+            "u_vignette": self.visual.vignetting,
+            "u_contrast": self.visual.contrast,
+        }
+
+        # ---- pass 1: scene (and, DIRECT, the sensor)
+        self._scene_pass(
+            progs,
+            cam,
+            leader,
+            t_s,
+            gain=gain,
+            exposure_s=exposure_s,
+            extra_vertices=extra_vertices,
+            sensor=sensor if direct else None,
+        )
+
+        # ---- pass 2: sensor, or (DIRECT) only edge and stereo-shadow holes near objects
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
+        self._s0.use(0)
+        self._s1.use(1)
+        self._noise.use(2)
+        rgb = np.empty((H, W, 3), dtype=np.uint8)
+        depth = np.empty((H, W), dtype=np.float32)
+        if direct:
+            if region is not None:
+                pp, vao = self._post_variant(True, shadow_px, 0, depth_only=True)
+                self._post_uniforms(pp, sensor, H0, H1, 0)
+                self._edges_fbo.use()
+                self._edges_fbo.scissor = region
+                vao.render(moderngl.TRIANGLES)
+                self._edges_fbo.scissor = None  # type: ignore[assignment]
+            aux = np.empty((H, W, 4), dtype=np.uint8)
+            dfbo = self._direct_fbo
+            assert dfbo is not None  # noqa: S101  (direct implies supersample == 1)
+            dfbo.read_into(rgb, components=3, attachment=0)
+            dfbo.read_into(aux, components=4, attachment=1)
+            dfbo.read_into(depth, components=1, attachment=2, dtype="f4")
+            mask = aux[..., 3] >= 128
+        else:
+            # Whole frame when near things fill much of it (and always for supersampled datasets).
+            whole = holes and (
+                self.supersample > 1 or (region is not None and region[2] * region[3] > 0.4 * W * H)
+            )
+            passes = [(whole, None)] if whole or region is None else [(False, None), (True, region)]
+            self._post_fbo.use()
+            for edges, scissor in passes:
+                pp, vao = self._post_variant(edges, shadow_px, blur_n)
+                self._post_uniforms(pp, sensor, H0, H1, blur_n)
+                self._post_fbo.scissor = scissor  # type: ignore[assignment]
+                vao.render(moderngl.TRIANGLES)
+            self._post_fbo.scissor = None  # type: ignore[assignment]
+            mask_u8 = np.empty((H, W), dtype=np.uint8)
+            self._post_fbo.read_into(rgb, components=3, attachment=0)
+            self._post_fbo.read_into(depth, components=1, attachment=1, dtype="f4")
+            self._post_fbo.read_into(mask_u8, components=1, attachment=2)
+        self._meter(rgb)
+
+        box, visible, full = None, 0.0, 0.0
+        if leader is not None and truth:
+            if direct:
+                box, count = box_from_mask(mask)
+                visible = float(count)
+                mask_out = mask.view(np.uint8) * np.uint8(255)
+            else:
+                box, count = box_from_mask(mask_u8)
+                visible = (
+                    float(count) if self.supersample == 1 else float(mask_u8.sum(dtype=np.int64)) / 255.0
+                )
+                mask_out = mask_u8
+            if box is not None:
+                full = max(self._full_leader_px(cam, leader), visible)
+        else:
+            mask_out = np.zeros((H, W), dtype=np.uint8) if direct else mask_u8
+        return RenderedView(rgb, depth, mask_out, box, visible, full, exposure_s)
+
+    def _post_uniforms(
+        self, prog: moderngl.Program, sensor: dict[str, Any], H0: Mat3, H1: Mat3, blur_n: int
+    ) -> None:
+        for name, value in sensor.items():
+            _set(prog, name, value)
+        if blur_n:
+            _set(prog, "u_H0", _mat_bytes(H0))
+            _set(prog, "u_H1", _mat_bytes(H1))
+
+    def _scene_pass(
+        self,
+        progs: _ScenePrograms,
+        cam: CameraPose,
+        leader: LeaderPose | None,
+        t_s: float,
+        *,
+        gain: float,
+        exposure_s: float,
+        extra_vertices: F32 | None,
+        sensor: dict[str, Any] | None,
+    ) -> None:
+        """Draw the world, distractors, leader, sky and rotor discs into the scene framebuffer."""
+        ctx = self._ctx
         gain_rgb = (gain * self._wb[0], gain * self._wb[1], gain * self._wb[2])
         clip_from_ned = _mat_bytes(self._P @ view_matrix(cam))
         cam_ned = tuple(float(c) for c in cam.p_ned_cam_m)
-
-        # ---- pass 1: scene
-        fbo = self._scene_fbo
+        glare = self._glare_rgb(cam)
+        fbo = self._direct_fbo if sensor is not None and self._direct_fbo is not None else self._scene_fbo
         fbo.use()
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
@@ -499,57 +679,61 @@ class Renderer:
         self._ground_tex.use(5)
         assert self._sky_cube is not None  # noqa: S101  (baked in set_visual)
         self._sky_cube.use(6)
+        self._noise.use(2)
         identity = _mat_bytes(np.eye(4))
         # Ground mip levels: footprint at 1 m = 1 / (f h) metres per pixel (see the ground shader).
         f_px = self.intrinsics.fx_px * self.supersample
-        h_m = max(-float(cam.p_ned_cam_m[2]), 0.05)
-        base = -math.log2(f_px * h_m)
-        self._set(
-            self._ground_prog,
+        base = -math.log2(f_px * max(-float(cam.p_ned_cam_m[2]), 0.05))
+        _set(
+            progs.ground,
             "u_ground_lod",
             (base - math.log2(GROUND_PERIOD_M / GROUND_TEX_PX), base - math.log2(0.04)),
         )
-        glare = self._glare_rgb(cam)
-        for prog in self._scene_progs:
-            self._set(prog, "u_glare_rgb", glare)
-            self._set(prog, "u_clip_from_ned", clip_from_ned)
-            self._set(prog, "u_ned_from_model", identity)
-            self._set(prog, "u_cam_ned", cam_ned)
-            self._set(prog, "u_gain_rgb", gain_rgb)
-            self._set(prog, "u_leader", 0.0)
+        for prog in progs.all:
+            _set(prog, "u_glare_rgb", glare)
+            _set(prog, "u_clip_from_ned", clip_from_ned)
+            _set(prog, "u_ned_from_model", identity)
+            _set(prog, "u_cam_ned", cam_ned)
+            _set(prog, "u_gain_rgb", gain_rgb)
+            _set(prog, "u_leader", 0.0)
+            if sensor is not None:
+                for name, value in sensor.items():
+                    _set(prog, name, value)
         # Near things first so that early depth testing spares the far ones.
+        model = (
+            _mat_bytes(model_matrix(leader.R_ned_body, leader.p_ned_m)) if leader is not None else identity
+        )
         if leader is not None:
-            gen = self._generic_prog
-            self._set(gen, "u_ned_from_model", _mat_bytes(model_matrix(leader.R_ned_body, leader.p_ned_m)))
-            self._set(gen, "u_leader", 1.0)
-            self._leader_vaos[0].render(moderngl.TRIANGLES)
-            self._set(gen, "u_ned_from_model", identity)
-            self._set(gen, "u_leader", 0.0)
-        if extra_vertices is not None and len(extra_vertices):
+            _set(progs.generic, "u_ned_from_model", model)
+            _set(progs.generic, "u_leader", 1.0)
+            progs.leader_vaos[0].render(moderngl.TRIANGLES)
+            _set(progs.generic, "u_ned_from_model", identity)
+            _set(progs.generic, "u_leader", 0.0)
+        if extra_vertices is not None and len(extra_vertices) and progs.dyn_vao is not None:
             data = np.ascontiguousarray(extra_vertices, dtype=np.float32)
             if data.nbytes > self._dyn_buf.size:
                 self._dyn_buf.orphan(data.nbytes * 2)
             self._dyn_buf.write(data.tobytes())
-            self._dyn_vao.render(moderngl.TRIANGLES, vertices=len(data))
-        for vao, (first, count) in zip(self._world_vaos[::-1], self.world.groups[::-1], strict=True):
+            progs.dyn_vao.render(moderngl.TRIANGLES, vertices=len(data))
+        for vao, (first, count) in zip(progs.world_vaos[::-1], self.world.groups[::-1], strict=True):
             if count:
                 vao.render(moderngl.TRIANGLES, vertices=count, first=first)
         # Sky where nothing was drawn: depth is still 1.0 there.
         ctx.disable(moderngl.CULL_FACE)
         ctx.depth_func = "<="
         fbo.depth_mask = False
-        self._set(self._sky_prog, "u_ned_from_pix", _mat_bytes(cam.R_ned_cam @ self._Kinv_fb))
-        self._set(self._sky_prog, "u_gain_rgb", tuple(g * SKY_SCALE for g in gain_rgb))
-        self._set(self._sky_prog, "u_glare_rgb", tuple(g / SKY_SCALE for g in glare))
-        self._sky_vao.render(moderngl.TRIANGLES)
+        _set(progs.sky, "u_ned_from_pix", _mat_bytes(cam.R_ned_cam @ self._Kinv_fb))
+        _set(progs.sky, "u_gain_rgb", tuple(g * SKY_SCALE for g in gain_rgb))
+        _set(progs.sky, "u_glare_rgb", tuple(g / SKY_SCALE for g in glare))
+        progs.sky_vao.render(moderngl.TRIANGLES)
         if leader is not None:
             # Rotor discs: blend colour, mark the mask (aux alpha), leave depth and texturedness alone.
             rotor_phase, blade_vis = self._rotor_state(t_s, exposure_s)
-            rp = self._rotor_prog
-            self._set(rp, "u_ned_from_model", _mat_bytes(model_matrix(leader.R_ned_body, leader.p_ned_m)))
-            self._set(rp, "u_leader", 1.0)
-            self._set(rp, "u_rotor_phase", rotor_phase)
-            self._set(rp, "u_blade_vis", blade_vis)
+            rp = progs.rotor
+            _set(rp, "u_ned_from_model", model)
+            _set(rp, "u_leader", 1.0)
+            _set(rp, "u_rotor_phase", rotor_phase)
+            _set(rp, "u_blade_vis", blade_vis)
             ctx.depth_func = "<"
             ctx.enable(moderngl.BLEND)
             ctx.blend_func = (  # type: ignore[assignment]  # moderngl takes 2 or 4 factors
@@ -558,68 +742,12 @@ class Renderer:
                 moderngl.ONE,
                 moderngl.ZERO,
             )
-            fbo.color_mask = [(True, True, True, False), (False, False, False, True)]  # type: ignore[assignment]
-            self._leader_vaos[1].render(moderngl.TRIANGLES)
-            fbo.color_mask = [(True, True, True, True), (True, True, True, True)]  # type: ignore[assignment]
+            masks = [(True, True, True, False), (False, False, False, True), (False, False, False, False)]
+            fbo.color_mask = masks[: len(fbo.color_attachments)]  # type: ignore[assignment]
+            progs.leader_vaos[1].render(moderngl.TRIANGLES)
+            fbo.color_mask = [(True, True, True, True)] * len(fbo.color_attachments)  # type: ignore[assignment]
             ctx.disable(moderngl.BLEND)
         fbo.depth_mask = True
-
-        # ---- pass 2: sensor
-        blur_n = 0
-        H0 = H1 = np.eye(3)
-        if omega_cam_rad_s is not None and self.camera.motion_blur:
-            H0, H1, streak = blur_homographies(self.intrinsics, omega_cam_rad_s, exposure_s)
-            if streak > 0.75:
-                blur_n = 4 if streak <= 4.0 else (8 if streak <= 8.0 else 16)
-        holes = self.camera.depth_holes
-        shadow_px = self._shadow_search_px(cam, leader, extra_vertices)
-        region = self._near_region(cam, leader, extra_vertices, shadow_px) if holes else None
-        W, H = self.intrinsics.width_px, self.intrinsics.height_px
-        # Depth edges and stereo shadows need neighbour fetches, the dearest thing on llvmpipe, and only
-        # matter within the depth range: near objects. Whole frame when they fill much of it.
-        whole = holes and (
-            self.supersample > 1 or (region is not None and region[2] * region[3] > 0.4 * W * H)
-        )
-        self._post_fbo.use()
-        ctx.disable(moderngl.DEPTH_TEST)
-        self._s0.use(0)
-        self._s1.use(1)
-        self._noise.use(2)
-        offs = self._rng.integers(0, FIELD_PX, 2)
-        k = self.visual.sensor_noise if self.camera.colour_noise else 0.0
-        a, b = 0.0008 * analog * k, (0.002 * analog * k) ** 2
-        noise_sd = (0.5 * math.sqrt(a), 0.5 * math.sqrt(b), max(b**0.25, 1e-3))
-        passes = [(whole, None)] if whole or region is None else [(False, None), (True, region)]
-        for edges, scissor in passes:
-            pp, post_vao = self._post_variant(edges, shadow_px, blur_n)
-            self._set(pp, "u_off", (int(offs[0]), int(offs[1])))
-            if blur_n:
-                self._set(pp, "u_H0", _mat_bytes(H0))
-                self._set(pp, "u_H1", _mat_bytes(H1))
-            self._set(pp, "u_noise_sd", noise_sd)
-            self._set(pp, "u_hole_p", (0.004, 0.10) if holes else (0.0, 0.0))
-            self._set(pp, "u_vignette", self.visual.vignetting)
-            self._set(pp, "u_contrast", self.visual.contrast)
-            self._post_fbo.scissor = scissor  # type: ignore[assignment]  # None = whole framebuffer
-            post_vao.render(moderngl.TRIANGLES)
-        self._post_fbo.scissor = None  # type: ignore[assignment]
-
-        rgb = np.empty((H, W, 3), dtype=np.uint8)
-        depth = np.empty((H, W), dtype=np.float32)
-        mask = np.empty((H, W), dtype=np.uint8)
-        self._post_fbo.read_into(rgb, components=3, attachment=0)
-        self._post_fbo.read_into(depth, components=1, attachment=1, dtype="f4")
-        self._post_fbo.read_into(mask, components=1, attachment=2)
-        self._meter(rgb)
-
-        box, visible, full = None, 0.0, 0.0
-        if leader is not None and truth:
-            box, count = box_from_mask(mask)
-            if box is not None:
-                visible = float(count) if self.supersample == 1 else float(mask.sum(dtype=np.int64)) / 255.0
-                full = self._full_leader_px(cam, leader, clip_from_ned)
-                full = max(full, visible)
-        return RenderedView(rgb, depth, mask, box, visible, full, exposure_s)
 
     def _glare_rgb(self, cam: CameraPose) -> tuple[float, float, float]:
         """Veiling glare: light a sun in or near the view scatters over the whole image (linear)."""
@@ -712,7 +840,7 @@ class Renderer:
             return None
         return (x0, y0, x1 - x0, y1 - y0)
 
-    def _full_leader_px(self, cam: CameraPose, leader: LeaderPose, _clip: bytes) -> float:
+    def _full_leader_px(self, cam: CameraPose, leader: LeaderPose) -> float:
         """Pixels the leader would cover with nothing in front and no image border (0 if unknown)."""
         p_cam = cam.to_cam(leader.p_ned_m)
         R = self.leader_model.bound_radius_m
@@ -740,10 +868,10 @@ class Renderer:
         ctx = self._ctx
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
         mp = self._mask_prog
-        self._set(mp, "u_clip_from_ned", _mat_bytes(P @ view_matrix(cam)))
-        self._set(mp, "u_ned_from_model", _mat_bytes(model_matrix(leader.R_ned_body, leader.p_ned_m)))
-        self._leader_vaos[2].render(moderngl.TRIANGLES)
-        self._leader_vaos[3].render(moderngl.TRIANGLES)
+        _set(mp, "u_clip_from_ned", _mat_bytes(P @ view_matrix(cam)))
+        _set(mp, "u_ned_from_model", _mat_bytes(model_matrix(leader.R_ned_body, leader.p_ned_m)))
+        for vao in self._mask_vaos:
+            vao.render(moderngl.TRIANGLES)
         fbo.read_into(buf, components=1)
         return float(np.count_nonzero(buf)) / float(s * s)
 

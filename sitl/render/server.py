@@ -1,10 +1,10 @@
 """The simulated camera inside ``sitl serve``: renders the follower's view on the sim clock and streams it.
 
-:class:`CameraServer` samples the truth callable every ``1 / rate_hz`` sim seconds, renders on one
-worker thread (which owns the GL context, so the event loop keeps running meanwhile) and writes each
-frame to every connected client over a Unix socket, in the wire format of
-:mod:`companion.perception.sources.sim`. A client that falls behind loses frames rather than building
-a backlog. Nothing is rendered while no client is connected.
+:class:`CameraServer` samples the truth callable every ``1 / rate_hz`` sim seconds, has the frame
+rendered by a worker process (:mod:`sitl.render.worker`: moderngl holds the GIL while the driver
+renders, which would stall the simulator's real-time loop) and forwards it to every connected client
+over a Unix socket, in the wire format of :mod:`companion.perception.sources.sim`. A client that falls
+behind loses frames rather than building a backlog. Nothing is rendered while no client is connected.
 
 In ``sitl serve`` add ``components = ["sitl.render.server:camera_component"]`` to ``[serve]`` (or pass
 ``--component sitl.render.server:camera_component``): it serves ``/run/wingman/camera.sock`` with the
@@ -15,20 +15,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
+import sys
+from asyncio.subprocess import PIPE
 from collections.abc import Awaitable, Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol, Self
 
-import numpy as np
-
 from companion.config import MountConfig
-from companion.perception.sources.sim import DepthEncoding, encode_frame
+from companion.errors import CameraError
+from companion.perception.sources.sim import PREFIX, DepthEncoding
 from sitl.render.config import CameraModel, VisualConfig, visual_from_mapping
-from sitl.render.geometry import PoseTruth, VehiclePose, as_vec3
-from sitl.render.renderer import Renderer
+from sitl.render.geometry import PoseTruth
+from sitl.render.worker import READY, pose_to_json
 
 log = logging.getLogger(__name__)
 
@@ -36,16 +37,8 @@ DEFAULT_SOCKET = Path("/run/wingman/camera.sock")
 TruthFn = Callable[[], tuple[PoseTruth, PoseTruth | None]]
 #: A client whose unsent data exceeds this many frames gets frames dropped until it catches up.
 MAX_QUEUED_FRAMES = 2
-
-
-def _snapshot(truth: PoseTruth) -> VehiclePose:
-    """Copy the pose (and rate, when present) so the render thread never sees the sim mutate it."""
-    omega = getattr(truth, "omega_body_rad_s", None)
-    return VehiclePose(
-        as_vec3(truth.p_ned_m).copy(),
-        np.array(truth.q_ned_body_wxyz, dtype=np.float64),
-        None if omega is None else as_vec3(omega).copy(),
-    )
+#: The render process imports numpy and moderngl and bakes the world before it is ready.
+STARTUP_TIMEOUT_S = 60.0
 
 
 class CameraServer:
@@ -91,8 +84,7 @@ class CameraServer:
         self.frames_sent = 0
         self.frames_dropped = 0
         self._clients: set[asyncio.StreamWriter] = set()
-        self._executor: ThreadPoolExecutor | None = None
-        self._renderer: Renderer | None = None
+        self._proc: asyncio.subprocess.Process | None = None
         self._server: asyncio.Server | None = None
 
     @property
@@ -100,14 +92,29 @@ class CameraServer:
         return len(self._clients)
 
     async def __aenter__(self) -> Self:
-        loop = asyncio.get_running_loop()
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sitl.camera")
         try:
-            self._renderer = await loop.run_in_executor(
-                self._executor, lambda: Renderer(self.camera, self.visual, self.mount, seed=self.seed)
+            self._proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "sitl.render.worker", stdin=PIPE, stdout=PIPE
             )
+            assert self._proc.stdin is not None  # noqa: S101 (PIPE)
+            cfg = {
+                "camera": self.camera.model_dump(mode="json"),
+                "visual": self.visual.model_dump(mode="json"),
+                "mount": self.mount.model_dump(mode="json"),
+                "seed": self.seed,
+                "depth": self.depth_encoding,
+            }
+            self._proc.stdin.write(json.dumps(cfg).encode() + b"\n")
+            await self._proc.stdin.drain()
+            async with asyncio.timeout(STARTUP_TIMEOUT_S):
+                ready = await self._worker_out().readexactly(len(READY))
+            if ready != READY:
+                raise CameraError(f"camera render process: unexpected greeting {ready!r}")
             self.socket_path.parent.mkdir(parents=True, exist_ok=True)
             self._server = await asyncio.start_unix_server(self._on_client, path=str(self.socket_path))
+        except asyncio.IncompleteReadError:
+            await self._shutdown()
+            raise CameraError("camera render process exited while starting (see its stderr)") from None
         except BaseException:
             await self._shutdown()
             raise
@@ -119,6 +126,11 @@ class CameraServer:
     ) -> None:
         await self._shutdown()
 
+    def _worker_out(self) -> asyncio.StreamReader:
+        assert self._proc is not None  # noqa: S101 (inside the context)
+        assert self._proc.stdout is not None  # noqa: S101 (PIPE)
+        return self._proc.stdout
+
     async def _shutdown(self) -> None:
         if self._server is not None:
             self._server.close()
@@ -126,12 +138,25 @@ class CameraServer:
         for w in list(self._clients):
             w.close()
         self._clients.clear()
-        if self._executor is not None:
-            if self._renderer is not None:
-                await asyncio.get_running_loop().run_in_executor(self._executor, self._renderer.close)
-                self._renderer = None
-            self._executor.shutdown(wait=True)
-            self._executor = None
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            if proc.stdin is not None:
+                proc.stdin.close()  # EOF: the worker leaves its loop and releases the GL context
+
+            async def drained_exit() -> None:
+                # A frame cut short by cancellation may still be in the pipe: read it away, or the
+                # worker blocks writing it, and asyncio's wait() also needs stdout at EOF to return.
+                if proc.stdout is not None:
+                    while await proc.stdout.read(1 << 16):
+                        pass
+                await proc.wait()
+
+            try:
+                async with asyncio.timeout(5.0):
+                    await drained_exit()
+            except TimeoutError:
+                proc.kill()
+                await drained_exit()
         with contextlib.suppress(FileNotFoundError):
             self.socket_path.unlink()
 
@@ -152,15 +177,30 @@ class CameraServer:
         while (remaining := t_s - self.time_fn()) > 0:  # noqa: ASYNC110
             await asyncio.sleep(min(remaining, 0.005))
 
-    def _render_encoded(self, follower: PoseTruth, leader: PoseTruth | None, t_s: float) -> list[Any]:
-        assert self._renderer is not None  # noqa: S101 (inside the context)
-        return encode_frame(self._renderer.render(follower, leader, t_s), self.depth_encoding)
+    async def _render(self, follower: PoseTruth, leader: PoseTruth | None, t_s: float) -> list[bytes]:
+        """One frame from the worker, as the raw wire message (prefix + header, rgb, depth)."""
+        assert self._proc is not None  # noqa: S101 (inside the context)
+        assert self._proc.stdin is not None  # noqa: S101 (PIPE)
+        req = {"t": t_s, "f": pose_to_json(follower), "l": None if leader is None else pose_to_json(leader)}
+        self._proc.stdin.write(json.dumps(req).encode() + b"\n")
+        out = self._worker_out()
+        try:
+            await self._proc.stdin.drain()
+            prefix = await out.readexactly(PREFIX.size)
+            _, n = PREFIX.unpack(prefix)
+            raw = await out.readexactly(n)
+            header = json.loads(raw)
+            rgb = await out.readexactly(int(header["rgb_bytes"]))
+            depth = await out.readexactly(int(header["depth_bytes"]))
+        except (asyncio.IncompleteReadError, ConnectionError):
+            code = self._proc.returncode
+            raise CameraError(f"camera render process died (exit code {code}; see its stderr)") from None
+        return [prefix + raw, rgb, depth]
 
     async def run(self) -> None:
         """Render and send frames at ``rate_hz`` of sim time until cancelled."""
-        if self._executor is None:
+        if self._proc is None:
             raise RuntimeError("CameraServer.run() outside `async with`")
-        loop = asyncio.get_running_loop()
         period = 1.0 / self.rate_hz
         next_t = self.time_fn()
         while True:
@@ -172,8 +212,7 @@ class CameraServer:
             if self.stalled or not self._clients:
                 continue
             follower, leader = self.truth_fn()
-            snap_f, snap_l = _snapshot(follower), None if leader is None else _snapshot(leader)
-            payload = await loop.run_in_executor(self._executor, self._render_encoded, snap_f, snap_l, t_s)
+            payload = await self._render(follower, leader, t_s)
             frame_bytes = sum(len(p) for p in payload)
             for w in list(self._clients):
                 if w.is_closing():

@@ -12,10 +12,15 @@ Passes:
     1. scene: the world by material group (ground, generic, foliage), distractors, the leader, the sky
        where nothing was drawn, then the rotor discs blended. Writes S0 = sqrt(exposed linear colour),
        S1.rgb = packed disparity (0 = nothing: sky), S1.a = 0.5 * is_leader + 0.49 * texturedness.
-    2. post: the sensor. Depth: stereo noise on disparity, stereo shadows, edge and low-texture holes,
-       range limits. Colour: optional rotational motion blur, vignetting, shot + read noise, gamma 2 and
-       contrast. Writes RGBA8 colour, R32F depth in metres (0 = invalid) and R8 leader coverage.
+    2. post: the sensor (``_SENSOR``). Depth: stereo noise on disparity, stereo shadows, edge and
+       low-texture holes, range limits. Colour: optional rotational motion blur, vignetting, shot + read
+       noise, gamma 2 and contrast. Writes RGBA8 colour, R32F depth in metres (0 = invalid), R8 mask.
     3. mask: the leader alone on a canvas with a shifted principal point (visible-fraction truth).
+
+Real time (no supersampling, no motion blur) the scene shaders are compiled with ``DIRECT`` and apply
+the sensor model themselves, writing final colour and depth (a third attachment) straight away: the
+full-screen post pass, three texture reads per pixel, disappears. Only a scissored ``DEPTH_ONLY`` post
+pass then adds depth-edge and stereo-shadow holes around near objects.
 """
 
 from __future__ import annotations
@@ -24,6 +29,42 @@ _TEX_LOD = """
 uniform sampler2D u_tex;
 // t in texels of the 1024^2 pattern texture; GL picks the mip level, nearest filtering (cheap on llvmpipe).
 vec4 tex_lod(vec2 t) { return texture(u_tex, t * (1.0 / 1024.0)); }
+"""
+
+#: The sensor model shared by the post pass and DIRECT scene shaders (needs ``u_fB`` declared first).
+_SENSOR = """
+// r: white N(0,1) luminance noise, g: white N(0,1) chroma noise (also a per-pixel coin), b: spatially
+// correlated N(0,1) disparity noise (all stored as 8 (x - 0.5)); a: clumpy field, uniform on [0, 1].
+uniform sampler2D u_noise;
+uniform ivec2 u_off;
+uniform vec2 u_half_size;    // output half size, px
+uniform vec3 u_noise_sd;     // colour noise sd in the sqrt domain: sd = x + y / (v + z), v = sqrt(linear)
+uniform float u_vignette;
+uniform float u_contrast;
+uniform float u_subpix;      // disparity noise sigma, px
+uniform vec2 u_zrange;       // valid depth, m
+uniform vec2 u_hole_p;       // blob-hole probability: (floor, extra at zero texture)
+
+vec4 sensor_noise(ivec2 p) { return texelFetch(u_noise, (p + u_off) & 1023, 0); }
+
+// Colour in the sqrt domain the scene writes (gamma 2, close to sRGB): vignetting, shot + read noise
+// (shot noise is nearly constant in this domain), contrast.
+vec3 sensor_colour(vec3 v, vec4 nz) {
+    vec3 n = 8.0 * (nz.rgb - 0.5);
+    vec2 r = (gl_FragCoord.xy - u_half_size) / u_half_size.x;
+    v *= 1.0 - u_vignette * 0.25 * dot(r, r);
+    v += (u_noise_sd.x + u_noise_sd.y / (v + u_noise_sd.z)) * (n.r + 0.5 * n.g * vec3(1.0, -0.2, -1.0));
+    return (v - 0.45) * u_contrast + 0.45;
+}
+
+// D400 stereo: noise on the true disparity d (px, 0 = nothing), range limits on the true disparity (a
+// matcher's search range, so noise is never truncated), clumps of failed matches on low texture.
+float sensor_depth(float d, float textured, vec4 nz) {
+    float dn = d + u_subpix * 8.0 * (nz.b - 0.5);
+    bool valid = d >= u_fB / u_zrange.y && d <= u_fB / u_zrange.x && dn > 0.0
+        && nz.a >= u_hole_p.x + u_hole_p.y * (1.0 - textured);
+    return valid ? u_fB / dn : 0.0;
+}
 """
 
 SCENE_VS = """
@@ -53,8 +94,8 @@ void main() {
 }
 """
 
-_SCENE_HEAD = """
-#version 330
+_SCENE_HEAD = (
+    """
 uniform vec3 u_cam_ned;
 uniform vec3 u_sun_dir;
 uniform vec3 u_sun_rgb;
@@ -66,6 +107,11 @@ uniform vec3 u_gain_rgb;
 uniform vec3 u_glare_rgb;   // veiling glare from a sun near the view (scattered in the lens)
 uniform float u_leader;
 uniform float u_fB;   // focal length * baseline at output resolution, px m
+#if DIRECT
+"""
+    + _SENSOR
+    + """
+#endif
 in vec3 v_p;
 in vec3 v_n;
 in vec3 v_rgb;
@@ -74,6 +120,9 @@ flat in int v_kind;
 flat in float v_param;
 layout(location = 0) out vec4 o_col;
 layout(location = 1) out vec4 o_aux;
+#if DIRECT
+layout(location = 2) out float o_depth;
+#endif
 
 vec3 pack_disparity(float d) {
     // d in [0, 256) px -> 8.16 fixed point in three bytes; decoded as dot(rgb, (255, 255/256, 255/65536)).
@@ -95,12 +144,21 @@ float spec32(float x) {
 void emit(vec3 col, float alpha, float textured, float dist) {
     float fog = exp(-u_fog_density * dist);
     col = mix(u_fog_rgb, col, fog) + u_glare_rgb;
-    o_col = vec4(sqrt(clamp(col * u_gain_rgb, 0.0, 1.0)), alpha);
-    o_aux = vec4(pack_disparity(u_fB * gl_FragCoord.w), 0.5 * u_leader + 0.49 * textured * fog);
+    vec3 v = sqrt(clamp(col * u_gain_rgb, 0.0, 1.0));
+    float d = u_fB * gl_FragCoord.w;
+    textured *= fog;
+#if DIRECT
+    vec4 nz = sensor_noise(ivec2(gl_FragCoord.xy));
+    v = sensor_colour(v, nz);
+    o_depth = sensor_depth(d, textured, nz);
+#endif
+    o_col = vec4(v, alpha);
+    o_aux = vec4(pack_disparity(d), 0.5 * u_leader + 0.49 * textured);
 }
 """
+)
 
-#: Ground, per frame: the baked material texture (512 m period) times fine detail, lit as flat.
+#: Ground, per frame: the baked material texture (1024 m period) times fine detail, lit as flat.
 SCENE_GROUND_FS = (
     _SCENE_HEAD
     + """
@@ -113,7 +171,7 @@ void main() {
     // A flat ground seen from height h: a pixel's footprint along the view is dist^2 / (f h), so the
     // mip level is 2 log2(dist) + const (implicit derivatives cost more than the fetch on llvmpipe).
     float l = 2.0 * log2(dist);
-    vec4 g = textureLod(u_ground, v_p.xy * (1.0 / 512.0), l + u_ground_lod.x);
+    vec4 g = textureLod(u_ground, v_p.xy * (1.0 / 1024.0), l + u_ground_lod.x);
     float det = textureLod(u_tex, v_p.xy * (25.0 / 1024.0), l + u_ground_lod.y).b;
     emit(g.rgb * g.rgb * (0.7 + 0.6 * det) * u_ground_light, 1.0, g.a, dist);
 }
@@ -121,7 +179,7 @@ void main() {
 )
 
 #: Bakes the ground material texture once per world: large patches of up to four materials, field
-#: rows and a road, all periodic over 512 m so the texture tiles without seams.
+#: rows and a road, all periodic over 1024 m so the texture tiles without seams.
 GROUND_BAKE_FS = (
     """
 #version 330
@@ -136,8 +194,8 @@ uniform vec2 u_rows;       // field rows: (axis, rows per period)
 uniform float u_texel_m;
 layout(location = 0) out vec4 o_ground;
 void main() {
-    vec2 p = (gl_FragCoord.xy - 0.5) * u_texel_m;   // metres over one 512 m period
-    vec4 macro = tex_lod(p * 2.0);                   // 1024 texels per 512 m: seamless
+    vec2 p = (gl_FragCoord.xy - 0.5) * u_texel_m;   // metres over one 1024 m period
+    vec4 macro = tex_lod(p);                         // 1024 texels per 1024 m: seamless
     float s = macro.r * float(u_ground_n) - 0.5;
     int i0 = clamp(int(floor(s)), 0, u_ground_n - 1);
     int i1 = min(i0 + 1, u_ground_n - 1);
@@ -146,7 +204,7 @@ void main() {
     float textured = mix(u_ground_texture[i0], u_ground_texture[i1], w);
     albedo *= 0.8 + 0.4 * macro.g;
     float across = u_rows.x < 0.5 ? p.y : p.x;
-    float rc = across * u_rows.y / 512.0;
+    float rc = across * u_rows.y / 1024.0;
     albedo *= 1.0 - 0.25 * smoothstep(0.55, 0.75, macro.g) * step(0.5, fract(rc));
     float rdist = abs((u_road.x < 0.5 ? p.y : p.x) - u_road.y);
     float on_road = 1.0 - smoothstep(u_road.z - u_texel_m, u_road.z + u_texel_m, rdist);
@@ -209,7 +267,10 @@ void main() {
     float leaf = 0.5 * t1.b + 0.5 * t2.g;
     float rim = 1.0 - abs(dot(n, view));
     float crown_cut = leaf - (v_param * 0.9 + 0.55 * rim * rim);
-    float band_cut = 0.55 + 0.45 * t2.r + 0.1 * t1.b - v_uv.y;
+    // Horizon forest: crowns a few metres wide cut into the top third of the band (coarse noise
+    // along the ring, so it survives the distance).
+    vec4 t3 = tex_lod(vec2(v_uv.x / 2.5, 40.0 + 0.3 * v_uv.y));
+    float band_cut = 0.62 + 0.38 * t3.b - v_uv.y;
     if ((v_kind == 9 ? band_cut : crown_cut) < 0.0) discard;
     vec3 albedo = v_rgb * (0.55 + 0.9 * leaf);
     vec3 col = albedo * (u_sun_rgb * max(dot(n, u_sun_dir), 0.0) + ambient(n)) * (0.75 + 0.25 * leaf);
@@ -283,10 +344,13 @@ void main() {
     c += u_sun_rgb * (0.02 * exp(30.0 * (mu - 1.0)) + 0.25 * exp(800.0 * (mu - 1.0)));
     c += u_sun_rgb * 30.0 * step(u_sun_cos, mu);
     float t = u_cloud.x / max(el, 0.004);
-    vec4 nz = tex_lod(d.xy * t / u_cloud.y + u_cloud_off);
-    float dens = 0.55 * nz.r + 0.3 * nz.g + 0.15 * nz.b;
-    float cov = smoothstep(u_cloud.z, u_cloud.w, dens) * smoothstep(0.0, 0.08, el);
-    float thick = clamp((dens - u_cloud.z) / max(1.0 - u_cloud.z, 0.05), 0.0, 1.0);
+    vec2 q = d.xy * t / u_cloud.y + u_cloud_off;
+    vec4 nz = tex_lod(q);
+    vec4 fine = tex_lod(q * 3.7 + 17.0);
+    // Shape from the large scales, a little fine detail on the edges; thins out towards the horizon.
+    float dens = 0.8 * nz.r + 0.12 * nz.g + 0.08 * fine.g;
+    float cov = smoothstep(u_cloud.z, u_cloud.w, dens) * smoothstep(0.0, 0.12, el);
+    float thick = clamp((dens - u_cloud.z) / max(1.0 - u_cloud.z, 0.05), 0.0, 1.0) * (0.7 + 0.3 * fine.r);
     vec3 cl = mix(u_cloud_lit_rgb, u_cloud_dark_rgb, thick);
     cl += u_sun_rgb * 0.15 * exp(8.0 * (mu - 1.0)) * (1.0 - thick);
     c = mix(c, cl, cov);
@@ -299,21 +363,34 @@ void main() {
 )
 
 #: The sky per frame: one cube-map lookup where nothing else was drawn.
-SKY_FS = """
-#version 330
+SKY_FS = (
+    """
 uniform samplerCube u_sky;
 uniform mat3 u_ned_from_pix;   // R_ned_cam * K^-1 at the framebuffer's scale
 uniform vec3 u_gain_rgb;       // exposure * white balance * SKY_SCALE
 uniform vec3 u_glare_rgb;      // veiling glare, divided by SKY_SCALE
+uniform float u_fB;
+#if DIRECT
+"""
+    + _SENSOR
+    + """
+layout(location = 2) out float o_depth;
+#endif
 layout(location = 0) out vec4 o_col;
 layout(location = 1) out vec4 o_aux;
 void main() {
     // Level 0: face texels are about a pixel wide; implicit LOD on a cube costs ~3x the lookup here.
     vec3 s = textureLod(u_sky, u_ned_from_pix * vec3(gl_FragCoord.xy - 0.5, 1.0), 0.0).rgb;
-    o_col = vec4(sqrt(min((s * s + u_glare_rgb) * u_gain_rgb, 1.0)), 1.0);
+    vec3 v = sqrt(min((s * s + u_glare_rgb) * u_gain_rgb, 1.0));
+#if DIRECT
+    v = sensor_colour(v, sensor_noise(ivec2(gl_FragCoord.xy)));
+    o_depth = 0.0;
+#endif
+    o_col = vec4(v, 1.0);
     o_aux = vec4(0.0);
 }
 """
+)
 
 #: Offsets searched for stereo shadows, by the widest shadow expected (px); sparse beyond 4 px.
 SHADOW_OFFSETS_PX: dict[int, tuple[int, ...]] = {
@@ -324,27 +401,26 @@ SHADOW_OFFSETS_PX: dict[int, tuple[int, ...]] = {
     24: (1, 3, 6, 10, 15, 21),
 }
 
-_POST_BODY = """
-// Variant switches: SS (1 or 2), EDGES (0/1), N_SHADOW + SHADOW_OFFS, BLUR_N (0 = none)
+_POST_BODY = (
+    """
+// Variant switches: SS (1 or 2), EDGES (0/1), N_SHADOW + SHADOW_OFFS, BLUR_N (0 = none),
+// DEPTH_ONLY (1: write only depth, location 0; the colour and mask came from a DIRECT scene pass).
 uniform sampler2D u_col;
 uniform sampler2D u_aux;
-// r: white N(0,1) luminance noise, g: white N(0,1) chroma noise, b: spatially correlated N(0,1)
-// disparity noise (all stored as 8 (x - 0.5)); a: clumpy field, uniform on [0, 1], for holes.
-uniform sampler2D u_noise;
-uniform ivec2 u_off;
 uniform ivec2 u_size;        // output size, px
 uniform float u_fB;          // focal length * baseline, px m
-uniform float u_subpix;      // disparity noise sigma, px
-uniform vec2 u_zrange;       // valid depth, m
-uniform vec2 u_hole_p;       // blob-hole probability: (floor, extra at zero texture)
 uniform mat3 u_H0;
 uniform mat3 u_H1;
-uniform vec3 u_noise_sd;     // colour noise sd in the sqrt domain: sd = x + y / (v + z), v = sqrt(linear)
-uniform float u_vignette;
-uniform float u_contrast;
+"""
+    + _SENSOR
+    + """
+#if DEPTH_ONLY
+layout(location = 0) out float o_depth;
+#else
 layout(location = 0) out vec4 o_rgb;
 layout(location = 1) out float o_depth;
 layout(location = 2) out float o_mask;
+#endif
 
 const vec3 DEC = vec3(255.0, 255.0 / 256.0, 255.0 / 65536.0);
 
@@ -362,20 +438,11 @@ vec3 col_at(ivec2 q) {
 
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
-    vec4 nz = texelFetch(u_noise, (p + u_off) & 1023, 0);
-    vec3 n = 8.0 * (nz.rgb - 0.5);
+    vec4 nz = sensor_noise(p);
     vec4 aux = texelFetch(u_aux, p * SS, 0);
     float d = dot(aux.rgb, DEC);
-
-    // ---- depth: D400 stereo model on disparity d = f B / Z
-    float dn = d + u_subpix * n.b;
-    float z = u_fB / max(dn, 1e-6);
     float leader = step(0.5, aux.a);
-    float textured = (aux.a - 0.5 * leader) / 0.49;
-    // Range limits act on the true disparity (a matcher's search range), so noise is never truncated.
-    // Low texture: clumps of failed matches, more where the surface is plain.
-    bool valid = d >= u_fB / u_zrange.y && d <= u_fB / u_zrange.x && dn > 0.0
-        && nz.a >= u_hole_p.x + u_hole_p.y * (1.0 - textured);
+    float depth = sensor_depth(d, (aux.a - 0.5 * leader) / 0.49, nz);
 #if EDGES
     // Stereo shadow: the right imager sits at +x, so a surface k px to the right with k px more
     // disparity hides this point from it. Offsets are sparse beyond 4 px (see SHADOW_OFFSETS_PX).
@@ -387,14 +454,14 @@ void main() {
         shadow = max(shadow, disp(p + ivec2(OFFS[i], 0)) - d - float(OFFS[i]));
     }
 #endif
-    // Depth edges: the matcher's window straddles two surfaces; most such pixels fail.
+    // Depth edges: the matcher's window straddles two surfaces; three in four such pixels fail.
     float dd = disp(max(p - ivec2(0, 1), ivec2(0)));
     float jump = max(abs(dr - d), abs(dd - d));
-    valid = valid && shadow < 0.0 && !(jump > max(0.5, 0.06 * d) && n.g > -0.67);
+    bool edge_hole = jump > max(0.5, 0.06 * d) && 8.0 * (nz.g - 0.5) > -0.67;
+    if (shadow >= 0.0 || edge_hole) depth = 0.0;
 #endif
-    o_depth = valid ? z : 0.0;
-
-    // ---- leader coverage
+    o_depth = depth;
+#if !DEPTH_ONLY
 #if SS == 1
     o_mask = leader;
 #else
@@ -403,9 +470,6 @@ void main() {
         + step(0.5, texelFetch(u_aux, b + ivec2(0, 1), 0).a)
         + step(0.5, texelFetch(u_aux, b + ivec2(1, 1), 0).a));
 #endif
-
-    // ---- colour, in the sqrt domain the scene wrote (gamma 2, close to sRGB): rotation blur,
-    // vignetting, sensor noise (shot noise is nearly constant there), contrast.
 #if BLUR_N > 0
     vec3 pix = vec3(vec2(p), 1.0);
     vec3 a0 = u_H0 * pix;
@@ -421,22 +485,31 @@ void main() {
 #else
     vec3 v = col_at(p);
 #endif
-    vec2 r = (gl_FragCoord.xy - 0.5 * vec2(u_size)) / (0.5 * float(u_size.x));
-    v *= 1.0 - u_vignette * 0.25 * dot(r, r);
-    v += (u_noise_sd.x + u_noise_sd.y / (v + u_noise_sd.z)) * (n.r + 0.5 * n.g * vec3(1.0, -0.2, -1.0));
-    o_rgb = vec4((v - 0.45) * u_contrast + 0.45, 1.0);
+    o_rgb = vec4(sensor_colour(v, nz), 1.0);
+#endif
 }
 """
+)
 
 
-def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int) -> str:
+def with_defines(source: str, **defines: int | str) -> str:
+    """A shader source with ``#version 330`` and ``#define`` lines prepended."""
+    head = "#version 330\n" + "".join(f"#define {k} {v}\n" for k, v in defines.items())
+    return head + source
+
+
+def post_fs(ss: int, edges: bool, shadow_px: int, blur_n: int, depth_only: bool = False) -> str:
     """The post-pass source for one variant (``shadow_px`` must be a key of SHADOW_OFFSETS_PX)."""
     offs = SHADOW_OFFSETS_PX.get(shadow_px, (1,))
-    defines = (
-        f"#define SS {ss}\n#define EDGES {int(edges)}\n#define N_SHADOW {len(offs)}\n"
-        f"#define SHADOW_OFFS {', '.join(str(o) for o in offs)}\n#define BLUR_N {blur_n}\n"
+    return with_defines(
+        _POST_BODY,
+        SS=ss,
+        EDGES=int(edges),
+        N_SHADOW=len(offs),
+        SHADOW_OFFS=", ".join(str(o) for o in offs),
+        BLUR_N=blur_n,
+        DEPTH_ONLY=int(depth_only),
     )
-    return "#version 330\n" + defines + _POST_BODY
 
 
 MASK_FS = """

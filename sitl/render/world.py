@@ -33,7 +33,7 @@ from sitl.render.meshes import (
 #: Half side of the square ground plane, m (the far clip plane sits beyond it).
 GROUND_HALF_M = 3500.0
 CLOUD_ALTITUDE_M = 1200.0
-CLOUD_TEXEL_M = 2.5
+CLOUD_TEXEL_M = 9.0
 
 _GROUND_ALBEDO: dict[str, tuple[RGB, float]] = {
     # material: (linear albedo, stereo texturedness)
@@ -79,32 +79,33 @@ class Lighting:
 
 
 def lighting(visual: VisualConfig) -> Lighting:
-    """Sun, sky and cloud colours for the time of day, sun elevation and cloud cover."""
+    """Sun, sky and cloud colours for the time of day, sun elevation and cloud cover.
+
+    Palettes follow photographs: a clear day sky deep blue at the zenith and pale at the horizon; an
+    overcast sky neutral light grey (brightest near the zenith); dusk a dim blue sky with a warm glow
+    only towards the sun. Fog takes a neutral version of the horizon colour.
+    """
     s = math.sin(math.radians(visual.resolved_sun_elevation_deg))
     day = _smoothstep(0.0, 0.35, s)  # 0 at the horizon (dusk), 1 by mid-morning
     cover = visual.cloud_cover
-    overcast = cover**2
+    overcast = _smoothstep(0.55, 0.95, cover)
+    dim = 0.3 + 0.7 * day  # overall light level
     sun_i = 3.2 * _smoothstep(-0.08, 0.35, s) * (1.0 - 0.85 * cover**1.5)
-    sun_rgb = _scale(_mix((1.0, 0.42, 0.16), (1.0, 0.96, 0.90), day), sun_i)
-    zenith = _mix(
-        _mix((0.05, 0.08, 0.22), (0.16, 0.32, 0.78), day),
-        _scale((0.62, 0.64, 0.68), 0.25 + 0.75 * day),
-        overcast,
-    )
-    horizon = _mix(
-        _mix((0.42, 0.32, 0.30), (0.55, 0.66, 0.82), day),
-        _scale((0.78, 0.79, 0.82), 0.2 + 0.8 * day),
-        overcast,
-    )
-    glow = _scale(_mix((0.9, 0.38, 0.12), (0.25, 0.22, 0.18), day), 1.0 - 0.7 * overcast)
+    sun_rgb = _scale(_mix((1.0, 0.45, 0.18), (1.0, 0.96, 0.90), day), sun_i)
+    grey_top = _scale((0.80, 0.82, 0.86), dim)
+    grey_hor = _scale((0.66, 0.68, 0.72), dim)
+    zenith = _mix(_mix((0.05, 0.09, 0.26), (0.10, 0.24, 0.70), day), grey_top, overcast)
+    horizon = _mix(_mix((0.34, 0.32, 0.38), (0.52, 0.64, 0.84), day), grey_hor, overcast)
+    glow = _scale(_mix((1.0, 0.42, 0.12), (0.25, 0.22, 0.18), day), 1.0 - 0.8 * overcast)
     sky = _scale(_mix(zenith, horizon, 0.5), 0.9)
     ground_albedo = 0.15
     bounce = _scale(_mix(sky, sun_rgb, 0.5), ground_albedo * (0.5 + 0.5 * max(s, 0.0)))
-    lit = _mix(_scale((1.0, 0.62, 0.45), 0.8), (1.25, 1.25, 1.27), day)
-    lit = _mix(lit, _scale((0.85, 0.86, 0.9), 0.25 + 0.75 * day), overcast)
-    dark = _mix(_scale((0.35, 0.32, 0.38), 0.6), (0.58, 0.60, 0.66), day)
-    dark = _mix(dark, _scale((0.5, 0.52, 0.57), 0.25 + 0.75 * day), overcast)
-    fog = visual.fog_rgb or _mix(horizon, glow, 0.15)
+    lit = _mix(_scale((1.0, 0.7, 0.55), 0.8), (1.25, 1.25, 1.27), day)
+    lit = _mix(lit, _scale((0.92, 0.93, 0.96), dim), overcast)
+    dark = _mix(_scale((0.35, 0.34, 0.40), 0.6), (0.62, 0.64, 0.70), day)
+    dark = _mix(dark, _scale((0.55, 0.57, 0.62), dim), overcast)
+    lum = (horizon[0] + horizon[1] + horizon[2]) / 3.0
+    fog = visual.fog_rgb or _mix(horizon, (lum, lum, lum * 1.04), 0.5)
     typical = 0.5 * (zenith[1] + horizon[1]) * 0.7 + 0.3 * 0.15 * (sun_i * 0.6 + sky[1])
     return Lighting(
         sun_dir_ned=visual.sun_dir_ned,
@@ -123,7 +124,7 @@ def lighting(visual: VisualConfig) -> Lighting:
 
 
 #: The ground texture tiles with this period, m (patches, rows and the road are periodic over it).
-GROUND_PERIOD_M = 512.0
+GROUND_PERIOD_M = 1024.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,7 +152,7 @@ def ground_style(visual: VisualConfig, rng: np.random.Generator) -> GroundStyle:
     if visual.road:
         off = rng.uniform(visual.clear_radius_m * 0.5, max(visual.clear_radius_m, 60.0))
         road = (float(rng.integers(2)), float(off % GROUND_PERIOD_M), float(rng.uniform(2.5, 4.0)), 0.0)
-    rows_per_period = float(round(GROUND_PERIOD_M / rng.uniform(0.6, 1.5)))
+    rows_per_period = float(round(GROUND_PERIOD_M / rng.uniform(2.5, 5.0)))  # > 2 texels: no moire
     return GroundStyle(
         (rgb[0], rgb[1], rgb[2], rgb[3]),
         (tex[0], tex[1], tex[2], tex[3]),
@@ -268,13 +269,13 @@ def _ring(radius: float, heights: F64, rgb: RGB, kind: float, b: MeshBuilder) ->
     x, y = radius * np.cos(th), radius * np.sin(th)
     quads = np.zeros((n, 4, 3))
     uv = np.zeros((n, 4, 2))
-    hmax = max(float(heights.max()), 1e-3)
     for i in range(n):
         j = i + 1
         # Counter-clockwise seen from the centre (the inside): i bottom, i top, j top, j bottom.
         quads[i] = [[x[i], y[i], 2.0], [x[i], y[i], -hh[i]], [x[j], y[j], -hh[j]], [x[j], y[j], 2.0]]
         arc_i, arc_j = radius * th[i], radius * th[j]
-        uv[i] = [[arc_i, 0.0], [arc_i, hh[i] / hmax], [arc_j, hh[j] / hmax], [arc_j, 0.0]]
+        # v: fraction of the local column (0 foot, 1 top): the shader cuts crowns into the top part.
+        uv[i] = [[arc_i, 0.0], [arc_i, 1.0], [arc_j, 1.0], [arc_j, 0.0]]
     m = quads_to_mesh(quads, uv)
     # Normals must point to the centre: flip any that do not.
     inward = -np.column_stack([m.pos[:, 0], m.pos[:, 1], np.zeros(len(m.pos))])
@@ -394,7 +395,7 @@ def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
             100.0 * (1.0 - cover), np.linspace(0, 100, pattern_dens_quantile.size), pattern_dens_quantile
         )
     )
-    thr = (lo_q - 0.03, lo_q + 0.05) if cover < 0.999 else (-1.0, -0.9)
+    thr = (lo_q - 0.06, lo_q + 0.10) if cover < 0.999 else (-1.0, -0.9)
     vertices, groups = sort_by_group(b.build())
     return World(
         vertices=vertices,

@@ -10,7 +10,7 @@ from companion.cli import main
 from companion.perception.record import FolderRecorder
 from tests.synthetic import sequence_frames
 
-N = 60
+N = 40
 
 
 @pytest.fixture(scope="module")

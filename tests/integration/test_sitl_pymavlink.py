@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import math
 import random
+import re
 import socket
 import struct
 import time
@@ -14,6 +14,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from tests.fuzz_messages import datagrams
 from tests.integration.sitl_process import SitlProcess, sitl_serve
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(240)]
@@ -99,51 +100,10 @@ def test_pymavlink_lists_reads_sets_params_and_changes_modes(sim: SitlProcess) -
     assert command(m, 2, mavlink.MAV_CMD_DO_SET_MODE, 129, 4, 4) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
     assert command(m, 2, mavlink.MAV_CMD_DO_SET_MODE, 129, 4, 6) == mavlink.MAV_RESULT_ACCEPTED
     recv(m, "HEARTBEAT", cond=lambda h: mavutil.interpret_px4_mode(h.base_mode, h.custom_mode) == "LAND")
-    # On the ground in Land: the land detector disarms it (COM_DISARM_LAND).
-    recv(m, "HEARTBEAT", timeout_s=20, cond=lambda h: not h.base_mode & 128)
+    # Armed on the ground and never airborne: auto-disarm after COM_DISARM_PRFLT (10 s sim). The
+    # wall-clock margin is wide because a loaded host slows the simulator down.
+    recv(m, "HEARTBEAT", timeout_s=60, cond=lambda h: not h.base_mode & 128)
     m.close()
-
-
-def _random_message(rng: random.Random) -> Any:
-    """A well-formed message of a random common type with random (often absurd) field values."""
-    cls = rng.choice(list(mavlink.mavlink_map.values()))
-    args = []
-    for name, ftype, n in zip(cls.fieldnames, cls.fieldtypes, cls.array_lengths, strict=True):
-        if ftype == "char":
-            args.append(bytes(rng.randrange(256) for _ in range(rng.randrange(n + 1))))
-            continue
-        if ftype in ("float", "double"):
-            pick = [math.nan, math.inf, -math.inf, 0.0, 1e30, -1e30, rng.uniform(-1e4, 1e4)]
-            val: Any = lambda pick=pick: rng.choice(pick)  # noqa: E731
-        else:
-            bits = int(ftype.rstrip("_t").lstrip("u").removeprefix("int") or 8)
-            lo, hi = (0, 2**bits - 1) if ftype.startswith("u") else (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
-            if name in ("target_system",):
-                lo, hi = 0, 3
-            val = lambda lo=lo, hi=hi: rng.randint(lo, hi)  # noqa: E731
-        args.append([val() for _ in range(n)] if n else val())
-    return cls(*args)
-
-
-def _datagrams(rng: random.Random, count: int) -> Iterator[bytes]:
-    packer = mavlink.MAVLink(None, srcSystem=200, srcComponent=1)
-    for _ in range(count):
-        kind = rng.random()
-        if kind < 0.3:
-            yield bytes(rng.randrange(256) for _ in range(rng.randrange(0, 300)))
-            continue
-        try:
-            frame = bytearray(_random_message(rng).pack(packer, force_mavlink1=rng.random() < 0.1))
-        except Exception:  # a random value pymavlink itself cannot pack: send junk instead
-            yield bytes(rng.randrange(256) for _ in range(40))
-            continue
-        if kind < 0.5:
-            frame[-1] ^= 0xFF  # bad CRC
-        elif kind < 0.65:
-            frame = frame[: rng.randrange(1, len(frame))]  # truncated
-        elif kind < 0.7:
-            frame[7] = rng.randrange(256)  # unknown or wrong message id, CRC no longer matches
-        yield bytes(frame)
 
 
 def test_ten_thousand_hostile_datagrams_per_port_change_nothing(sim: SitlProcess) -> None:
@@ -151,7 +111,7 @@ def test_ten_thousand_hostile_datagrams_per_port_change_nothing(sim: SitlProcess
     rng = random.Random(20261122)
     # A pool of distinct hostile datagrams (building one costs ~0.3 ms), each sent with a fresh
     # random byte flipped half of the time, so no two ports see the same 10,000.
-    pool = list(_datagrams(rng, 3000))
+    pool = list(datagrams(rng, 3000))
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.settimeout(0.5)
     parser = mavlink.MAVLink(None)
@@ -192,7 +152,9 @@ def test_ten_thousand_hostile_datagrams_per_port_change_nothing(sim: SitlProcess
     assert sim.proc.poll() is None, "the simulator died"
     out = sim.stop()
     assert sim.proc.returncode == 0
-    assert "handler errors 0" in out
+    errors = [int(x) for x in re.findall(r"handler errors (\d+)", out)]
+    assert errors, out[-2000:]
+    assert errors == [0] * len(errors), errors
     assert "Traceback" not in out
     counts = [
         int(line.split("datagrams in ")[1].split()[0]) for line in out.splitlines() if "datagrams in" in line

@@ -200,3 +200,19 @@ def test_source_spec_parsing_and_dispatch(tmp_path: Path) -> None:
 
 def test_d435_intrinsics_fixture_is_sane() -> None:
     assert D435_COLOR.width_px == 640
+
+
+async def test_bag_source_loops_with_increasing_stamps(tmp_path: Path) -> None:
+    frames = synthetic_frames(3)
+    path = tmp_path / "rec.bag"
+    write_realsense_bag(path, frames)
+    out = []
+    async with BagSource(path, loop=True) as src:
+        async for frame in src:
+            out.append(frame)
+            if len(out) == 7:
+                break
+    stamps = [f.stamp_s for f in out]
+    assert all(b > a for a, b in itertools.pairwise(stamps))
+    assert len({f.seq for f in out}) == 7
+    assert np.array_equal(out[3].rgb, frames[0].rgb)

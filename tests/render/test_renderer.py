@@ -249,8 +249,9 @@ def test_frames_repeat_for_a_seed() -> None:
     follower = _follower(alt_m=3.0)
     leader = VehiclePose(np.array([5.0, 0.5, -3.5]), quat_from_euler(0.1, 0.0, 1.0))
     frames = []
+    visual = PLAIN.model_copy(update={"seed": 3, "structures": 5})
     for _ in range(2):
-        with Renderer(CameraModel(), VisualConfig(seed=3), seed=11) as r:
+        with Renderer(CameraModel(), visual, seed=11) as r:
             frames.append([r.render(follower, leader, 0.1 * i) for i in range(2)])
     for a, b in zip(*frames, strict=True):
         assert np.array_equal(a.rgb, b.rgb)

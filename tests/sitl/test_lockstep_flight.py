@@ -91,7 +91,8 @@ def test_gps_loss_in_offboard_velocity_follows_px4_timeline() -> None:
     assert world.truth("follower").p_ned_m[2] > -0.2
 
 
-def test_external_vision_keeps_position_valid_after_gps_loss() -> None:
+@pytest.mark.parametrize("message", ["VISION_POSITION_ESTIMATE", "ODOMETRY"])
+def test_external_vision_keeps_position_valid_after_gps_loss(message: str) -> None:
     world = world_with(seed=4)
     c = Client(world)
     c.take_off(5.0)
@@ -103,7 +104,33 @@ def test_external_vision_keeps_position_valid_after_gps_loss() -> None:
         p = world.truth("follower").p_ned_m
         n, e = p[0] - off[0] + rng.normal(0, 0.05), p[1] - off[1] + rng.normal(0, 0.05)
         cov = [0.01] + [0.0] * 5 + [0.01] + [0.0] * 14
-        c.send(mavlink.MAVLink_vision_position_estimate_message(int(t * 1e6), n, e, p[2], 0, 0, 0, cov, 0))
+        if message == "ODOMETRY":
+            c.send(
+                mavlink.MAVLink_odometry_message(
+                    int(t * 1e6),
+                    mavlink.MAV_FRAME_LOCAL_NED,
+                    mavlink.MAV_FRAME_BODY_FRD,
+                    n,
+                    e,
+                    p[2],
+                    [1.0, 0.0, 0.0, 0.0],
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    NAN,
+                    cov,
+                    [NAN] * 21,
+                    0,
+                    0,
+                    100,
+                )
+            )
+        else:
+            c.send(
+                mavlink.MAVLink_vision_position_estimate_message(int(t * 1e6), n, e, p[2], 0, 0, 0, cov, 0)
+            )
 
     c.run(1.0, each=stream)
     assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
@@ -241,3 +268,170 @@ def test_scenario_leader_flies_its_straight_line() -> None:
     assert w.autopilot("leader").nav_state is NavState.OFFBOARD
     assert w.truth("leader").p_ned_m[0] - n0 == pytest.approx(20.0, abs=1.5)
     assert w.truth("leader").p_ned_m[2] == pytest.approx(-5.09, abs=0.3)
+
+
+def test_wrong_gps_is_rejected_as_a_glitch_then_position_fails() -> None:
+    world = world_with(seed=8)
+    c = Client(world)
+    c.take_off(5.0)
+    assert c.command(mavlink.MAV_CMD_INJECT_FAILURE, 4.0, 4.0, 0.0) == 0  # GPS wrong (120 m off)
+    t0 = world.t_s
+    c.log.clear()
+    c.run(6.5)
+    glitch = [t for t, m in c.log if m.get_type() == "ESTIMATOR_STATUS" and m.flags & 1024]
+    assert glitch
+    assert glitch[0] - t0 <= 1.05  # ESTIMATOR_STATUS comes at 1 Hz
+    assert c.ap.nav_state is NavState.DESCEND  # the fix is never fused: dead reckoning times out
+    # The vehicle did not follow the wrong fix while it was rejected.
+    off = world.origin_offset_ned_m("follower")
+    est = c.ap.position_ned()
+    truth = world.truth("follower").p_ned_m
+    assert math.hypot(est[0] + off[0] - truth[0], est[1] + off[1] - truth[1]) < 2.0
+    # SYS_STATUS reports the GPS unhealthy while it glitches (present, not healthy).
+    last = [m for _, m in c.log if m.get_type() == "SYS_STATUS"][-1]
+    assert last.onboard_control_sensors_present & GPS_BIT
+    assert not last.onboard_control_sensors_health & GPS_BIT
+    assert c.command(mavlink.MAV_CMD_INJECT_FAILURE, 4.0, 0.0, 0.0) == 0  # GPS ok again
+
+
+def test_default_streams_at_px4_onboard_rates_and_set_message_interval() -> None:
+    world = world_with(seed=9)
+    c = Client(world)
+    c.run(12.0)  # past the GPS checks: global position and home exist
+    c.log.clear()
+    c.run(10.0)
+    counts: dict[str, int] = {}
+    for _, m in c.log:
+        counts[m.get_type()] = counts.get(m.get_type(), 0) + 1
+    expected_hz = {
+        "HEARTBEAT": 1, "ATTITUDE": 100, "ATTITUDE_QUATERNION": 50, "LOCAL_POSITION_NED": 30,
+        "GLOBAL_POSITION_INT": 50, "ODOMETRY": 30, "HIGHRES_IMU": 50, "GPS_RAW_INT": 10,
+        "SYS_STATUS": 5, "EXTENDED_SYS_STATE": 5, "ALTITUDE": 10, "VFR_HUD": 10,
+        "ESTIMATOR_STATUS": 1, "SYSTEM_TIME": 1, "TIMESYNC": 10, "HOME_POSITION": 0.5, "BATTERY_STATUS": 0.5,
+    }  # fmt: skip
+    for name, hz in expected_hz.items():
+        assert counts.get(name, 0) / 10.0 == pytest.approx(hz, rel=0.12, abs=0.11), name
+    # SET_MESSAGE_INTERVAL (per link, in microseconds) and REQUEST_MESSAGE.
+    assert c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 30.0, 1e6 / 20.0) == 0
+    assert c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0) == 0
+    assert c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 999.0, 1e5) == 4  # FAILED: no such stream
+    c.log.clear()
+    c.run(5.0)
+    att = sum(1 for _, m in c.log if m.get_type() == "ATTITUDE")
+    assert att / 5.0 == pytest.approx(20.0, rel=0.1)
+    assert not any(m.get_type() == "HIGHRES_IMU" for _, m in c.log)
+    assert c.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 242.0) == 0  # HOME_POSITION
+    assert c.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 397.0) == 2  # COMPONENT_METADATA: DENIED
+    # time_boot_ms and SYSTEM_TIME follow sim time.
+    st = [m for _, m in c.log if m.get_type() == "SYSTEM_TIME"][-1]
+    assert st.time_boot_ms / 1000.0 == pytest.approx(world.t_s, abs=1.05)
+    assert st.time_unix_usec == pytest.approx((1_767_225_600.0 + st.time_boot_ms / 1000.0) * 1e6, abs=2e3)
+
+
+def test_every_handled_message_type_with_random_values_is_harmless() -> None:
+    import random
+
+    from tests.fuzz_messages import random_message
+
+    world = world_with(seed=10)
+    c = Client(world)
+    handled = set(c.ap._handlers)
+    classes = [cls for cls in mavlink.mavlink_map.values() if cls.msgname in handled]
+    assert len(classes) == len(handled)
+    rng = random.Random(5)
+    for _ in range(200):
+        for _ in range(100):
+            c.link.send(random_message(rng, classes), rng.randint(0, 255), rng.randint(0, 255))
+        c.run(0.1)
+    assert c.ap.counters["messages_in"] == 20_000
+    assert c.ap.counters["handler_errors"] == 0
+
+
+def test_command_int_reposition_and_global_setpoints_fly_to_lat_lon() -> None:
+    world = world_with(seed=12)
+    c = Client(world)
+    c.take_off(5.0)
+    ap = c.ap
+    off = world.origin_offset_ned_m("follower")
+    lat, lon, _ = ap.origin.to_geodetic(10.0, 0.0, 0.0)
+    c.send(
+        mavlink.MAVLink_command_int_message(
+            c.sysid,
+            1,
+            mavlink.MAV_FRAME_GLOBAL,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            0,
+            0,
+            NAN,
+            int(lat * 1e7),
+            int(lon * 1e7),
+            ap.home.alt_m + 6.0,
+        )
+    )
+    c.run(12.0)
+    p = world.truth("follower").p_ned_m
+    assert ap.nav_state is NavState.AUTO_LOITER
+    assert p[0] - off[0] == pytest.approx(10.0, abs=0.6)
+    assert -p[2] == pytest.approx(6.0 + 0.09, abs=0.4)
+    # SET_POSITION_TARGET_GLOBAL_INT (MAVSDK's set_position_global) in offboard.
+    lat2, lon2, _ = ap.origin.to_geodetic(10.0, 8.0, 0.0)
+
+    def stream(_t: float) -> None:
+        c.send(
+            mavlink.MAVLink_set_position_target_global_int_message(
+                0,
+                c.sysid,
+                1,
+                mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                0b110111111000,
+                int(lat2 * 1e7),
+                int(lon2 * 1e7),
+                5.0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+        )
+
+    c.run(1.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
+    c.run(10.0, each=stream)
+    p = world.truth("follower").p_ned_m
+    assert (p[0] - off[0], p[1] - off[1]) == pytest.approx((10.0, 8.0), abs=0.6)
+    assert -p[2] == pytest.approx(5.0 + 0.09, abs=0.4)
+
+
+def test_return_climbs_flies_home_lands_and_disarms() -> None:
+    world = world_with(seed=13)
+    c = Client(world)
+    c.take_off(5.0)
+
+    def stream(_t: float) -> None:
+        c.position_setpoint(20.0, 10.0, -5.0)
+
+    stream(0.0)
+    c.run(1.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_DO_SET_MODE, 129.0, 6.0, 0.0) == 0
+    c.run(12.0, each=stream)
+    assert c.command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH) == 0
+    peak = [0.0]
+
+    def watch(_t: float) -> None:
+        peak[0] = max(peak[0], -world.truth("follower").p_ned_m[2])
+
+    c.run_until(lambda: not c.ap.armed, 120.0, each=watch)
+    p = world.truth("follower").p_ned_m
+    off = world.origin_offset_ned_m("follower")
+    # PX4 defaults: climb to at least RTL_DESCEND_ALT (30 m), return, descend, land at home.
+    assert peak[0] == pytest.approx(30.0, abs=1.5)
+    assert math.hypot(p[0] - off[0], p[1] - off[1]) < 1.0
+    assert p[2] > -0.2
+    assert "Disarmed by landing" in [x for _, x in c.texts()]

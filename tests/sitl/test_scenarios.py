@@ -133,3 +133,72 @@ def test_link_faults_cut_loss_and_latency() -> None:
     lost = sum(d is None for d in inside) / len(inside)
     assert lost == pytest.approx(0.3, abs=0.03)
     assert all(d == pytest.approx(0.050) for d in inside if d is not None)
+
+
+def test_gps_sensor_outages_stuck_wrong_and_jumps() -> None:
+    from sitl.estimator import GpsFailure, GpsJump, GpsOutage, GpsSensor
+    from sitl.geo import LocalProjection
+
+    world = LocalProjection(47.0, 8.0, 400.0)
+    gps = GpsSensor(
+        world,
+        np.random.default_rng(0),
+        outages=(GpsOutage(10.0, 12.0, GpsFailure.OFF), GpsOutage(20.0, None, GpsFailure.STUCK)),
+        jumps=(GpsJump(5.0, 1.0, (30.0, 0.0, 0.0)),),
+    )
+    fixes = {}
+    for k in range(1, 300):
+        t = k * 0.1
+        s = gps.sample(t, (t, 0.0, -5.0), (1.0, 0.0, 0.0))
+        fixes[round(t, 1)] = None if s is None else world.to_ned(s.lat_deg, s.lon_deg, s.alt_m)
+    assert fixes[4.0][0] == pytest.approx(4.0, abs=1.5)
+    assert fixes[5.5][0] == pytest.approx(35.5, abs=1.5)  # the 30 m jump
+    assert all(fixes[round(10.0 + 0.1 * i, 1)] is None for i in range(1, 20))  # off
+    assert fixes[12.5] is not None
+    assert fixes[25.0] == fixes[28.0]  # stuck: the same fix over and over
+    gps.injected = GpsFailure.WRONG
+    s = gps.sample(40.0, (40.0, 0.0, -5.0), (0.0, 0.0, 0.0))
+    assert s is not None
+    assert world.to_ned(s.lat_deg, s.lon_deg, s.alt_m)[0] == pytest.approx(160.0, abs=1.5)
+
+
+def test_link_loss_scenario_cuts_and_bursts_reach_the_client() -> None:
+    from sitl.config import SitlConfig
+    from sitl.world import World
+
+    sc = Scenario.model_validate(
+        {
+            "name": "links",
+            "vehicles": {
+                "follower": {
+                    "link": {
+                        "latency_ms": 20.0,
+                        "windows": [
+                            {"start_s": 4.0, "end_s": 8.0, "cut": True},
+                            {"start_s": 10.0, "end_s": 20.0, "loss": 0.3},
+                        ],
+                    }
+                }
+            },
+        }
+    )
+    world = World(SitlConfig(), sc, seed=1)
+    link = world.link("follower")
+    got: list[tuple[float, str]] = []
+    while world.t_s < 20.0:
+        world.step()
+        got.extend((world.t_s, m.get_type()) for m in link.receive())
+    att = [t for t, kind in got if kind == "ATTITUDE"]
+    assert not [t for t in att if 4.03 <= t < 8.0]  # nothing through the cut (after in-flight ones)
+    before = sum(1 for t in att if 0.0 < t < 4.0) / 4.0
+    burst = sum(1 for t in att if 10.0 <= t < 20.0) / 10.0
+    assert before == pytest.approx(100.0, rel=0.05)  # PX4's 100 Hz ATTITUDE on the API link
+    assert burst == pytest.approx(70.0, rel=0.1)  # 30 % lost
+    assert min(att) >= 0.02  # 20 ms latency
+    assert link.dropped_out > 0
+
+
+def test_shipped_sitl_config_documents_the_defaults() -> None:
+    from sitl.config import SitlConfig, load_sitl_config
+
+    assert load_sitl_config(REPO / "config" / "sitl.toml", environ={}) == SitlConfig()

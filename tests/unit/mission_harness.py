@@ -20,6 +20,7 @@ from companion.mission.types import (
     LeaderEstimate,
     MissionInputs,
     MissionState,
+    OperatorCommand,
     Reason,
     SharedLeaderPosition,
     StepOutput,
@@ -154,6 +155,8 @@ class Harness:
         self.leader_p = (5.0, 0.0, 0.0)
         self.leader_v = (0.0, 0.0, 0.0)
         self.shared: tuple[float, float, float] | None = None
+        #: One-shot operator command for the next step.
+        self.operator: OperatorCommand | None = None
         self._frozen: LeaderEstimate | None = None
 
     @property
@@ -185,8 +188,10 @@ class Harness:
             start_requested=self.start,
             shutdown_requested=self.shutdown,
             command_results=tuple(self.results),
+            operator=self.operator,
         )
         self.results = []
+        self.operator = None
         out = self.machine.step(inp, self.now_s)
         self.outputs.append(out)
         self.transitions.extend(out.transitions)

@@ -9,7 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import Config, MissionConfig
-from companion.mission.types import CommandKind, MissionState, Reason, TrackStatus, VisionMode
+from companion.mission.types import (
+    CommandKind,
+    MissionState,
+    OperatorCommand,
+    Reason,
+    TrackStatus,
+    VisionMode,
+)
 from companion.vehicle.types import (
     AttitudeSetpoint,
     FlightMode,
@@ -742,6 +749,56 @@ def test_shutdown_while_arming_disarms_first() -> None:
     assert not out.ready_to_exit
     out = h.run_until(S.DISARMED, timeout_s=3)
     assert out.ready_to_exit
+
+
+# ---------------------------------------------------------------------- operator
+def test_operator_land_with_gps_is_px4_land() -> None:
+    h = Harness()
+    h.to_follow()
+    h.operator = OperatorCommand.LAND
+    out = h.step()
+    assert h.state == S.PX4_LAND
+    assert h.last_transition().reason == R.OPERATOR_LAND
+    assert [c.kind for c in out.commands] == [CommandKind.STOP_OFFBOARD, CommandKind.LAND]
+
+
+def test_operator_land_without_gps_is_our_controlled_landing() -> None:
+    h = Harness()
+    h.to_follow()
+    h.lose_gps()
+    h.run_until(S.FOLLOW_VISION, timeout_s=2)
+    h.operator = OperatorCommand.LAND
+    out = h.step()
+    assert h.state == S.CONTROLLED_LANDING
+    assert h.last_transition().reason == R.OPERATOR_LAND
+    assert isinstance(out.setpoint, AttitudeSetpoint)
+
+
+def test_operator_hold_needs_gps_and_flight() -> None:
+    h = Harness()
+    h.operator = OperatorCommand.HOLD
+    h.step()
+    assert h.state in (S.WAIT_LINK, S.PREFLIGHT)  # on the ground: ignored
+    h.to_follow()
+    h.operator = OperatorCommand.HOLD
+    h.step()
+    assert h.state == S.PX4_HOLD
+    assert h.last_transition().reason == R.OPERATOR_HOLD
+
+
+def test_slot_change_is_validated_then_flown() -> None:
+    h = Harness()
+    assert h.machine.set_slot((0.0, 0.0, -5.0)) is not None  # behind the camera
+    assert h.machine.set_slot((0.0, 0.0, 2.5)) is not None  # inside separation + 1 m
+    assert h.machine.set_slot((5.0, 0.0, 5.0)) is not None  # leader out of the image
+    assert h.machine.set_slot((0.0, 0.0, float("nan"))) is not None
+    h.to_follow()
+    assert h.machine.set_slot((0.0, 0.0, 7.0)) is None
+    out = h.step()
+    assert out.formation_error_ned_m is not None
+    assert out.formation_error_ned_m[0] == pytest.approx(-2.0)  # leader at 5 m, slot now 7 m
+    assert isinstance(out.setpoint, VelocityBodySetpoint)
+    assert out.setpoint.v_body_m_s[0] < 0.0  # back off
 
 
 # ---------------------------------------------------------------------- events

@@ -171,3 +171,14 @@ async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
             await runner.run()
             stop.set()
             await feeder
+
+
+def test_request_command_replies() -> None:
+    clock = MonotonicClock()
+    runner = MissionRunner(RecordingLink(FakeAutopilot(), clock), MissionMachine(Config()), clock)
+    assert runner.request_command("land") == "land requested"
+    assert runner.request_command("hold").startswith("refused: hold needs GPS")
+    assert runner.request_command("dance").startswith("refused: unknown")
+    assert runner.request_command("set_offset", (0.0, 0.0, 6.0)) == "slot set to (0.0, 0.0, 6.0)"
+    assert runner.request_command("set_offset", (0.0, 0.0, 1.0)).startswith("refused:")
+    assert runner.request_command("set_offset").startswith("refused:")

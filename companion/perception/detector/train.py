@@ -48,7 +48,7 @@ class TrainConfig:
 
     data: str
     out: str
-    epochs: int = 60
+    epochs: int = 30
     batch_size: int = 32
     input_size_px: int = 320
     #: Training images are crops of this size from frames scaled as at ``input_size_px`` (about 40% less
@@ -60,14 +60,14 @@ class TrainConfig:
     warmup_epochs: float = 2.0
     ema_decay: float = 0.999
     #: Mosaic is switched off for the last epochs so the model ends on whole frames, as at run time.
-    close_mosaic_epochs: int = 8
+    close_mosaic_epochs: int = 5
     seed: int = 0
     workers: int = 1
     device: str = "auto"
     threads: int = 2
     train_split: str = "train"
     val_split: str = "val"
-    val_every: int = 2
+    val_every: int = 3
     max_val_images: int = 600
     #: Limit the training images (0: all); for smoke tests.
     max_train_images: int = 0

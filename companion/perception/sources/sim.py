@@ -36,7 +36,8 @@ from companion.perception.types import GroundTruth, Intrinsics, RgbdFrame
 
 MAGIC = b"WGRD"
 WIRE_VERSION = 1
-_PREFIX = struct.Struct("<4sI")
+#: Every message starts with the magic and the header length.
+PREFIX = struct.Struct("<4sI")
 #: Refuse headers longer than this (a corrupt stream, not a frame).
 MAX_HEADER_BYTES = 1 << 16
 
@@ -111,7 +112,7 @@ def encode_frame(frame: RgbdFrame, depth: DepthEncoding = "u16_mm") -> list[byte
         "truth": truth_to_json(frame.truth),
     }
     raw = json.dumps(header, separators=(",", ":")).encode()
-    return [_PREFIX.pack(MAGIC, len(raw)) + raw, rgb.data.cast("B"), depth_buf.data.cast("B")]
+    return [PREFIX.pack(MAGIC, len(raw)) + raw, rgb.data.cast("B"), depth_buf.data.cast("B")]
 
 
 def decode_frame(header: dict[str, Any], rgb_bytes: bytes, depth_bytes: bytes) -> RgbdFrame:
@@ -187,12 +188,12 @@ class SimFrameSource:
             raise CameraError("sim camera: iterate inside `async with SimFrameSource(...)`")
         while True:
             try:
-                prefix = await reader.readexactly(_PREFIX.size)
+                prefix = await reader.readexactly(PREFIX.size)
             except asyncio.IncompleteReadError as exc:
                 if exc.partial:
                     raise CameraError("sim camera: stream ended inside a frame") from None
                 return
-            magic, n = _PREFIX.unpack(prefix)
+            magic, n = PREFIX.unpack(prefix)
             if magic != MAGIC or n > MAX_HEADER_BYTES:
                 raise CameraError(f"sim camera: bad frame prefix {prefix!r} (not a Wingman camera stream?)")
             try:

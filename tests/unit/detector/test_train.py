@@ -27,6 +27,8 @@ def _cfg(data: Path, out: Path, **kw: object) -> TrainConfig:
         close_mosaic_epochs=1,
         spec=SMALL,
         seed=5,
+        max_train_images=16,
+        max_val_images=4,
     )
     base.update(kw)
     return TrainConfig(**base)  # type: ignore[arg-type]

@@ -42,8 +42,7 @@ class WireTap(asyncio.DatagramProtocol):
     _down: Any = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.DatagramTransport)
-        self._transport = transport
+        self._transport = transport  # type: ignore[assignment]
         self._up = mavlink2.MAVLink(None)
         self._down = mavlink2.MAVLink(None)
         self._up.robust_parsing = True
