@@ -74,6 +74,11 @@ class Ports:
     def gcs_remote(self) -> int:
         return self.base + 6
 
+    @property
+    def client(self) -> int:
+        """Where the service's MAVSDK listens when a wiretap sits between it and the simulator."""
+        return self.base + 7
+
     @classmethod
     def pick(cls) -> Ports:
         for _ in range(200):
@@ -166,13 +171,13 @@ def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Process:
     return Process(args, env, tmp_path / "sitl.log")
 
 
-def service_config(tmp_path: Path, ports: Ports, camera_sock: Path, broker_port: int) -> Path:
+def service_config(tmp_path: Path, link_port: int, camera_sock: Path, broker_port: int) -> Path:
     cfg = tmp_path / "wingman.toml"
     cfg.write_text(
         f"""
 vehicle_id = "follower1"
 [link]
-url = "udpin://0.0.0.0:{ports.follower_api}"
+url = "udpin://0.0.0.0:{link_port}"
 [camera]
 source = "sim"
 path = "{camera_sock}"

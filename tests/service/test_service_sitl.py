@@ -26,6 +26,7 @@ from typing import Any
 import pytest
 
 from companion.service.status import ServiceNotRunningError, query_status
+from tests.flight.wiretap import WireTap, open_wiretap
 from tests.mosquitto import Collector, Mosquitto
 from tests.service.sitl_service import (
     Ports,
@@ -84,6 +85,7 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
     sim = sim_process(tmp_path, ports, cam)
     svc = None
     gcs_transport = None
+    tap: WireTap | None = None
     with Mosquitto(tmp_path) as broker, notify:
         collector = Collector(broker.port, "wingman/follower1/#")
         try:
@@ -94,7 +96,10 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
                 return (svc.log() if svc else "") + "\n--- sitl ---\n" + sim.log()[-1500:]
 
             await until(lambda: "running at" in sim.log() and cam.exists(), 90, "the simulator", logs)
-            cfg = service_config(tmp_path, ports, cam, broker.port)
+            # What the service says to the autopilot, decoded at the autopilot's socket.
+            tap = await open_wiretap(ports.follower_api, ports.client)
+            tap.keep = frozenset({"STATUSTEXT", "ONBOARD_COMPUTER_STATUS"})
+            cfg = service_config(tmp_path, ports.client, cam, broker.port)
             sock = tmp_path / "run" / "status.sock"
             datagrams: list[str] = []
 
@@ -197,6 +202,8 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
             if svc is not None:
                 svc.stop()
             sim.stop()
+            if tap is not None:
+                tap.close()
             if gcs_transport is not None:
                 gcs_transport.close()
 
@@ -220,6 +227,17 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
     shutdown_at = kinds.index("shutdown")
     after_stop = [e["data"].get("to") for e in events[shutdown_at:] if e["kind"] == "state_change"]
     assert "px4_land" in after_stop or "controlled_landing" in after_stop, after_stop
+    # To the ground station over MAVLink: a STATUSTEXT per transition, ONBOARD_COMPUTER_STATUS at 1 Hz.
+    assert tap is not None
+    texts = [s.msg.text for s in tap.seen if s.to_vehicle and s.msg.get_type() == "STATUSTEXT"]
+    assert "WM follow: leader acquired" in texts, texts
+    assert "WM px4_hold: shutdown requested" in texts, texts
+    onboard = [s.msg for s in tap.seen if s.to_vehicle and s.msg.get_type() == "ONBOARD_COMPUTER_STATUS"]
+    assert len(onboard) >= 10
+    assert onboard[-1].ram_total > 0
+    assert 0 < onboard[-1].ram_usage <= onboard[-1].ram_total
+    assert onboard[-1].uptime > 10_000
+    assert onboard[-1].cpu_combined[0] <= 100
     text = "\n".join(datagrams)
     for line in ("READY=1", "WATCHDOG=1", "STOPPING=1", "STATUS=follow"):
         assert line in text, line
