@@ -121,10 +121,13 @@ def leader_estimate(track: Any) -> LeaderEstimate | None:
 class FlightAdapter:
     """Flight's :class:`MissionRunner` and :class:`VehicleLink` behind the service's ``MissionPort``."""
 
-    def __init__(self, cfg: Config, link: VehicleLink, clock: Clock) -> None:
+    def __init__(
+        self, cfg: Config, link: VehicleLink, clock: Clock, wall_time_s: Callable[[], float] = time.time
+    ) -> None:
         self.cfg = cfg
         self.link = link
         self.clock = clock
+        self._wall_time_s = wall_time_s
         self.machine = MissionMachine(cfg)
         self.runner = MissionRunner(
             link,
@@ -233,7 +236,7 @@ class FlightAdapter:
         origin = self._origin.origin
         if origin is None:
             return  # no GPS fix seen yet: the frame is unknown
-        age_s = max(0.0, time.time() - msg.time_unix_s)
+        age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
         p = origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m)
         self.runner.submit_leader_shared(SharedLeaderPosition(stamp_s=self.clock.now_s() - age_s, p_ned_m=p))
         self.leader_positions_used += 1
