@@ -155,6 +155,11 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
                 for name in ("config", "autopilot", "gps", "mission", "camera", "broker"):
                     assert checks[name]["ok"], checks[name]
                 assert rc == (0 if health["healthy"] else 1)
+                print("health:", rc, [(c["name"], c["ok"]) for c in health["checks"]])
+                print(
+                    "latency p50/p99 ms:",
+                    {k: (v["p50_ms"], v["p99_ms"]) for k, v in st["latency_ms"].items()},
+                )
 
                 # -- the broker goes away for 3 s mid-flight, then comes back
                 states_before = len(collector.payloads("state"))
@@ -169,6 +174,7 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
                     airborne.append(snap["link"]["armed"] and snap["link"]["in_air"])
                     await asyncio.sleep(0.2)
                 buffered = snap["mqtt"]["buffered"]
+                print(f"broker outage: {buffered} buffered, max control step gap {max(step_ages):.3f} s")
                 broker.start()
                 await until(
                     lambda: len(collector.payloads("state")) > states_before + buffered + 3,
