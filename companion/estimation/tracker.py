@@ -16,6 +16,9 @@ Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurem
    (``d^2 < gate_chi2``) the one with the least ``d^2 - 2 ln(score)``; without one, the best score;
 4. updates, or coasts: no update, so the covariance grows with the prediction.
 
+:meth:`TargetTracker.predict_cam` gives the predicted camera-frame position at a new frame's stamp
+without changing the track (the pose stage uses it to pick the leader's depth behind an occluder).
+
 Output: a :class:`TrackState` every step. Its ``status``:
     * ``TENTATIVE``: a new track, not yet ``confirm_hits`` hits in its first ``confirm_window`` frames.
       Not to be flown on. Dropped when it cannot reach the count any more.

@@ -19,7 +19,9 @@ Two outputs share that error:
   baro-aided vertical speed gives the thrust. Nothing here reads PX4's horizontal position or velocity,
   which are invalid without GPS.
 
-Every output goes through :mod:`companion.mission.safety` last.
+Every output goes through :mod:`companion.mission.safety` last, in this order of precedence: the altitude
+band (the ground is harder than the leader), the geofence, the separation barrier, then acceleration and
+speed limits.
 """
 
 from __future__ import annotations

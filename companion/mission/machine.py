@@ -149,6 +149,8 @@ class MissionMachine:
         self._scan_sign = 1.0
         self._alt_hold_m = math.nan
         self._ext_valid_since: float | None = None
+        self._ext_since: float | None = None
+        self._ext_gave_up = False
         self._ext_reset_counter = 0
         self._touchdown_since: float | None = None
         self._shutting_down = False
@@ -489,7 +491,7 @@ class MissionMachine:
             self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
         else:
             self.vision_mode = VisionMode.ATTITUDE
-            self._ext_valid_since = None
+            self._reset_external()
             self._go(MissionState.FOLLOW_VISION, reason, detail or f"policy {self.m.gps_loss_policy}")
 
     def _on_gps_lost(self, inp: MissionInputs) -> None:
@@ -503,7 +505,7 @@ class MissionMachine:
             self._go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
         else:
             self.vision_mode = VisionMode.ATTITUDE
-            self._ext_valid_since = None
+            self._reset_external()
             self._go(MissionState.FOLLOW_VISION, Reason.GPS_LOST, f"policy {self.m.gps_loss_policy}")
 
     # ------------------------------------------------------------------ states
@@ -695,14 +697,16 @@ class MissionMachine:
             if ext is None or veh.position_valid is not True:
                 why = "shared leader position stale" if ext is None else "PX4 rejected the external fix"
                 self.vision_mode = VisionMode.ATTITUDE
-                self._ext_valid_since = None
+                self._reset_external()
                 self.law.reset()
                 self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
             else:
                 vcmd = self.law.velocity(p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s)
                 return vcmd.setpoint, ext, vcmd.error.error_ned_m
-        elif ext is not None:
+        elif ext is not None and not self._ext_gave_up:
             # Attitude mode while PX4 digests the external fix; switch once it has been valid a while.
+            if self._ext_since is None:
+                self._ext_since = self._now_s
             if veh.position_valid is True:
                 if self._ext_valid_since is None:
                     self._ext_valid_since = self._now_s
@@ -719,9 +723,24 @@ class MissionMachine:
                     return vcmd.setpoint, ext, vcmd.error.error_ned_m
             else:
                 self._ext_valid_since = None
+                if self._now_s - self._ext_since > self.m.external_position_accept_s:
+                    # PX4 does not take the fix: stop sending it and stay on attitude (said once).
+                    self._ext_gave_up = True
+                    why = (
+                        f"attitude: external position not accepted in {self.m.external_position_accept_s:g} s"
+                    )
+                    self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, why)
+                    ext = None
+        elif self._ext_gave_up:
+            ext = None
         acmd = self.law.attitude(p_rel, v_rel, self._follower(veh, velocity_valid=False), self._now_s)
         err = acmd.error.error_ned_m if acmd.error is not None else None
         return acmd.setpoint, ext, err
+
+    def _reset_external(self) -> None:
+        self._ext_valid_since = None
+        self._ext_since = None
+        self._ext_gave_up = False
 
     def _enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
         veh = inp.vehicle

@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mavsdk.plugins.offboard import OffboardResult
 
 from companion.config import Config
+from companion.errors import CommandRejectedError
 from companion.vehicle.types import (
     AttitudeSetpoint,
     FlightMode,
@@ -58,8 +60,28 @@ async def test_link_arm_takeoff_velocity_attitude_guard_land(tmp_path: Path) -> 
         await _until(lambda: link.snapshot().alt_rel_m > 3.6, 20, "takeoff altitude")
         await _until(lambda: link.snapshot().flight_mode == FlightMode.HOLD, 10, "hold after takeoff")
 
-        # Offboard velocity: 1 m/s north, yaw north. The start sets the setpoint first (MAVSDK's race).
+        # MAVSDK's start race: a setpoint set while PX4 is not in offboard is dropped by MAVSDK's watchdog
+        # at the next non-offboard heartbeat, and a bare start() then fails with NO_SETPOINT_SET.
+        still = VelocityNedSetpoint((0.0, 0.0, 0.0), 0.0)
+        await link.set_setpoint(still)
+        await link.release_offboard()  # keep the guard out of this experiment
+        await asyncio.sleep(2.5)  # two Hold heartbeats
+        try:
+            await link._result_of("start", link._offboard.start_async, OffboardResult.SUCCESS)
+            bare_start = "SUCCESS"
+        except CommandRejectedError as exc:
+            bare_start = exc.result
+        print(f"\nbare offboard start() 2.5 s after the last set_*(): {bare_start}")
+        if bare_start == "SUCCESS":
+            await link.stop_offboard()
+            await _until(lambda: link.snapshot().flight_mode == FlightMode.HOLD, 5, "Hold")
+        else:
+            assert bare_start == "NO_SETPOINT_SET"
+        # Our start sets the setpoint right before start() and retries on NO_SETPOINT_SET: it always works.
         sp = VelocityNedSetpoint((1.0, 0.0, 0.0), 0.0)
+        await link.set_setpoint(still)
+        await link.release_offboard()
+        await asyncio.sleep(2.5)
         await link.start_offboard(sp)
         t_end = time.monotonic() + 4.0
         while time.monotonic() < t_end:

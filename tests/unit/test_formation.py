@@ -173,7 +173,8 @@ def test_velocity_law_never_exceeds_speed_or_closes_inside_the_barrier(
     if np.linalg.norm(p_rel) < 0.05:
         return
     lw = law(kp_xy=3.0, leader_velocity_ff=1.0)
-    fol = hover(yaw=yaw, v=(float(v_f[0]), float(v_f[1]), float(v_f[2])))
+    # Altitude unknown: the altitude band (which wins over separation, see the next test) stays out of it.
+    fol = hover(yaw=yaw, v=(float(v_f[0]), float(v_f[1]), float(v_f[2])), alt=math.nan)
     cmd = lw.velocity(p_rel, v_rel, fol, 0.0)
     v = np.array(cmd.v_ned_m_s)
     d = float(np.linalg.norm(p_rel))
@@ -185,6 +186,16 @@ def test_velocity_law_never_exceeds_speed_or_closes_inside_the_barrier(
         # The barrier did not act, so the speed limits hold.
         assert math.hypot(v[0], v[1]) <= LIM.max_speed_m_s + 1e-6
         assert abs(v[2]) <= LIM.max_vertical_speed_m_s + 1e-6
+
+
+def test_the_altitude_band_wins_over_separation() -> None:
+    # A leader dropping onto us at 4 m/s from 1 m above: separation would have us dive at 5 m/s, but
+    # the ground is harder than the leader: the descent stays within what the altitude barrier allows.
+    lw = law()
+    cmd = lw.velocity(
+        np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, 1.0]), hover(v=(0.0, 0.0, 3.0), alt=10.0), 0.0
+    )
+    assert cmd.v_ned_m_s[2] == pytest.approx(barrier_speed_m_s(10.0 - LIM.min_altitude_m, LIM.brake_m_s2))
 
 
 # ---------------------------------------------------------------------- attitude law

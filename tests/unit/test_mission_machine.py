@@ -327,6 +327,24 @@ def test_external_position_rejected_by_px4_falls_back_to_attitude() -> None:
     assert "rejected" in h.last_transition().detail
 
 
+def test_external_position_never_accepted_stops_being_sent() -> None:
+    h = Harness(cfg=cfg_with(gps_loss_policy="vision_external_position", external_position_accept_s=3.0))
+    h.to_follow()
+    h.shared = (20.0, 0.0, -5.0)
+    h.lose_gps()
+    h.ap.position_valid = False
+    h.run_until(S.FOLLOW_VISION, timeout_s=2)
+    outs = h.run(3.5)
+    assert h.last_transition().reason == R.VISION_MODE_CHANGED
+    assert "not accepted" in h.last_transition().detail
+    assert outs[0].external_position is not None
+    assert outs[-1].external_position is None
+    assert all(isinstance(o.setpoint, AttitudeSetpoint) for o in outs)
+    assert sum(t.reason == R.VISION_MODE_CHANGED for t in h.transitions) == 1
+    h.run(3.0)
+    assert sum(t.reason == R.VISION_MODE_CHANGED for t in h.transitions) == 1  # said once
+
+
 # ---------------------------------------------------------------------- leader loss
 def test_leader_lost_then_reacquired() -> None:
     h = Harness()

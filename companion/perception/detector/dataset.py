@@ -10,8 +10,9 @@ Layouts understood (``split`` None means "all images"):
 A label file holds ``class cx cy w h`` lines normalised to the image size; class 0 is the leader (other
 classes are ignored). A missing or empty label file means no leader box. Per-image facts come from a
 ``manifest.csv`` or ``manifest.jsonl`` in DIR when it has an ``image``/``file`` column: ``range_m`` (leader
-range, for recall by range bin) and ``has_leader`` (0: no leader anywhere in the scene; a frame can have a
-leader and no box when too little of it is visible, and such a frame is not "leader-free").
+range, for recall by range bin), ``has_leader`` and ``visible_fraction``: a frame shows the leader when it
+is in the scene with some of it visible. A frame can show a little of the leader and still have no box
+(too few pixels to label); such a frame is not "leader-free" when false positives are counted.
 """
 
 from __future__ import annotations
@@ -36,13 +37,13 @@ Boxes = NDArray[np.float32]  # (N, 4) x0 y0 x1 y1, px
 class Sample:
     """One image of a dataset and its label file (None: no file).
 
-    When the manifest says so: the leader's range (m) and whether a leader is in the scene at all.
+    When the manifest says so: the leader's range (m) and whether any of the leader is visible.
     """
 
     image_path: Path
     label_path: Path | None
     range_m: float | None = None
-    has_leader: bool | None = None
+    leader_visible: bool | None = None
 
     @property
     def key(self) -> str:
@@ -122,7 +123,7 @@ def _number(v: object) -> float | None:
 
 
 def read_manifest(root: Path) -> dict[str, tuple[float | None, bool | None]]:
-    """Image stem -> (leader range m, leader in the scene) from ``manifest.csv``/``.jsonl`` in ``root``."""
+    """Image stem -> (leader range m, leader visible) from ``manifest.csv``/``.jsonl`` in ``root``."""
     out: dict[str, tuple[float | None, bool | None]] = {}
     rows: Iterable[dict[str, object]] = []
     if (root / "manifest.csv").exists():
@@ -137,9 +138,11 @@ def read_manifest(root: Path) -> dict[str, tuple[float | None, bool | None]]:
         if name is None:
             continue
         rng = row.get("range_m")
-        has = row.get("has_leader")
-        has_leader = None if has in (None, "") else bool(_number(has))
-        out[Path(str(name)).stem] = (None if rng in (None, "") else _number(rng), has_leader)
+        has, vis = row.get("has_leader"), row.get("visible_fraction")
+        visible = None if has in (None, "") else bool(_number(has))
+        if visible and vis not in (None, ""):
+            visible = (_number(vis) or 0.0) > 0.0
+        out[Path(str(name)).stem] = (None if rng in (None, "") else _number(rng), visible)
     return out
 
 

@@ -26,7 +26,7 @@ def evaluate(detector: FrameDetector, samples: Sequence[Sample], progress: bool 
         rgb = read_rgb(s.image_path)
         h, w = rgb.shape[:2]
         boxes, scores = detector.raw(rgb, AP_SCORE_FLOOR)
-        leader_free = None if s.has_leader is None else not s.has_leader
+        leader_free = None if s.leader_visible is None else not s.leader_visible
         stats.add(boxes.copy(), scores, read_labels(s, w, h), s.range_m, leader_free)
     out = stats.summary(detector.conf_threshold)
     out["runtime"] = detector.runtime

@@ -77,7 +77,7 @@ class ImageRecord:
     pred_scores: NDArray[np.float32]
     gt_boxes: NDArray[np.float32]
     range_m: float | None
-    #: No leader in the scene at all (for the false-positive rate); None: judge by the labels.
+    #: None of the leader visible (for the false-positive rate); None: judge by the labels.
     leader_free: bool | None = None
 
 

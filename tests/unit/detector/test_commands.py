@@ -78,9 +78,12 @@ def test_manifest_facts_reach_the_samples(tmp_path: Path) -> None:
     for n in ("a", "b", "c"):
         (tmp_path / "images" / "test" / f"{n}.jpg").write_bytes(b"")
     (tmp_path / "manifest.csv").write_text(
-        "image,split,has_leader,range_m\nimages/test/a.jpg,test,1,7.5\nimages/test/b.jpg,test,0,\n"
+        "image,split,has_leader,range_m,visible_fraction\n"
+        "images/test/a.jpg,test,1,7.5,0.4\nimages/test/b.jpg,test,0,,\nimages/test/d.jpg,test,1,9.0,0.000\n"
     )
+    (tmp_path / "images" / "test" / "d.jpg").write_bytes(b"")
     s = {x.key: x for x in find_samples(tmp_path, "test")}
-    assert (s["a"].range_m, s["a"].has_leader) == (7.5, True)
-    assert (s["b"].range_m, s["b"].has_leader) == (None, False)
-    assert (s["c"].range_m, s["c"].has_leader, s["c"].label_path) == (None, None, None)
+    assert (s["a"].range_m, s["a"].leader_visible) == (7.5, True)
+    assert (s["b"].range_m, s["b"].leader_visible) == (None, False)
+    assert (s["d"].range_m, s["d"].leader_visible) == (9.0, False)  # in the scene, out of view
+    assert (s["c"].range_m, s["c"].leader_visible, s["c"].label_path) == (None, None, None)
