@@ -114,19 +114,24 @@ def attitude_from_thrust(thr_n: float, thr_e: float, thr_d: float, yaw_rad: floa
     the collective thrust is the vector's norm (0..1).
     """
     thrust = math.sqrt(thr_n * thr_n + thr_e * thr_e + thr_d * thr_d)
-    bz = (0.0, 0.0, 1.0) if thrust < 1e-06 else (-thr_n / thrust, -thr_e / thrust, -thr_d / thrust)
+    # Body z = -thrust direction (plain floats throughout: this runs at the outer rate per vehicle).
+    if thrust < 1e-06:
+        m02, m12, m22 = 0.0, 0.0, 1.0
+    else:
+        m02, m12, m22 = -thr_n / thrust, -thr_e / thrust, -thr_d / thrust
     # y axis of the heading-only frame, then body x = y_c x body z.
     ycx, ycy = -math.sin(yaw_rad), math.cos(yaw_rad)
-    bx = (ycy * bz[2], -ycx * bz[2], ycx * bz[1] - ycy * bz[0])
-    if bz[2] < 0.0:
-        bx = (-bx[0], -bx[1], -bx[2])
-    n = math.sqrt(bx[0] * bx[0] + bx[1] * bx[1] + bx[2] * bx[2])
-    bx = (1.0, 0.0, 0.0) if n < 1e-06 else (bx[0] / n, bx[1] / n, bx[2] / n)
-    by = (bz[1] * bx[2] - bz[2] * bx[1], bz[2] * bx[0] - bz[0] * bx[2], bz[0] * bx[1] - bz[1] * bx[0])
+    m00, m10, m20 = ycy * m22, -ycx * m22, ycx * m12 - ycy * m02
+    if m22 < 0.0:
+        m00, m10, m20 = -m00, -m10, -m20
+    n = math.sqrt(m00 * m00 + m10 * m10 + m20 * m20)
+    if n < 1e-06:
+        m00, m10, m20 = 1.0, 0.0, 0.0
+    else:
+        m00, m10, m20 = m00 / n, m10 / n, m20 / n
+    # Body y = body z x body x.
+    m01, m11, m21 = m12 * m20 - m22 * m10, m22 * m00 - m02 * m20, m02 * m10 - m12 * m00
     # Rotation matrix columns bx, by, bz -> quaternion (Shepperd).
-    m00, m01, m02 = bx[0], by[0], bz[0]
-    m10, m11, m12 = bx[1], by[1], bz[1]
-    m20, m21, m22 = bx[2], by[2], bz[2]
     tr = m00 + m11 + m22
     if tr > 0.0:
         s = math.sqrt(tr + 1.0) * 2.0
@@ -218,6 +223,9 @@ class PositionController:
         self._vdot_n = self._vdot_e = self._vdot_d = 0.0
         self._v_prev: tuple[float, float, float] | None = None
         self.vel_sp_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        # cos/sin of the tilt limit, for the limits object they were computed from.
+        self._tilt_of: PositionLimits | None = None
+        self._cos_tilt = self._sin_tilt = 0.0
 
     def reset(self, hover_integral_m_s2: float = 0.0) -> None:
         self._int_n = self._int_e = 0.0
@@ -233,44 +241,54 @@ class PositionController:
         dt_s: float,
     ) -> tuple[float, float, float]:
         lim = self.limits
+        if lim is not self._tilt_of:
+            self._tilt_of = lim
+            self._cos_tilt = math.cos(lim.tilt_max_rad)
+            self._sin_tilt = math.sin(lim.tilt_max_rad)
         pn, pe, pd = pos_ned_m
         vn, ve, vd = vel_ned_m_s
         # Velocity derivative for the D term (low-passed, as PX4 filters vel_dot).
-        if self._v_prev is not None and dt_s > 0:
-            a = min(1.0, dt_s / 0.05)
-            self._vdot_n += a * ((vn - self._v_prev[0]) / dt_s - self._vdot_n)
-            self._vdot_e += a * ((ve - self._v_prev[1]) / dt_s - self._vdot_e)
-            self._vdot_d += a * ((vd - self._v_prev[2]) / dt_s - self._vdot_d)
+        v_prev = self._v_prev
+        if v_prev is not None and dt_s > 0:
+            a = dt_s / 0.05
+            a = a if a < 1.0 else 1.0
+            self._vdot_n += a * ((vn - v_prev[0]) / dt_s - self._vdot_n)
+            self._vdot_e += a * ((ve - v_prev[1]) / dt_s - self._vdot_e)
+            self._vdot_d += a * ((vd - v_prev[2]) / dt_s - self._vdot_d)
         self._v_prev = (vn, ve, vd)
 
         # Position loop: velocity setpoint = feed-forward + P * position error, per finite axis.
+        # (Each of vsn, vse, vsd is finite or NaN here, so ``x == x`` tests finiteness.)
         vsn = sp.vx if _finite(sp.vx) else NAN
         vse = sp.vy if _finite(sp.vy) else NAN
         vsd = sp.vz if _finite(sp.vz) else NAN
         if _finite(sp.x):
-            vsn = (vsn if _finite(vsn) else 0.0) + (sp.x - pn) * lim.pos_p_xy
-            vse = (vse if _finite(vse) else 0.0) + (sp.y - pe) * lim.pos_p_xy
+            vsn = (vsn if vsn == vsn else 0.0) + (sp.x - pn) * lim.pos_p_xy
+            vse = (vse if vse == vse else 0.0) + (sp.y - pe) * lim.pos_p_xy
         if _finite(sp.z):
-            vsd = (vsd if _finite(vsd) else 0.0) + (sp.z - pd) * lim.pos_p_z
-        # Limit the velocity setpoint (horizontal norm, vertical up/down separately).
-        if _finite(vsn):
+            vsd = (vsd if vsd == vsd else 0.0) + (sp.z - pd) * lim.pos_p_z
+        # Limit the velocity setpoint (horizontal norm, vertical up/down separately). Neither limit
+        # changes whether a component is finite, so the flags below hold for the rest of the update.
+        fin_xy = _finite(vsn)
+        fin_z = _finite(vsd)
+        if fin_xy:
             h = math.sqrt(vsn * vsn + vse * vse)
             if h > lim.vel_max_xy_m_s:
                 vsn *= lim.vel_max_xy_m_s / h
                 vse *= lim.vel_max_xy_m_s / h
-        if _finite(vsd):
+        if fin_z:
             vsd = min(lim.vel_max_down_m_s, max(-lim.vel_max_up_m_s, vsd))
         self.vel_sp_ned_m_s = (vsn, vse, vsd)
 
         # Velocity loop -> acceleration setpoint; feed-forward acceleration added where finite.
-        if _finite(vsn):
+        if fin_xy:
             en, ee = vsn - vn, vse - ve
             an = en * lim.vel_p_xy + self._int_n - self._vdot_n * lim.vel_d_xy
             ae = ee * lim.vel_p_xy + self._int_e - self._vdot_e * lim.vel_d_xy
         else:
             en = ee = 0.0
             an = ae = 0.0
-        if _finite(vsd):
+        if fin_z:
             ed = vsd - vd
             ad = ed * lim.vel_p_z + self._int_d - self._vdot_d * lim.vel_d_z
         else:
@@ -291,41 +309,43 @@ class PositionController:
         else:
             bzn, bze, bzd = bzn / n, bze / n, bzd / n
         # Limit tilt: the angle between body z (up-thrust) and vertical.
-        if bzd < math.cos(lim.tilt_max_rad):
+        c = self._cos_tilt
+        if bzd < c:
             h = math.sqrt(bzn * bzn + bze * bze)
-            s = math.sin(lim.tilt_max_rad)
-            c = math.cos(lim.tilt_max_rad)
             if h > 1e-9:
+                s = self._sin_tilt
                 bzn, bze, bzd = bzn / h * s, bze / h * s, c
             else:
                 bzn, bze, bzd = 0.0, 0.0, 1.0
-        collective = ad * (lim.hover_thrust / _G) - lim.hover_thrust
+        hover = lim.hover_thrust
+        collective = ad * (hover / _G) - hover
         collective /= bzd
         collective = min(collective, -lim.thr_min)
         tn, te, td = bzn * collective, bze * collective, bzd * collective
 
         # Saturate vertical, then give horizontal what is left (vertical priority).
-        td = max(td, -lim.thr_max)
-        xy_max_sq = lim.thr_max * lim.thr_max - td * td
+        thr_max = lim.thr_max
+        td = max(td, -thr_max)
+        xy_max_sq = thr_max * thr_max - td * td
         xy_max = math.sqrt(xy_max_sq) if xy_max_sq > 0 else 0.0
         h = math.sqrt(tn * tn + te * te)
         if h > xy_max:
             tn, te = tn / h * xy_max, te / h * xy_max
 
         # Anti-windup: tracking on xy, conditional on z (PX4).
-        if _finite(vsn) and lim.vel_p_xy > 0:
+        if fin_xy and lim.vel_p_xy > 0:
             arw = 2.0 / lim.vel_p_xy
-            a_prod = _G / lim.hover_thrust
+            a_prod = _G / hover
             en -= arw * (an - tn * a_prod)
             ee -= arw * (ae - te * a_prod)
             self._int_n += en * lim.vel_i_xy * dt_s
             self._int_e += ee * lim.vel_i_xy * dt_s
-        if _finite(vsd):
-            if (td >= -lim.thr_min and ed >= 0) or (td <= -lim.thr_max and ed <= 0):
+        if fin_z:
+            if (td >= -lim.thr_min and ed >= 0) or (td <= -thr_max and ed <= 0):
                 ed = 0.0
-            self._int_d += ed * lim.vel_i_z * dt_s
+            i_d = self._int_d + ed * lim.vel_i_z * dt_s
             # PX4 bounds the vertical integral to +-g.
-            self._int_d = min(_G, max(-_G, self._int_d))
+            self._int_d = min(_G, max(-_G, i_d))
         return tn, te, td
 
 
