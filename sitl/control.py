@@ -258,15 +258,15 @@ class PositionController:
         self._v_prev = (vn, ve, vd)
 
         # Position loop: velocity setpoint = feed-forward + P * position error, per finite axis.
-        # (Each of vsn, vse, vsd is finite or NaN here, so ``x == x`` tests finiteness.)
+        # (Each of vsn, vse, vsd is finite or NaN here, so isnan is the finiteness test.)
         vsn = sp.vx if _finite(sp.vx) else NAN
         vse = sp.vy if _finite(sp.vy) else NAN
         vsd = sp.vz if _finite(sp.vz) else NAN
         if _finite(sp.x):
-            vsn = (vsn if vsn == vsn else 0.0) + (sp.x - pn) * lim.pos_p_xy
-            vse = (vse if vse == vse else 0.0) + (sp.y - pe) * lim.pos_p_xy
+            vsn = (0.0 if math.isnan(vsn) else vsn) + (sp.x - pn) * lim.pos_p_xy
+            vse = (0.0 if math.isnan(vse) else vse) + (sp.y - pe) * lim.pos_p_xy
         if _finite(sp.z):
-            vsd = (vsd if vsd == vsd else 0.0) + (sp.z - pd) * lim.pos_p_z
+            vsd = (0.0 if math.isnan(vsd) else vsd) + (sp.z - pd) * lim.pos_p_z
         # Limit the velocity setpoint (horizontal norm, vertical up/down separately). Neither limit
         # changes whether a component is finite, so the flags below hold for the rest of the update.
         fin_xy = _finite(vsn)
