@@ -315,10 +315,11 @@ class Autopilot:
         d = self.dyn
         rates = self._rates_sp
         if rates is None:
-            q = quat_from_euler(d.roll_rad, d.pitch_rad, d.yaw_rad)
-            rp, rq, rr = self.inner.attitude_to_rates(q, self.q_sp, self.yawspeed_ff_rad_s)
-        else:
-            rp, rq, rr = rates
+            return self.inner.update(
+                d.roll_rad, d.pitch_rad, d.yaw_rad, d.p_rad_s, d.q_rad_s, d.r_rad_s,
+                self.q_sp, self.yawspeed_ff_rad_s, self.thrust_sp, dt_s, self._integrate,
+            )  # fmt: skip
+        rp, rq, rr = rates
         return self.inner.rates_to_motors(
             rp, rq, rr, self.thrust_sp, d.p_rad_s, d.q_rad_s, d.r_rad_s, dt_s, self._integrate
         )

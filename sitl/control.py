@@ -63,18 +63,24 @@ def quat_dcm_z(q: Quat) -> tuple[float, float, float]:
 
 
 def quat_between(u: tuple[float, float, float], v: tuple[float, float, float]) -> Quat:
-    """Shortest rotation taking unit vector ``u`` onto unit vector ``v``."""
-    cx = u[1] * v[2] - u[2] * v[1]
-    cy = u[2] * v[0] - u[0] * v[2]
-    cz = u[0] * v[1] - u[1] * v[0]
-    dot = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-    if dot < -0.999999:
-        # Opposite vectors: rotate 180 deg about any axis orthogonal to u.
+    """Shortest rotation taking unit vector ``u`` onto unit vector ``v``.
+
+    Built from the half-way vector h = (u + v) / |u + v|: q = (u.h, u x h). Unlike (1 + u.v, u x v) it
+    stays accurate when u and v are nearly opposite, where 1 + u.v loses every significant digit.
+    """
+    hx, hy, hz = u[0] + v[0], u[1] + v[1], u[2] + v[2]
+    hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+    if hn < 1e-12:
+        # Exactly opposite: rotate 180 deg about any axis orthogonal to u.
         ax, ay, az = (1.0, 0.0, 0.0) if abs(u[0]) < 0.9 else (0.0, 1.0, 0.0)
         cx, cy, cz = u[1] * az - u[2] * ay, u[2] * ax - u[0] * az, u[0] * ay - u[1] * ax
         n = math.sqrt(cx * cx + cy * cy + cz * cz)
         return (0.0, cx / n, cy / n, cz / n)
-    w = 1.0 + dot
+    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    w = u[0] * hx + u[1] * hy + u[2] * hz
+    cx = u[1] * hz - u[2] * hy
+    cy = u[2] * hx - u[0] * hz
+    cz = u[0] * hy - u[1] * hx
     n = math.sqrt(w * w + cx * cx + cy * cy + cz * cz)
     return (w / n, cx / n, cy / n, cz / n)
 
@@ -108,19 +114,24 @@ def attitude_from_thrust(thr_n: float, thr_e: float, thr_d: float, yaw_rad: floa
     the collective thrust is the vector's norm (0..1).
     """
     thrust = math.sqrt(thr_n * thr_n + thr_e * thr_e + thr_d * thr_d)
-    bz = (0.0, 0.0, 1.0) if thrust < 1e-06 else (-thr_n / thrust, -thr_e / thrust, -thr_d / thrust)
+    # Body z = -thrust direction (plain floats throughout: this runs at the outer rate per vehicle).
+    if thrust < 1e-06:
+        m02, m12, m22 = 0.0, 0.0, 1.0
+    else:
+        m02, m12, m22 = -thr_n / thrust, -thr_e / thrust, -thr_d / thrust
     # y axis of the heading-only frame, then body x = y_c x body z.
     ycx, ycy = -math.sin(yaw_rad), math.cos(yaw_rad)
-    bx = (ycy * bz[2], -ycx * bz[2], ycx * bz[1] - ycy * bz[0])
-    if bz[2] < 0.0:
-        bx = (-bx[0], -bx[1], -bx[2])
-    n = math.sqrt(bx[0] * bx[0] + bx[1] * bx[1] + bx[2] * bx[2])
-    bx = (1.0, 0.0, 0.0) if n < 1e-06 else (bx[0] / n, bx[1] / n, bx[2] / n)
-    by = (bz[1] * bx[2] - bz[2] * bx[1], bz[2] * bx[0] - bz[0] * bx[2], bz[0] * bx[1] - bz[1] * bx[0])
+    m00, m10, m20 = ycy * m22, -ycx * m22, ycx * m12 - ycy * m02
+    if m22 < 0.0:
+        m00, m10, m20 = -m00, -m10, -m20
+    n = math.sqrt(m00 * m00 + m10 * m10 + m20 * m20)
+    if n < 1e-06:
+        m00, m10, m20 = 1.0, 0.0, 0.0
+    else:
+        m00, m10, m20 = m00 / n, m10 / n, m20 / n
+    # Body y = body z x body x.
+    m01, m11, m21 = m12 * m20 - m22 * m10, m22 * m00 - m02 * m20, m02 * m10 - m12 * m00
     # Rotation matrix columns bx, by, bz -> quaternion (Shepperd).
-    m00, m01, m02 = bx[0], by[0], bz[0]
-    m10, m11, m12 = bx[1], by[1], bz[1]
-    m20, m21, m22 = bx[2], by[2], bz[2]
     tr = m00 + m11 + m22
     if tr > 0.0:
         s = math.sqrt(tr + 1.0) * 2.0
@@ -212,6 +223,9 @@ class PositionController:
         self._vdot_n = self._vdot_e = self._vdot_d = 0.0
         self._v_prev: tuple[float, float, float] | None = None
         self.vel_sp_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        # cos/sin of the tilt limit, for the limits object they were computed from.
+        self._tilt_of: PositionLimits | None = None
+        self._cos_tilt = self._sin_tilt = 0.0
 
     def reset(self, hover_integral_m_s2: float = 0.0) -> None:
         self._int_n = self._int_e = 0.0
@@ -227,44 +241,54 @@ class PositionController:
         dt_s: float,
     ) -> tuple[float, float, float]:
         lim = self.limits
+        if lim is not self._tilt_of:
+            self._tilt_of = lim
+            self._cos_tilt = math.cos(lim.tilt_max_rad)
+            self._sin_tilt = math.sin(lim.tilt_max_rad)
         pn, pe, pd = pos_ned_m
         vn, ve, vd = vel_ned_m_s
         # Velocity derivative for the D term (low-passed, as PX4 filters vel_dot).
-        if self._v_prev is not None and dt_s > 0:
-            a = min(1.0, dt_s / 0.05)
-            self._vdot_n += a * ((vn - self._v_prev[0]) / dt_s - self._vdot_n)
-            self._vdot_e += a * ((ve - self._v_prev[1]) / dt_s - self._vdot_e)
-            self._vdot_d += a * ((vd - self._v_prev[2]) / dt_s - self._vdot_d)
+        v_prev = self._v_prev
+        if v_prev is not None and dt_s > 0:
+            a = dt_s / 0.05
+            a = a if a < 1.0 else 1.0
+            self._vdot_n += a * ((vn - v_prev[0]) / dt_s - self._vdot_n)
+            self._vdot_e += a * ((ve - v_prev[1]) / dt_s - self._vdot_e)
+            self._vdot_d += a * ((vd - v_prev[2]) / dt_s - self._vdot_d)
         self._v_prev = (vn, ve, vd)
 
         # Position loop: velocity setpoint = feed-forward + P * position error, per finite axis.
+        # (Each of vsn, vse, vsd is finite or NaN here, so isnan is the finiteness test.)
         vsn = sp.vx if _finite(sp.vx) else NAN
         vse = sp.vy if _finite(sp.vy) else NAN
         vsd = sp.vz if _finite(sp.vz) else NAN
         if _finite(sp.x):
-            vsn = (vsn if _finite(vsn) else 0.0) + (sp.x - pn) * lim.pos_p_xy
-            vse = (vse if _finite(vse) else 0.0) + (sp.y - pe) * lim.pos_p_xy
+            vsn = (0.0 if math.isnan(vsn) else vsn) + (sp.x - pn) * lim.pos_p_xy
+            vse = (0.0 if math.isnan(vse) else vse) + (sp.y - pe) * lim.pos_p_xy
         if _finite(sp.z):
-            vsd = (vsd if _finite(vsd) else 0.0) + (sp.z - pd) * lim.pos_p_z
-        # Limit the velocity setpoint (horizontal norm, vertical up/down separately).
-        if _finite(vsn):
+            vsd = (0.0 if math.isnan(vsd) else vsd) + (sp.z - pd) * lim.pos_p_z
+        # Limit the velocity setpoint (horizontal norm, vertical up/down separately). Neither limit
+        # changes whether a component is finite, so the flags below hold for the rest of the update.
+        fin_xy = _finite(vsn)
+        fin_z = _finite(vsd)
+        if fin_xy:
             h = math.sqrt(vsn * vsn + vse * vse)
             if h > lim.vel_max_xy_m_s:
                 vsn *= lim.vel_max_xy_m_s / h
                 vse *= lim.vel_max_xy_m_s / h
-        if _finite(vsd):
+        if fin_z:
             vsd = min(lim.vel_max_down_m_s, max(-lim.vel_max_up_m_s, vsd))
         self.vel_sp_ned_m_s = (vsn, vse, vsd)
 
         # Velocity loop -> acceleration setpoint; feed-forward acceleration added where finite.
-        if _finite(vsn):
+        if fin_xy:
             en, ee = vsn - vn, vse - ve
             an = en * lim.vel_p_xy + self._int_n - self._vdot_n * lim.vel_d_xy
             ae = ee * lim.vel_p_xy + self._int_e - self._vdot_e * lim.vel_d_xy
         else:
             en = ee = 0.0
             an = ae = 0.0
-        if _finite(vsd):
+        if fin_z:
             ed = vsd - vd
             ad = ed * lim.vel_p_z + self._int_d - self._vdot_d * lim.vel_d_z
         else:
@@ -285,41 +309,43 @@ class PositionController:
         else:
             bzn, bze, bzd = bzn / n, bze / n, bzd / n
         # Limit tilt: the angle between body z (up-thrust) and vertical.
-        if bzd < math.cos(lim.tilt_max_rad):
+        c = self._cos_tilt
+        if bzd < c:
             h = math.sqrt(bzn * bzn + bze * bze)
-            s = math.sin(lim.tilt_max_rad)
-            c = math.cos(lim.tilt_max_rad)
             if h > 1e-9:
+                s = self._sin_tilt
                 bzn, bze, bzd = bzn / h * s, bze / h * s, c
             else:
                 bzn, bze, bzd = 0.0, 0.0, 1.0
-        collective = ad * (lim.hover_thrust / _G) - lim.hover_thrust
+        hover = lim.hover_thrust
+        collective = ad * (hover / _G) - hover
         collective /= bzd
         collective = min(collective, -lim.thr_min)
         tn, te, td = bzn * collective, bze * collective, bzd * collective
 
         # Saturate vertical, then give horizontal what is left (vertical priority).
-        td = max(td, -lim.thr_max)
-        xy_max_sq = lim.thr_max * lim.thr_max - td * td
+        thr_max = lim.thr_max
+        td = max(td, -thr_max)
+        xy_max_sq = thr_max * thr_max - td * td
         xy_max = math.sqrt(xy_max_sq) if xy_max_sq > 0 else 0.0
         h = math.sqrt(tn * tn + te * te)
         if h > xy_max:
             tn, te = tn / h * xy_max, te / h * xy_max
 
         # Anti-windup: tracking on xy, conditional on z (PX4).
-        if _finite(vsn) and lim.vel_p_xy > 0:
+        if fin_xy and lim.vel_p_xy > 0:
             arw = 2.0 / lim.vel_p_xy
-            a_prod = _G / lim.hover_thrust
+            a_prod = _G / hover
             en -= arw * (an - tn * a_prod)
             ee -= arw * (ae - te * a_prod)
             self._int_n += en * lim.vel_i_xy * dt_s
             self._int_e += ee * lim.vel_i_xy * dt_s
-        if _finite(vsd):
-            if (td >= -lim.thr_min and ed >= 0) or (td <= -lim.thr_max and ed <= 0):
+        if fin_z:
+            if (td >= -lim.thr_min and ed >= 0) or (td <= -thr_max and ed <= 0):
                 ed = 0.0
-            self._int_d += ed * lim.vel_i_z * dt_s
+            i_d = self._int_d + ed * lim.vel_i_z * dt_s
             # PX4 bounds the vertical integral to +-g.
-            self._int_d = min(_G, max(-_G, self._int_d))
+            self._int_d = min(_G, max(-_G, i_d))
         return tn, te, td
 
 
@@ -334,6 +360,12 @@ class AttitudeGains:
     roll_rate_max: float = math.radians(220.0)
     pitch_rate_max: float = math.radians(220.0)
     yaw_rate_max: float = math.radians(200.0)
+
+
+# The rate loop's gains (InnerLoop's class constants, as module globals for the per-tick path).
+_KP_RP, _KI_RP, _KD_RP = 20.0, 10.0, 0.05
+_KP_YAW, _KI_YAW = 8.0, 4.0
+_INT_LIMIT_RAD_S2 = 15.0
 
 
 class InnerLoop:
@@ -351,16 +383,16 @@ class InnerLoop:
     """
 
     __slots__ = (
-        "_fmax", "_int_p", "_int_q", "_int_r", "_ixx", "_iyy", "_izz", "_k_rp", "_k_y", "_prev_p",
-        "_prev_q", "gains",
+        "_dzx", "_dzy", "_dzz", "_fmax", "_int_p", "_int_q", "_int_r", "_ixx", "_iyy", "_izz", "_k_rp",
+        "_k_y", "_prev_p", "_prev_q", "_q_sp", "gains",
     )  # fmt: skip
 
-    KP_RP = 20.0
-    KI_RP = 10.0
-    KD_RP = 0.05
-    KP_YAW = 8.0
-    KI_YAW = 4.0
-    INT_LIMIT_RAD_S2 = 15.0
+    KP_RP = _KP_RP
+    KI_RP = _KI_RP
+    KD_RP = _KD_RP
+    KP_YAW = _KP_YAW
+    KI_YAW = _KI_YAW
+    INT_LIMIT_RAD_S2 = _INT_LIMIT_RAD_S2
 
     def __init__(self, model: QuadModel, gains: AttitudeGains | None = None) -> None:
         self.gains = gains or AttitudeGains()
@@ -372,6 +404,9 @@ class InnerLoop:
         self._k_y = 1.0 / (4.0 * model.yaw_moment_per_thrust_m)
         self._int_p = self._int_q = self._int_r = 0.0
         self._prev_p = self._prev_q = 0.0
+        # The attitude setpoint changes at the outer rate: its body z axis is kept until it does.
+        self._q_sp: Quat | None = None
+        self._dzx = self._dzy = self._dzz = 0.0
 
     def reset_integrators(self) -> None:
         self._int_p = self._int_q = self._int_r = 0.0
@@ -489,6 +524,145 @@ class InnerLoop:
         f0, f1, f2, f3 = base + r0, base + r1, base + r2, base + r3
         yv = tz * self._k_y
         if yv > 0.0:  # raises the CCW rotors 0, 1; lowers 2, 3
+            room = min(fmax - f0, fmax - f1, f2, f3)
+            yv = yv if yv < room else (room if room > 0.0 else 0.0)
+        elif yv < 0.0:
+            room = min(f0, f1, fmax - f2, fmax - f3)
+            yv = yv if -yv < room else (-room if room > 0.0 else 0.0)
+        inv = 1.0 / fmax
+        u0 = (f0 + yv) * inv
+        u1 = (f1 + yv) * inv
+        u2 = (f2 - yv) * inv
+        u3 = (f3 - yv) * inv
+        return (
+            1.0 if u0 > 1.0 else (0.0 if u0 < 0.0 else u0),
+            1.0 if u1 > 1.0 else (0.0 if u1 < 0.0 else u1),
+            1.0 if u2 > 1.0 else (0.0 if u2 < 0.0 else u2),
+            1.0 if u3 > 1.0 else (0.0 if u3 < 0.0 else u3),
+        )
+
+    def update(  # noqa: PLR0917 - per physics tick: positional on purpose
+        self,
+        roll_rad: float,
+        pitch_rad: float,
+        yaw_rad: float,
+        p: float,
+        q: float,
+        r: float,
+        q_sp: Quat,
+        yawspeed_ff_rad_s: float,
+        thrust: float,
+        dt_s: float,
+        integrate: bool,
+    ) -> tuple[float, float, float, float]:
+        """One tick from the attitude (ZYX Euler, rad) and body rates: motor commands 0..1, PX4 order.
+
+        The same arithmetic, operation for operation (so bit for bit), as :func:`quat_from_euler`,
+        :meth:`attitude_to_rates` and :meth:`rates_to_motors` in turn, in one Python frame: three
+        calls, their tuples and the setpoint's body z axis (recomputed only when ``q_sp`` changes)
+        cost a third of the inner loop otherwise.
+        """
+        g = self.gains
+        # quat_from_euler (the shared products are the ones it computes first, left to right).
+        cr, sr = math.cos(roll_rad * 0.5), math.sin(roll_rad * 0.5)
+        cp, sp = math.cos(pitch_rad * 0.5), math.sin(pitch_rad * 0.5)
+        cy, sy = math.cos(yaw_rad * 0.5), math.sin(yaw_rad * 0.5)
+        crcp, srsp, srcp, crsp = cr * cp, sr * sp, sr * cp, cr * sp
+        w = crcp * cy + srsp * sy
+        x = srcp * cy - crsp * sy
+        y = crsp * cy + srcp * sy
+        z = crcp * sy - srsp * cy
+        # attitude_to_rates
+        sw, sx, sy_, sz = q_sp
+        if q_sp is not self._q_sp:
+            self._q_sp = q_sp
+            self._dzx = 2.0 * (sw * sy_ + sx * sz)
+            self._dzy = 2.0 * (sy_ * sz - sw * sx)
+            self._dzz = sw * sw - sx * sx - sy_ * sy_ + sz * sz
+        dzx, dzy, dzz = self._dzx, self._dzy, self._dzz
+        ezx, ezy, ezz = 2.0 * (w * y + x * z), 2.0 * (y * z - w * x), w * w - x * x - y * y + z * z
+        cx, cy_, cz = ezy * dzz - ezz * dzy, ezz * dzx - ezx * dzz, ezx * dzy - ezy * dzx
+        rw = 1.0 + ezx * dzx + ezy * dzy + ezz * dzz
+        n = math.sqrt(rw * rw + cx * cx + cy_ * cy_ + cz * cz)
+        if n < 1e-6:
+            rw_, rx_, ry_, rz_ = sw, sx, sy_, sz
+        else:
+            rw, cx, cy_, cz = rw / n, cx / n, cy_ / n, cz / n
+            if abs(cx) > 1.0 - 1e-5 or abs(cy_) > 1.0 - 1e-5:
+                rw_, rx_, ry_, rz_ = sw, sx, sy_, sz
+            else:
+                rw_ = rw * w - cx * x - cy_ * y - cz * z
+                rx_ = rw * x + cx * w + cy_ * z - cz * y
+                ry_ = rw * y - cx * z + cy_ * w + cz * x
+                rz_ = rw * z + cx * y - cy_ * x + cz * w
+        mw = rw_ * sw + rx_ * sx + ry_ * sy_ + rz_ * sz
+        mz = rw_ * sz - rx_ * sy_ + ry_ * sx - rz_ * sw
+        if mw < 0.0:
+            mw, mz = -mw, -mz
+        mw = 1.0 if mw > 1.0 else (-1.0 if mw < -1.0 else mw)
+        mz = 1.0 if mz > 1.0 else (-1.0 if mz < -1.0 else mz)
+        yw = g.yaw_weight
+        bw, bz = math.cos(yw * math.acos(mw)), math.sin(yw * math.asin(mz))
+        dw = rw_ * bw - rz_ * bz
+        dx = rx_ * bw + ry_ * bz
+        dy = ry_ * bw - rx_ * bz
+        dz = rw_ * bz + rz_ * bw
+        ew = w * dw + x * dx + y * dy + z * dz
+        ex = w * dx - x * dw - y * dz + z * dy
+        ey = w * dy + x * dz - y * dw - z * dx
+        ez = w * dz - x * dy + y * dx - z * dw
+        if ew < 0.0:
+            ex, ey, ez = -ex, -ey, -ez
+        sp_p = 2.0 * ex * g.roll_p
+        sp_q = 2.0 * ey * g.pitch_p
+        sp_r = 2.0 * ez * g.yaw_p
+        if not math.isnan(yawspeed_ff_rad_s):
+            sp_p += 2.0 * (x * z - w * y) * yawspeed_ff_rad_s
+            sp_q += 2.0 * (y * z + w * x) * yawspeed_ff_rad_s
+            sp_r += ezz * yawspeed_ff_rad_s
+        lim = g.roll_rate_max
+        sp_p = lim if sp_p > lim else (-lim if sp_p < -lim else sp_p)
+        lim = g.pitch_rate_max
+        sp_q = lim if sp_q > lim else (-lim if sp_q < -lim else sp_q)
+        lim = g.yaw_rate_max
+        sp_r = lim if sp_r > lim else (-lim if sp_r < -lim else sp_r)
+        # rates_to_motors
+        ep, eq, er = sp_p - p, sp_q - q, sp_r - r
+        dp = (p - self._prev_p) / dt_s
+        dq = (q - self._prev_q) / dt_s
+        self._prev_p, self._prev_q = p, q
+        tx = (_KP_RP * ep + self._int_p - _KD_RP * dp) * self._ixx
+        ty = (_KP_RP * eq + self._int_q - _KD_RP * dq) * self._iyy
+        tz = (_KP_YAW * er + self._int_r) * self._izz
+        if integrate:
+            lim = _INT_LIMIT_RAD_S2
+            ip = self._int_p + _KI_RP * ep * dt_s
+            iq = self._int_q + _KI_RP * eq * dt_s
+            ir = self._int_r + _KI_YAW * er * dt_s
+            self._int_p = lim if ip > lim else (-lim if ip < -lim else ip)
+            self._int_q = lim if iq > lim else (-lim if iq < -lim else iq)
+            self._int_r = lim if ir > lim else (-lim if ir < -lim else ir)
+        fmax = self._fmax
+        base = thrust * fmax
+        rx = tx * self._k_rp
+        ry = ty * self._k_rp
+        r0, r1, r2, r3 = ry - rx, rx - ry, rx + ry, -rx - ry
+        hi = r0 if r0 > r1 else r1
+        hi = hi if hi > r2 else r2
+        hi = hi if hi > r3 else r3
+        lo = r0 if r0 < r1 else r1
+        lo = lo if lo < r2 else r2
+        lo = lo if lo < r3 else r3
+        if hi - lo > fmax:
+            s = fmax / (hi - lo)
+            r0, r1, r2, r3, lo, hi = r0 * s, r1 * s, r2 * s, r3 * s, lo * s, hi * s
+        if base + lo < 0.0:
+            base = -lo
+        elif base + hi > fmax:
+            base = fmax - hi
+        f0, f1, f2, f3 = base + r0, base + r1, base + r2, base + r3
+        yv = tz * self._k_y
+        if yv > 0.0:
             room = min(fmax - f0, fmax - f1, f2, f3)
             yv = yv if yv < room else (room if room > 0.0 else 0.0)
         elif yv < 0.0:

@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 import struct
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.commander import Action, DisarmTimer, Flags, Probation, resolve_failsafe
+from sitl.estimator import NormalDraws
 from sitl.modes import NavState, nav_state_from_mode
 from sitl.offboard import SetpointKind, parse_attitude_target, parse_local_ned
 from sitl.params import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, ParamStore, decode_value, encode_value
@@ -165,3 +167,11 @@ def test_disarm_timer_land_and_preflight() -> None:
     assert not d.update(20.0, armed=True, landed=False, disarm_land_s=2.0, disarm_prflt_s=10.0)
     assert not d.update(30.0, armed=True, landed=True, disarm_land_s=2.0, disarm_prflt_s=10.0)
     assert d.update(32.0, armed=True, landed=True, disarm_land_s=2.0, disarm_prflt_s=10.0)
+
+
+@pytest.mark.parametrize(("n", "block"), [(5, 1000), (9, 900), (7, 10), (3, 2)])
+def test_block_normal_draws_are_the_one_call_per_sample_sequence(n: int, block: int) -> None:
+    reference = np.random.default_rng(11)
+    draws = NormalDraws(np.random.default_rng(11), block=block)
+    for _ in range(40):
+        assert draws.take(n) == reference.standard_normal(n).tolist()
