@@ -21,8 +21,8 @@ the arms, and stereo depth noise grows with Z^2, so instead:
    (:func:`range_from_size`), mostly its height (its width changes with the leader's yaw), with the
    leader's apparent size and the box's per-frame noise learnt online from depth just inside the
    stereo range (:class:`SizeCalibrator`). About 10-25 % per frame, white: weighted at the predicted
-   range, corrected for the ``1/px`` skew and limited around the prediction, so that the tracker can
-   average it without a bias.
+   range and linearised there (the box side is linear in 1/z), so that the tracker averages it
+   without a bias.
 
 Everything here is pure: arrays and numbers in, a :class:`LeaderMeasurement` out; nothing copies the
 image (the box is a view; only its valid pixels are gathered).
@@ -46,8 +46,8 @@ _CLUSTER_FRACTION = 0.1
 _CAM_DOWN = np.array([0.0, 1.0, 0.0])
 #: Smallest box side used for ranging from size, px (a pixel of box error is then under 15 %).
 _MIN_SIZE_RANGE_PX = 7.0
-#: Size-ranged readings are limited to this many sigmas from the predicted range, in log range.
-_SIZE_LOG_CLAMP_SIGMAS = 3.0
+#: Size-ranged readings are limited to this many sigmas from the predicted range.
+_SIZE_CLAMP_SIGMAS = 3.0
 #: Depth clusters considered inside one box (leader, occluders in front, background behind).
 _MAX_CLUSTERS = 3
 #: A cluster fits the tracker's predicted depth within this many combined standard deviations.
@@ -380,32 +380,37 @@ class SizeCalibrator:
 def range_from_size(
     w_px: float, h_px: float, focal_px: float, prior: SizePrior, z_ref_m: float | None = None
 ) -> tuple[float, float] | None:
-    """Range (m) and its relative variance from the box size, fusing width and height in log range.
+    """Range (m) and its relative variance from the box size, fusing width and height.
 
-    Each side's relative error combines its size's own spread and its per-frame noise over its length,
-    taken at ``z_ref_m`` (the predicted range) when given: weights from this box's own sides would
-    favour the boxes that came out large, i.e. short readings, and bias the range short.
+    Each side's relative error combines its size's own spread and its per-frame noise over its length.
+    With a predicted range ``z_ref_m`` the side (px, linear in 1/z, its noise symmetric) is the
+    measurement, linearised there as in an extended Kalman filter: ``z = z_ref (2 - px / px_ref)``.
+    ``f S / px`` itself would skew long (a 12 px side with 3 px noise averages 3-7 % long, and a cut
+    on small boxes makes that depend on the noise) and weights from this box's own sides would favour
+    the boxes that came out large; both would bias the track. Without a prediction: fused in log range.
     """
-    log_sum = 0.0
+    z_sum = 0.0
     weight = 0.0
-    noise_sum = 0.0
     for size_px, size_m, rel_std, noise_px in (
         (w_px, prior.width_m, prior.width_rel_std, prior.width_noise_px),
         (h_px, prior.height_m, prior.height_rel_std, prior.height_noise_px),
     ):
-        if size_px < _MIN_SIZE_RANGE_PX:
-            continue
-        ref_px = size_px if z_ref_m is None else focal_px * size_m / z_ref_m
-        noise_var = (noise_px / ref_px) ** 2
-        rel_var = rel_std * rel_std + noise_var
-        log_sum += math.log(focal_px * size_m / size_px) / rel_var
+        if z_ref_m is None:
+            if size_px < _MIN_SIZE_RANGE_PX:
+                continue
+            rel_var = rel_std * rel_std + (noise_px / size_px) ** 2
+            z_sum += math.log(focal_px * size_m / size_px) / rel_var
+        else:
+            ref_px = focal_px * size_m / z_ref_m
+            if ref_px < _MIN_SIZE_RANGE_PX:
+                continue
+            rel_var = rel_std * rel_std + (noise_px / ref_px) ** 2
+            z_sum += z_ref_m * (2.0 - size_px / ref_px) / rel_var
         weight += 1.0 / rel_var
-        noise_sum += noise_var / (rel_var * rel_var)
     if weight == 0.0:
         return None
-    # f S / (s (1 + e)) with side noise e of variance v averages f S / s * (1 + v): undone, so that the
-    # tracker, which averages ranges linearly, is not pulled long by the far tail of small boxes.
-    return math.exp(log_sum / weight - noise_sum / (weight * weight)), 1.0 / weight
+    z = z_sum / weight
+    return (math.exp(z) if z_ref_m is None else z), 1.0 / weight
 
 
 def measure_leader(
@@ -460,7 +465,8 @@ def measure_leader(
         var_z = depth_sigma_m(z, intr.fx_px, cfg) ** 2 / n_eff + cfg.surface_model_std_m**2
         source, surface_m, n_px = "depth", cluster.z_m, cluster.n_px
     elif size_prior is not None and not truncated:
-        ranged = range_from_size(w_px, h_px, intr.fx_px, size_prior, z_hint_m)
+        z_pred = z_hint_m if z_hint_m is not None and z_hint_m > 0.0 else None
+        ranged = range_from_size(w_px, h_px, intr.fx_px, size_prior, z_pred)
         if ranged is None:
             return None
         z, rel_var = ranged
@@ -468,12 +474,11 @@ def measure_leader(
         # this noisy range (short readings would weigh more and drag the track in).
         z_ref = z if z_hint_m is None else z_hint_m
         var_z = z_ref * z_ref * rel_var
-        if z_hint_m is not None and z_hint_m > 0.0:
-            # Range from size is z = f H / h: box-edge noise on a ~12 px side gives it a long far tail
-            # that the tracker's gate would cut (dropping only long readings biases the track short).
-            # Its error is symmetric in log range: limit it there, around the prediction.
-            lim = _SIZE_LOG_CLAMP_SIGMAS * math.sqrt(rel_var + (z_hint_std_m / z_hint_m) ** 2)
-            z = z_hint_m * math.exp(max(-lim, min(lim, math.log(z / z_hint_m))))
+        if z_hint_m is not None:
+            # Box-size errors beyond 3 sigma (a box cut by an occluder, a merged box): limited, not
+            # dropped, so the track still hears of them but cannot be dragged far by one frame.
+            lim = _SIZE_CLAMP_SIGMAS * math.sqrt(var_z + z_hint_std_m * z_hint_std_m)
+            z = max(z_hint_m - lim, min(z_hint_m + lim, z))
         source, surface_m, n_px = "size", math.nan, 0
     else:
         return None
