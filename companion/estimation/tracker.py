@@ -9,11 +9,13 @@ State and frame:
 Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurements of every detection
 (camera frame) and the follower's attitude at that stamp, and:
 
-1. predicts to the stamp (white-noise acceleration of ``process_accel_std_m_s2``);
+1. predicts to the stamp (white-noise acceleration of ``process_accel_std_m_s2``; along the line of
+   sight ``size_range_accel_std_m_s2`` while the last measurement was ranged by box size);
 2. rejects boxes whose pixel size disagrees with their depth (``size_ratio`` outside
    ``[1/size_ratio_tolerance, size_ratio_tolerance]``; a box cut by the image border may be small);
 3. selects the leader: with a track, among measurements inside the Mahalanobis gate
-   (``d^2 < gate_chi2``) the one with the least ``d^2 - 2 ln(score)``; without one, the best score;
+   (``d^2 < gate_chi2``) the one with the least ``d^2 - 2 ln(score)``; without one, the best score
+   (a size-ranged track gates returning depth with a 15 % range error added);
 4. updates, or coasts: no update, so the covariance grows with the prediction.
 
 :meth:`TargetTracker.predict_cam` gives the predicted camera-frame position at a new frame's stamp
@@ -59,10 +61,13 @@ Mat6 = NDArray[np.float64]
 
 _H = np.hstack([np.eye(3), np.zeros((3, 3))])
 _EYE6 = np.eye(6)
+_EYE3 = np.eye(3)
 _F_DT = np.kron(np.array([[0.0, 1.0], [0.0, 0.0]]), np.eye(3))
 _Q_PP = np.kron(np.array([[1.0, 0.0], [0.0, 0.0]]), np.eye(3))
 _Q_PV = np.kron(np.array([[0.0, 1.0], [1.0, 0.0]]), np.eye(3))
 _Q_VV = np.kron(np.array([[0.0, 0.0], [0.0, 1.0]]), np.eye(3))
+#: Range error (relative) a size-ranged track may carry, added to the gate when depth comes back.
+_SIZE_RANGE_GATE_REL = 0.15
 #: Scores below this are clamped before the log in the selection cost.
 _MIN_SCORE = 1e-3
 
@@ -213,6 +218,8 @@ class TargetTracker:
         self._window: deque[bool] = deque(maxlen=cfg.confirm_window)
         self._hits = 0
         self._track_id = 0
+        #: The last accepted measurement was ranged from box size (no stereo depth).
+        self._size_ranged = False
 
     @property
     def has_track(self) -> bool:
@@ -236,7 +243,7 @@ class TargetTracker:
         dt = max(0.0, stamp_s - self._stamp_s)
         F = _EYE6 + dt * _F_DT
         x = F @ kf.x[:, 0]
-        P = F @ kf.P @ F.T + self._Q(dt)
+        P = F @ kf.P @ F.T + self._Q(dt, x[:3])
         est = RelativeEstimate(x[:3], x[3:], P, R_ned_body, self.camera)
         return est.p_cam_leader_m, est.cov_cam_m2
 
@@ -298,8 +305,16 @@ class TargetTracker:
         P_pp = kf.P[:3, :3]
         best: _Candidate | None = None
         best_cost = math.inf
+        # A track ranged by box size can be off in range by far more than its covariance says (the
+        # size calibration's error persists): depth coming back is gated with that error added.
+        S_extra: Mat3 | None = None
+        if self._size_ranged:
+            S_extra = (_SIZE_RANGE_GATE_REL**2) * np.outer(x[:3], x[:3])
         for c in candidates:
-            d2 = _mahalanobis2(c.p_ned_m - x[:3], P_pp + c.R_ned_m2)
+            S = P_pp + c.R_ned_m2
+            if S_extra is not None and c.meas.range_source == "depth":
+                S = S + S_extra
+            d2 = _mahalanobis2(c.p_ned_m - x[:3], S)
             if d2 >= self.cfg.gate_chi2:
                 continue
             cost = d2 - 2.0 * math.log(max(c.meas.score, _MIN_SCORE))
@@ -322,22 +337,38 @@ class TargetTracker:
         self._window.clear()
         self._window.append(True)
         self._hits = 1
+        self._size_ranged = c.meas.range_source == "size"
 
     def _predict(self, kf: KalmanFilter, stamp_s: float) -> None:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
-        kf.predict(F=_EYE6 + dt * _F_DT, Q=self._Q(dt))
+        kf.predict(F=_EYE6 + dt * _F_DT, Q=self._Q(dt, kf.x[:3, 0]))
         self._stamp_s = stamp_s
 
-    def _Q(self, dt: float) -> Mat6:
-        """Discrete white-noise acceleration, per axis ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q``."""
+    def _Q(self, dt: float, p_ned_m: Vec3) -> Mat6:
+        """Discrete white-noise acceleration, per axis ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q``.
+
+        While the track is ranged by box size (beyond the stereo range), the acceleration along the
+        line of sight ``p_ned_m`` has the smaller ``size_range_accel_std_m_s2``: range then comes from
+        ~10 % per-frame measurements and only a smoother radial motion model averages enough of them;
+        across the line of sight the bearing stays precise and ``process_accel_std_m_s2`` applies.
+        """
         q = self.cfg.process_accel_std_m_s2**2
         Q: Mat6 = (q * dt * dt) * (_Q_PP * (dt * dt / 4.0) + _Q_PV * (dt / 2.0) + _Q_VV)
-        return Q
+        r2 = p_ned_m @ p_ned_m
+        if not self._size_ranged or r2 <= 0.0:
+            return Q
+        # Spatial shape I - (1 - k) u u^T with k = (q_los / q)^2: the radial variance scaled down.
+        k = (self.cfg.size_range_accel_std_m_s2 / self.cfg.process_accel_std_m_s2) ** 2
+        shape = _EYE3 - ((1.0 - k) / r2) * np.outer(p_ned_m, p_ned_m)
+        T = (q * dt * dt) * np.array([[dt * dt / 4.0, dt / 2.0], [dt / 2.0, 1.0]])
+        Qs: Mat6 = np.kron(T, shape).astype(np.float64)
+        return Qs
 
     def _update(self, kf: KalmanFilter, c: _Candidate) -> None:
         kf.update(c.p_ned_m.reshape(3, 1), R=c.R_ned_m2)
+        self._size_ranged = c.meas.range_source == "size"
         kf.P = 0.5 * (kf.P + kf.P.T)
         self._last_meas_s = self._stamp_s
         self._hits += 1

@@ -53,7 +53,11 @@ class PerceptionPipeline:
         self.attitude = attitude if attitude is not None else AttitudeHistory()
         self.counters = PipelineCounters()
         self.size = (
-            SizeCalibrator(leader.span_m, max_depth_m=0.95 * pose.depth_max_m) if pose.size_fallback else None
+            SizeCalibrator(
+                leader.span_m, min_depth_m=0.75 * pose.depth_max_m, max_depth_m=0.95 * pose.depth_max_m
+            )
+            if pose.size_fallback
+            else None
         )
         self._last_R_ned_body: Mat3 = np.eye(3)
         self._att_key: tuple[float, float | None] = (math.nan, None)

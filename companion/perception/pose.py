@@ -17,9 +17,12 @@ the arms, and stereo depth noise grows with Z^2, so instead:
    ``independent_depth_px`` pixels since stereo noise is spatially correlated, plus a shape term).
 5. **Size prior**: ``size_ratio`` = box size / expected size of a leader of span ``span_m`` at that
    depth; the tracker rejects boxes whose ratio is off by more than its tolerance.
-6. **Beyond the stereo range** (or in a depth hole) the range comes from the box's width and height
-   (:func:`range_from_size`) with the leader's apparent size learnt online from depth
-   (:class:`SizeCalibrator`). It is coarse (about 10 % of range) and its covariance says so.
+6. **Beyond the stereo range** (or in a depth hole) the range comes from the box size
+   (:func:`range_from_size`), mostly its height (its width changes with the leader's yaw), with the
+   leader's apparent size and the box's per-frame noise learnt online from depth just inside the
+   stereo range (:class:`SizeCalibrator`). About 10-25 % per frame, white: weighted at the predicted
+   range and linearised there (the box side is linear in 1/z), so that the tracker averages it
+   without a bias.
 
 Everything here is pure: arrays and numbers in, a :class:`LeaderMeasurement` out; nothing copies the
 image (the box is a view; only its valid pixels are gathered).
@@ -41,10 +44,10 @@ _TRIM_SIGMAS = 2.5
 #: A depth window is a candidate for the leader once it holds this fraction of the box's valid pixels.
 _CLUSTER_FRACTION = 0.1
 _CAM_DOWN = np.array([0.0, 1.0, 0.0])
-#: Variance inflation of size-ranged measurements, whose errors are correlated over many frames.
-_SIZE_ERROR_PERSISTENCE = 4.0
 #: Smallest box side used for ranging from size, px (a pixel of box error is then under 15 %).
 _MIN_SIZE_RANGE_PX = 7.0
+#: Size-ranged readings are limited to this many sigmas from the predicted range.
+_SIZE_CLAMP_SIGMAS = 3.0
 #: Depth clusters considered inside one box (leader, occluders in front, background behind).
 _MAX_CLUSTERS = 3
 #: A cluster fits the tracker's predicted depth within this many combined standard deviations.
@@ -263,26 +266,55 @@ def _untruncated_mean(mean: float, sigma: float, lo: float, hi: float) -> tuple[
 class SizePrior:
     """The leader's apparent width and height (box side times depth over focal length), m.
 
-    Height barely depends on the leader's yaw (it is level: props above, legs below); width does, by
-    up to +-20 % for a quad-X. Each comes with its relative standard deviation.
+    Ranging from a side has two errors: a per-frame one in pixels (box-edge noise and pixel
+    quantisation, ``*_noise_px``: white, the tracker averages it out) and one relative to the size
+    (``*_rel_std``: persistent). Height barely depends on the leader's yaw (it is level: props above,
+    legs below), so its relative error is small; width changes by up to +-20 % with yaw and shrinks
+    with range as thin arms and props vanish, so it counts little where height is usable.
     """
 
     width_m: float
     width_rel_std: float
+    width_noise_px: float
     height_m: float
     height_rel_std: float
+    height_noise_px: float
+
+
+class _SideStats:
+    """Exponential average of one apparent size (m) and of its per-frame residual (px^2)."""
+
+    __slots__ = ("mean_m", "noise_px2", "updates")
+
+    def __init__(self, mean_m: float, noise_px: float) -> None:
+        self.mean_m = mean_m
+        self.noise_px2 = noise_px * noise_px
+        self.updates = 0
+
+    def add(self, size_m: float, size_px: float, alpha: float) -> None:
+        # Early on average fast (1/n), then settle to the exponential window.
+        a = max(alpha, 1.0 / (self.updates + 1))
+        if self.updates > 0 and size_m > 0.0:
+            resid_px = (size_m - self.mean_m) * size_px / size_m  # px at this frame's scale
+            w = max(alpha, 1.0 / self.updates)
+            self.noise_px2 += w * (resid_px * resid_px - self.noise_px2)
+        self.mean_m += a * (size_m - self.mean_m)
+        self.updates += 1
 
 
 class SizeCalibrator:
     """Learns the leader's apparent size from depth measurements, for ranging where depth fails.
 
-    Beyond the stereo range (or in a depth hole) the box still gives range: ``z = f * size / px``, from
-    its width and its height, fused by their variances. The apparent size depends on the airframe, on
-    its yaw seen from here and on range (thin parts such as propellers vanish at low resolution), so
-    it is learnt online as an exponential average over recent confirmed, untruncated depth
-    measurements within ``max_depth_m`` (set just inside the stereo range: depth is still far more
-    accurate than size there, and the resolution is closest to what follows beyond it). Before that it
-    is ``width_ratio * span_m`` and ``height_ratio * span_m`` with a loose uncertainty.
+    Beyond the stereo range (or in a depth hole) the box still gives range: ``z = f * size / px``,
+    mostly from its height. The apparent size depends on the airframe, on its yaw and on range (thin
+    parts vanish at low resolution: the box's width at 11 m is ~10 % under its width at 5 m), so it is
+    learnt online from confirmed, untruncated depth measurements in ``[min_depth_m, max_depth_m]``,
+    just inside the stereo range: depth there is still ~0.5 % accurate and the resolution is closest to
+    what follows beyond it. The average is long (``1/alpha`` samples, ~2 s at 30 Hz): a 1 % bias in
+    the height is 0.11 m at 11 m, for as long as the leader stays out there. The per-frame scatter of
+    each side (px) is learnt too: it is the detector's box noise that range-from-size inherits. Until
+    the band has ``min_updates`` samples, closer depth measurements stand in; before those,
+    ``width_ratio`` and ``height_ratio`` times ``span_m`` with a loose uncertainty.
     """
 
     def __init__(
@@ -292,61 +324,93 @@ class SizeCalibrator:
         width_ratio: float = 1.3,
         height_ratio: float = 0.65,
         prior_rel_std: float = 0.25,
+        min_depth_m: float = 7.5,
         max_depth_m: float = 9.5,
-        alpha: float = 0.05,
-        min_rel_std: float = 0.10,
+        alpha: float = 0.02,
+        min_updates: int = 10,
+        width_rel_std: float = 1.0,
+        height_rel_std: float = 0.03,
+        min_noise_px: float = 0.5,
     ) -> None:
         self.span_m = span_m
+        self.min_depth_m = min_depth_m
         self.max_depth_m = max_depth_m
         self.alpha = alpha
-        self.min_rel_std = min_rel_std
-        self._prior = SizePrior(width_ratio * span_m, prior_rel_std, height_ratio * span_m, prior_rel_std)
-        self._mean = [self._prior.width_m, self._prior.height_m]
-        self._rel_var = [prior_rel_std**2, prior_rel_std**2]
-        self.updates = 0
+        self.min_updates = min_updates
+        self.width_rel_std = width_rel_std
+        self.height_rel_std = height_rel_std
+        self.min_noise_px = min_noise_px
+        self._prior = SizePrior(
+            width_ratio * span_m, prior_rel_std, 2.0, height_ratio * span_m, prior_rel_std, 2.0
+        )
+        #: (width, height) learnt in the band near the cut-off, and from closer range.
+        self._band = (_SideStats(self._prior.width_m, 2.0), _SideStats(self._prior.height_m, 2.0))
+        self._near = (_SideStats(self._prior.width_m, 2.0), _SideStats(self._prior.height_m, 2.0))
+
+    @property
+    def updates(self) -> int:
+        """Depth measurements learnt from, in the band and closer."""
+        return self._band[0].updates + self._near[0].updates
 
     def update(self, m: LeaderMeasurement) -> None:
         """Learn from a depth measurement the tracker accepted (others are ignored)."""
-        if m.range_source != "depth" or m.truncated or m.p_cam_leader_m[2] > self.max_depth_m:
+        z = float(m.p_cam_leader_m[2])
+        if m.range_source != "depth" or m.truncated or z > self.max_depth_m:
             return
-        # Early on average fast (1/n), then settle to the exponential window.
-        a = max(self.alpha, 1.0 / (self.updates + 1))
-        w = max(self.alpha, 1.0 / (self.updates + 2))
-        for i, size_m in enumerate((m.width_m, m.height_m)):
-            rel = size_m / self._mean[i] - 1.0
-            self._mean[i] += a * (size_m - self._mean[i])
-            self._rel_var[i] = (1.0 - w) * self._rel_var[i] + w * rel * rel
-        self.updates += 1
+        stats = self._band if z >= self.min_depth_m else self._near
+        x0, y0, x1, y1 = m.box_xyxy_px
+        stats[0].add(m.width_m, x1 - x0, self.alpha)
+        stats[1].add(m.height_m, y1 - y0, self.alpha)
 
     def prior(self) -> SizePrior:
         """The current apparent-size estimate (the configured prior until enough updates)."""
-        if self.updates < 10:
-            return self._prior
-        sw, sh = (max(self.min_rel_std, math.sqrt(v)) for v in self._rel_var)
-        return SizePrior(self._mean[0], sw, self._mean[1], sh)
+        for w, h in (self._band, self._near):
+            if w.updates >= self.min_updates:
+                return SizePrior(
+                    w.mean_m,
+                    self.width_rel_std,
+                    max(self.min_noise_px, math.sqrt(w.noise_px2)),
+                    h.mean_m,
+                    self.height_rel_std,
+                    max(self.min_noise_px, math.sqrt(h.noise_px2)),
+                )
+        return self._prior
 
 
 def range_from_size(
-    w_px: float, h_px: float, focal_px: float, prior: SizePrior, edge_jitter_px: float
+    w_px: float, h_px: float, focal_px: float, prior: SizePrior, z_ref_m: float | None = None
 ) -> tuple[float, float] | None:
-    """Range (m) and its relative variance from the box size, fusing width and height in log range.
+    """Range (m) and its relative variance from the box size, fusing width and height.
 
-    Each side's relative error combines the size's own spread and two box edges' jitter over its length.
+    Each side's relative error combines its size's own spread and its per-frame noise over its length.
+    With a predicted range ``z_ref_m`` the side (px, linear in 1/z, its noise symmetric) is the
+    measurement, linearised there as in an extended Kalman filter: ``z = z_ref (2 - px / px_ref)``.
+    ``f S / px`` itself would skew long (a 12 px side with 3 px noise averages 3-7 % long, and a cut
+    on small boxes makes that depend on the noise) and weights from this box's own sides would favour
+    the boxes that came out large; both would bias the track. Without a prediction: fused in log range.
     """
-    log_sum = 0.0
+    z_sum = 0.0
     weight = 0.0
-    for size_px, size_m, rel_std in (
-        (w_px, prior.width_m, prior.width_rel_std),
-        (h_px, prior.height_m, prior.height_rel_std),
+    for size_px, size_m, rel_std, noise_px in (
+        (w_px, prior.width_m, prior.width_rel_std, prior.width_noise_px),
+        (h_px, prior.height_m, prior.height_rel_std, prior.height_noise_px),
     ):
-        if size_px < _MIN_SIZE_RANGE_PX:
-            continue
-        rel_var = rel_std * rel_std + 2.0 * (edge_jitter_px / size_px) ** 2
-        log_sum += math.log(focal_px * size_m / size_px) / rel_var
+        if z_ref_m is None:
+            if size_px < _MIN_SIZE_RANGE_PX:
+                continue
+            rel_var = rel_std * rel_std + (noise_px / size_px) ** 2
+            z_sum += math.log(focal_px * size_m / size_px) / rel_var
+        else:
+            ref_px = focal_px * size_m / z_ref_m
+            if ref_px < _MIN_SIZE_RANGE_PX:
+                continue
+            rel_var = rel_std * rel_std + (noise_px / ref_px) ** 2
+            z_sum += z_ref_m * (2.0 - size_px / ref_px) / rel_var
         weight += 1.0 / rel_var
     if weight == 0.0:
         return None
-    return math.exp(log_sum / weight), 1.0 / weight
+    z = z_sum / weight
+    return (math.exp(z) if z_ref_m is None else z), 1.0 / weight
 
 
 def measure_leader(
@@ -401,15 +465,20 @@ def measure_leader(
         var_z = depth_sigma_m(z, intr.fx_px, cfg) ** 2 / n_eff + cfg.surface_model_std_m**2
         source, surface_m, n_px = "depth", cluster.z_m, cluster.n_px
     elif size_prior is not None and not truncated:
-        ranged = range_from_size(w_px, h_px, intr.fx_px, size_prior, cfg.box_jitter_px)
+        z_pred = z_hint_m if z_hint_m is not None and z_hint_m > 0.0 else None
+        ranged = range_from_size(w_px, h_px, intr.fx_px, size_prior, z_pred)
         if ranged is None:
             return None
         z, rel_var = ranged
         # The error is relative to range; scale it by the predicted range when there is one, never by
-        # this noisy range (short readings would weigh more and drag the track in). Size errors persist
-        # for about a second (yaw, pixel quantisation), so they count as fewer, larger ones.
+        # this noisy range (short readings would weigh more and drag the track in).
         z_ref = z if z_hint_m is None else z_hint_m
-        var_z = z_ref * z_ref * rel_var * _SIZE_ERROR_PERSISTENCE
+        var_z = z_ref * z_ref * rel_var
+        if z_hint_m is not None:
+            # Box-size errors beyond 3 sigma (a box cut by an occluder, a merged box): limited, not
+            # dropped, so the track still hears of them but cannot be dragged far by one frame.
+            lim = _SIZE_CLAMP_SIGMAS * math.sqrt(var_z + z_hint_std_m * z_hint_std_m)
+            z = max(z_hint_m - lim, min(z_hint_m + lim, z))
         source, surface_m, n_px = "size", math.nan, 0
     else:
         return None

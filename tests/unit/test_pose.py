@@ -9,13 +9,16 @@ from hypothesis import strategies as st
 
 from companion.config import LeaderConfig, PoseConfig
 from companion.perception.pose import (
+    LeaderMeasurement,
     SizeCalibrator,
+    SizePrior,
     back_project,
     bearing,
     box_bounds,
     depth_sigma_m,
     measure_leader,
     project,
+    range_from_size,
     robust_depth,
 )
 from companion.perception.types import Detection, Intrinsics
@@ -224,3 +227,59 @@ def test_tracker_prediction_picks_the_leader_behind_a_nearer_occluder() -> None:
     )
     assert lost is not None
     assert lost.p_cam_leader_m[2] == blind.p_cam_leader_m[2]
+
+
+def _depth_meas(z_m: float, w_px: float, h_px: float, f_px: float = 465.6) -> LeaderMeasurement:
+    return LeaderMeasurement(
+        stamp_s=0.0,
+        p_cam_leader_m=np.array([0.0, 0.0, z_m]),
+        cov_cam_m2=np.eye(3) * 1e-4,
+        depth_surface_m=z_m,
+        n_depth_px=50,
+        size_ratio=1.0,
+        azimuth_rad=0.0,
+        elevation_rad=0.0,
+        score=0.9,
+        box_xyxy_px=(300.0, 200.0, 300.0 + w_px, 200.0 + h_px),
+        truncated=False,
+        width_m=w_px * z_m / f_px,
+        height_m=h_px * z_m / f_px,
+    )
+
+
+def test_size_calibration_learns_near_the_cut_off_and_the_box_noise_in_px() -> None:
+    # Close up the leader looks 10 % taller (thin parts still show); near the cut-off its box height
+    # scatters by 1.5 px. The calibration takes the band's size and learns that scatter.
+    rng = np.random.default_rng(3)
+    f = 465.6
+    calib = SizeCalibrator(0.45, min_depth_m=7.5, max_depth_m=9.5)
+    for z in np.linspace(3.0, 7.4, 60):
+        calib.update(_depth_meas(z, f * 0.6 / z, f * 0.33 / z))
+    assert calib.prior().height_m == pytest.approx(0.33, rel=0.01)  # closer range stands in
+    for z in np.linspace(7.5, 9.5, 200):
+        calib.update(_depth_meas(z, f * 0.55 / z + rng.normal(0, 3.0), f * 0.30 / z + rng.normal(0, 1.5)))
+    prior = calib.prior()
+    assert prior.height_m == pytest.approx(0.30, rel=0.02)
+    assert prior.height_noise_px == pytest.approx(1.5, rel=0.25)
+    assert prior.width_noise_px == pytest.approx(3.0, rel=0.25)
+    calib.update(_depth_meas(12.0, 10.0, 5.0))  # beyond the band: ignored
+    assert calib.prior().height_m == pytest.approx(prior.height_m)
+
+
+def test_range_from_size_averages_without_bias_under_box_noise() -> None:
+    # 12 px high at 11.5 m with 2.9 px noise per frame (2 px per edge): the tracker averages the ranges
+    # linearly, so their mean must be right; weights at the predicted range keep long and short alike.
+    rng = np.random.default_rng(4)
+    f, z_true = 465.6, 11.5
+    prior = SizePrior(0.55, 1.0, 4.0, 0.30, 0.03, 2.9)
+    h0, w0 = f * 0.30 / z_true, f * 0.55 / z_true
+    zs, ws = [], []
+    for _ in range(20000):
+        ranged = range_from_size(w0 + rng.normal(0, 4.0), h0 + rng.normal(0, 2.9), f, prior, z_true * 1.05)
+        if ranged is not None:
+            zs.append(ranged[0])
+            ws.append(1.0 / ranged[1])
+    assert np.mean(zs) == pytest.approx(z_true, rel=0.01)
+    assert np.average(zs, weights=ws) == pytest.approx(z_true, rel=0.01)
+    # Per-frame relative error as stated (height noise over the expected height, plus the floor).
+    assert math.sqrt(1.0 / np.mean(ws)) == pytest.approx(np.std(zs) / z_true, rel=0.2)

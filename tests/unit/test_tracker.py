@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -195,3 +196,30 @@ def test_covariance_stays_symmetric_psd(steps: list[tuple[float, bool, float]]) 
             Pc = st_.estimate.cov_cam_m2
             assert np.allclose(Pc, Pc.T)
             assert np.linalg.eigvalsh(Pc).min() > -1e-12
+
+
+def test_size_ranged_track_has_a_smoother_radial_model_and_takes_depth_back() -> None:
+    # Beyond the stereo range (box-size ranges, ~10 % per frame) the process noise is smaller along the
+    # line of sight than across it; when depth returns 0.8 m off (7 %), it is accepted, not gated out.
+    def run(cfg: TrackerConfig) -> tuple[TargetTracker, np.ndarray, np.ndarray]:
+        tracker = TargetTracker(cfg, CAM)
+        p_cam = np.array([0.0, 0.0, 11.0])
+        for k in range(30):
+            m = dataclasses.replace(meas(p_cam, k * DT, sigma_z=1.1), range_source="size")
+            st_ = tracker.step(k * DT, [m], LEVEL)
+        assert st_.status == TrackStatus.CONFIRMED
+        assert st_.estimate is not None
+        coast = tracker.step(30 * DT + 1.0, [], LEVEL)
+        assert coast.estimate is not None
+        return tracker, np.diag(st_.estimate.cov_cam_m2), np.diag(coast.estimate.cov_cam_m2)
+
+    cfg = TrackerConfig()
+    tracker, P0, P1 = run(cfg)
+    _, Q0, Q1 = run(cfg.model_copy(update={"size_range_accel_std_m_s2": cfg.process_accel_std_m_s2}))
+    assert P1[0] - P0[0] == pytest.approx(Q1[0] - Q0[0], rel=0.05)  # across: unchanged
+    assert P1[2] < 0.8 * Q1[2]  # along the line of sight: smoother
+    t = 31 * DT + 1.0
+    back = tracker.step(t, [meas(np.array([0.0, 0.0, 11.8]), t)], LEVEL)
+    assert back.status == TrackStatus.CONFIRMED
+    assert back.measurement is not None
+    assert back.measurement.range_source == "depth"
