@@ -47,6 +47,10 @@ from companion.vehicle.types import AttitudeSetpoint, Vec3T, VelocityBodySetpoin
 
 #: A gap between two law updates longer than this restarts the integrators and the slew (s).
 MAX_DT_S = 0.5
+#: The first command after :meth:`FormationLaw.seed_velocity` slews from the seeded velocity over this
+#: long (one control period at the default 20 Hz): without it the first command of FOLLOW jumped straight
+#: to the full PID output, and the vehicle pitched past 40 deg and lost the leader from view (s).
+FIRST_SLEW_DT_S = 0.05
 #: Below this horizontal range the line-of-sight bearing is meaningless (m).
 MIN_BEARING_RANGE_M = 0.5
 
@@ -292,10 +296,10 @@ class FormationLaw:
         raw = ff + v_range * err.u_los + np.array([0.0, 0.0, v_down])
 
         v = clamp_speed(raw, lim)
-        if self._v_prev is not None and dt > 0.0:
+        if self._v_prev is not None:
             dv = v - self._v_prev
             n = float(np.linalg.norm(dv))
-            max_dv = cfg.max_accel_m_s2 * dt
+            max_dv = cfg.max_accel_m_s2 * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
             if n > max_dv:
                 v = self._v_prev + dv * (max_dv / n)
         v = separation_limit(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, lim)
