@@ -68,11 +68,23 @@ class Parts:
     on_leader_position: Callable[[LeaderPositionMsg], None] | None = None
     #: Does the mission runner send STATUSTEXT on transitions itself? Then the service does not.
     mission_sends_statustext: bool = False
+    #: Loops the parts need while the service runs (e.g. the link's telemetry), by task name. Critical:
+    #: if one raises, the service ends. They are cancelled when the service stops.
+    background: dict[str, Callable[[], Awaitable[None]]] = field(default_factory=dict)
     extra_status: dict[str, Callable[[], Any]] = field(default_factory=dict)
 
 
+@dataclass(frozen=True, slots=True)
+class PartsContext:
+    """What the service lends the parts it opens."""
+
+    clock: Clock
+    health: HealthBoard
+    latency: LatencyStats
+
+
 #: Opens the parts on the given stack (closed when the service ends).
-PartsFactory = Callable[[contextlib.AsyncExitStack], Awaitable[Parts]]
+PartsFactory = Callable[[contextlib.AsyncExitStack, PartsContext], Awaitable[Parts]]
 
 
 class _Finished(Exception):  # noqa: N818 (a control-flow signal, not an error)
@@ -152,7 +164,7 @@ class FollowerService:
         self.health.register(MONITOR, critical=True, stale_after_s=max(5.0, 3 * self._monitor_period_s))
         async with contextlib.AsyncExitStack() as stack:
             self.notifier.status("starting: opening link, camera and detector")
-            parts = await self._open_parts(stack)
+            parts = await self._open_parts(stack, PartsContext(self.clock, self.health, self.latency))
             self._parts = parts
             if parts.perception is not None:
                 PerceptionLoop.register(self.health)
@@ -173,6 +185,8 @@ class FollowerService:
             parts.mission.set_on_change(self._on_change)
             try:
                 async with asyncio.TaskGroup() as tg:
+                    for name, loop in parts.background.items():
+                        tg.create_task(_run_background(name, loop), name=name)
                     tg.create_task(self._run_mission(parts.mission), name="companion.mission")
                     if parts.perception is not None:
                         tg.create_task(
@@ -433,6 +447,10 @@ class FollowerService:
                 "reason": snap.reason,
                 "detail": snap.detail,
                 "state_age_s": round(snap.state_age_s, 3),
+                #: Seconds since the mission's last control step (it steps at link.setpoint_rate_hz).
+                "step_age_s": _r(self.clock.now_s() - snap.last_step_s)
+                if snap.last_step_s is not None
+                else None,
                 "transitions": self.transitions,
                 "formation_error_ned_m": snap.formation_error_ned_m,
             },
@@ -553,6 +571,11 @@ class FollowerService:
             frames=self.frames(),
             mqtt=self.mqtt.stats() if self.mqtt is not None else {},
         )
+
+
+async def _run_background(name: str, loop: Callable[[], Awaitable[None]]) -> None:
+    await loop()
+    log.info("%s finished", name)
 
 
 def _leader_msg(snap: FlightSnapshot) -> LeaderMsg:

@@ -79,7 +79,9 @@ class DetectorConfig(Section):
     model_path: str = "models/leader_detector.pt"
     #: Expected SHA-256 of the weights; empty to take it from the model card's sidecar file.
     model_sha256: str = ""
-    runtime: Literal["auto", "torch", "onnx"] = "auto"
+    #: ``truth``: the simulator's ground-truth boxes instead of the network (simulator and rendered
+    #: recordings only), to exercise the service, pose and tracker without trained weights.
+    runtime: Literal["auto", "torch", "onnx", "truth"] = "auto"
     input_size_px: int = Field(320, ge=128, le=1280, multiple_of=32)
     conf_threshold: float = Field(0.35, gt=0, lt=1)
     nms_iou: float = Field(0.5, gt=0, lt=1)
@@ -294,6 +296,12 @@ class Config(Section):
     status: StatusConfig = StatusConfig()
     service: ServiceConfig = ServiceConfig()
     logging: LoggingConfig = LoggingConfig()
+
+    @model_validator(mode="after")
+    def _truth_needs_truth(self) -> Config:
+        if self.detector.runtime == "truth" and self.camera.source == "realsense":
+            raise ValueError("detector.runtime = 'truth' needs a source with ground truth (sim or file)")
+        return self
 
     @field_validator("schema_version")
     @classmethod

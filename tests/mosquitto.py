@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
 import shutil
 import socket
 import subprocess
 import time
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import Any, Self
+
+import aiomqtt
 
 
 def free_tcp_port() -> int:
@@ -82,3 +86,30 @@ class Mosquitto:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.stop()
+
+
+class Collector:
+    """A persistent-session subscriber that reconnects by itself and records every message."""
+
+    def __init__(self, port: int, topic: str) -> None:
+        self.port = port
+        self.topic = topic
+        self.messages: list[tuple[str, dict[str, Any], bool]] = []
+        self.subscribed = asyncio.Event()
+
+    async def run(self) -> None:
+        while True:
+            try:
+                async with aiomqtt.Client(
+                    "127.0.0.1", self.port, identifier="test-collector", clean_session=False
+                ) as client:
+                    await client.subscribe(self.topic, qos=1)
+                    self.subscribed.set()
+                    async for m in client.messages:
+                        assert isinstance(m.payload, bytes)
+                        self.messages.append((str(m.topic), json.loads(m.payload), m.retain))
+            except aiomqtt.MqttError:
+                await asyncio.sleep(0.05)
+
+    def payloads(self, leaf: str) -> list[dict[str, Any]]:
+        return [p for t, p, _ in self.messages if t.endswith("/" + leaf)]

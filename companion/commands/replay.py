@@ -32,6 +32,7 @@ def register(sub: Any) -> None:
         help="model: the configured detector; truth: ground-truth boxes (isolates pose + tracker)",
     )
     p.add_argument("--box-jitter-px", type=float, default=1.0, help="truth detector: box edge noise, px")
+    p.add_argument("--miss-rate", type=float, default=0.0, help="truth detector: fraction of frames missed")
     p.add_argument("--seed", type=int, default=0, help="truth detector: noise seed")
     p.add_argument("--realtime", action="store_true", help="pace frames by their stamps")
     p.set_defaults(handler=_replay)
@@ -57,7 +58,9 @@ def _replay(args: argparse.Namespace) -> int:
     from companion.perception.replay import make_detect, run_replay
 
     cfg = load(args)
-    detect = make_detect(args.detector, cfg, jitter_px=args.box_jitter_px, seed=args.seed)
+    detect = make_detect(
+        args.detector, cfg, jitter_px=args.box_jitter_px, seed=args.seed, miss_rate=args.miss_rate
+    )
     with _open_out(args.out) as out:
         summary = asyncio.run(run_replay(cfg, args.source, detect, out_csv=out, realtime=args.realtime))
     for line in summary.lines():

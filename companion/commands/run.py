@@ -4,14 +4,23 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import faulthandler
+import logging
 import os
 import signal
+import sys
+import threading
 import time
 from typing import Any
 
 from companion.commands._common import add_config_arg, load
 from companion.config import Config
 from companion.errors import CompanionError
+
+log = logging.getLogger("companion")
+
+#: After the service has finished, what is left (closing the link, joining threads) gets this long.
+TEARDOWN_GRACE_S = 15.0
 
 
 def register(sub: Any) -> None:
@@ -29,13 +38,17 @@ def _run(args: argparse.Namespace) -> int:
     # The edge: the only place that reads systemd's variables and the secret files.
     notify = NotifyConfig.from_environ(os.environ, os.getpid())
     creds = load_mqtt_credentials(cfg.mqtt) if cfg.mqtt.enabled else MqttCredentials()
+    guard = ExitGuard()
     try:
-        return asyncio.run(_serve(cfg, notify, creds))
+        code = asyncio.run(_serve(cfg, notify, creds, guard))
     except BaseExceptionGroup as eg:
+        guard.arm(TEARDOWN_GRACE_S, 1, "teardown after an error")
         raise _first_companion_error(eg) or eg from None
+    guard.arm(TEARDOWN_GRACE_S, code, "teardown")
+    return code
 
 
-async def _serve(cfg: Config, notify: Any, creds: Any) -> int:
+async def _serve(cfg: Config, notify: Any, creds: Any, guard: ExitGuard) -> int:
     from companion.app import FollowerService
     from companion.clock import MonotonicClock
     from companion.service.systemd import SystemdNotifier
@@ -52,13 +65,49 @@ async def _serve(cfg: Config, notify: Any, creds: Any) -> int:
             mqtt_credentials=creds,
         )
         loop = asyncio.get_running_loop()
+
+        def on_signal(name: str) -> None:
+            # The safe action is bounded by shutdown_timeout_s in the service; this bounds the process.
+            guard.arm(cfg.service.shutdown_timeout_s + TEARDOWN_GRACE_S, 1, f"{name}: shutdown")
+            service.request_stop(name)
+
         for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, service.request_stop, sig.name)
+            loop.add_signal_handler(sig, on_signal, sig.name)
         try:
             return await service.run()
         finally:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.remove_signal_handler(sig)
+
+
+class ExitGuard:
+    """Makes sure a process that has decided to exit does exit.
+
+    A native library (MAVSDK) or a worker thread that never returns would otherwise keep the process
+    alive after the service is done, until systemd's SIGKILL. Armed, a daemon thread waits; if the
+    process is still there when the time is up, it dumps every thread's stack to stderr (the journal)
+    for the bug report, then exits with the code the service had decided.
+    """
+
+    def __init__(self) -> None:
+        self._timer: threading.Timer | None = None
+
+    def arm(self, timeout_s: float, code: int, what: str) -> None:
+        if self._timer is not None:
+            return
+        self._timer = threading.Timer(timeout_s, self._fire, args=(timeout_s, code, what))
+        self._timer.daemon = True
+        self._timer.name = "companion-exit-guard"
+        self._timer.start()
+
+    @staticmethod
+    def _fire(timeout_s: float, code: int, what: str) -> None:
+        log.critical(
+            "%s did not finish within %.0f s; thread stacks follow; exiting %d", what, timeout_s, code
+        )
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        logging.shutdown()
+        os._exit(code)
 
 
 def _first_companion_error(eg: BaseExceptionGroup[Any]) -> CompanionError | None:

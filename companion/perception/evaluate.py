@@ -149,14 +149,17 @@ def paper_centre_depth_m(depth_m: np.ndarray, det: Detection, half_px: int = 2) 
 
 
 class TruthDetector:
-    """A :class:`Detector` that returns the ground-truth box (with optional jitter): isolates pose+tracker.
+    """A :class:`Detector` that returns the ground-truth box (with jitter and misses): isolates pose+tracker.
 
     Detections need a frame with truth, so call :meth:`detect_frame`; ``detect(rgb)`` alone finds nothing.
     """
 
-    def __init__(self, *, jitter_px: float = 0.0, min_visible: float = 0.3, seed: int = 0) -> None:
+    def __init__(
+        self, *, jitter_px: float = 0.0, min_visible: float = 0.3, miss_rate: float = 0.0, seed: int = 0
+    ) -> None:
         self.jitter_px = jitter_px
         self.min_visible = min_visible
+        self.miss_rate = miss_rate
         self._rng = np.random.default_rng(seed)
 
     def detect(self, rgb: RgbImage) -> DetectorResult:
@@ -165,6 +168,8 @@ class TruthDetector:
     def detect_frame(self, frame: RgbdFrame) -> DetectorResult:
         t = frame.truth
         if t is None or t.box_xyxy_px is None or t.visible_fraction < self.min_visible:
+            return DetectorResult()
+        if self.miss_rate > 0 and self._rng.random() < self.miss_rate:
             return DetectorResult()
         box = np.asarray(t.box_xyxy_px, dtype=np.float64)
         if self.jitter_px > 0:

@@ -81,10 +81,10 @@ CSV_FIELDS = [
 Detect = Callable[[RgbdFrame], DetectorResult]
 
 
-def make_detect(kind: str, cfg: Config, *, jitter_px: float, seed: int) -> Detect:
+def make_detect(kind: str, cfg: Config, *, jitter_px: float, seed: int, miss_rate: float = 0.0) -> Detect:
     """The detection function for ``--detector``: the configured model, or ground-truth boxes."""
     if kind == "truth":
-        oracle = TruthDetector(jitter_px=jitter_px, seed=seed)
+        oracle = TruthDetector(jitter_px=jitter_px, miss_rate=miss_rate, seed=seed)
         return oracle.detect_frame
     try:
         module: Any = importlib.import_module("companion.perception.detector")

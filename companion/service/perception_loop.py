@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 from companion.clock import Clock
-from companion.perception.types import Detector, DetectorResult, FrameSource, RgbdFrame
+from companion.perception.types import DetectorResult, FrameSource, RgbdFrame
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.mailbox import Latest, MailboxClosedError
@@ -44,7 +44,8 @@ class PerceptionLoop(Generic[T]):
 
     Args:
         source: an opened frame source (the caller owns its context).
-        detector: a loaded detector; only ever called from one worker thread at a time.
+        detect: the detector on one frame (usually ``lambda f: detector.detect(f.rgb)``); only ever
+            called from one worker thread, one frame at a time.
         process: pose + tracker for one frame (on the loop); its result goes to :attr:`estimates`.
         clock: the service clock (latency, health).
         latency: per-stage latency sink (``queue``, ``detect``, ``preprocess``, ``inference``,
@@ -55,7 +56,7 @@ class PerceptionLoop(Generic[T]):
     def __init__(
         self,
         source: FrameSource,
-        detector: Detector,
+        detect: Callable[[RgbdFrame], DetectorResult],
         process: Callable[[RgbdFrame, DetectorResult], T],
         *,
         clock: Clock,
@@ -63,7 +64,7 @@ class PerceptionLoop(Generic[T]):
         health: HealthBoard,
     ) -> None:
         self._source = source
-        self._detector = detector
+        self._detect = detect
         self._process = process
         self._clock = clock
         self._latency = latency
@@ -129,7 +130,7 @@ class PerceptionLoop(Generic[T]):
                 return
             t0 = self._clock.now_s()
             self._latency.record("queue", (t0 - arrival.arrived_s) * 1e3)
-            result = await loop.run_in_executor(self._executor, self._detector.detect, arrival.frame.rgb)
+            result = await loop.run_in_executor(self._executor, self._detect, arrival.frame)
             t1 = self._clock.now_s()
             estimate = self._process(arrival.frame, result)
             t2 = self._clock.now_s()

@@ -78,18 +78,28 @@ async def supervise(
         except Exception as exc:  # a supervised component may fail in any way; that is the point
             if clock.now_s() - started_s >= stable_after_s:
                 backoff.reset()
+            first_of_streak = backoff.attempt == 0
             delay_s = backoff.next_delay_s()
-            health.fail(name, f"{type(exc).__name__}: {exc}")
+            what = describe(exc)
+            health.fail(name, what)
+            # The traceback once per streak of failures: enough to debug, not a log flood.
             log.warning(
-                "%s failed (%s: %s); restart %d in %.2f s",
+                "%s failed (%s); restart %d in %.2f s",
                 name,
-                type(exc).__name__,
-                exc,
+                what,
                 backoff.attempt,
                 delay_s,
+                exc_info=exc if first_of_streak else None,
             )
             await sleep(delay_s)
             health.restarted(name)
         else:
             log.info("%s finished", name)
             return
+
+
+def describe(exc: BaseException) -> str:
+    """``Type: message``, with the leaves of an exception group (a TaskGroup's) instead of the group."""
+    if isinstance(exc, BaseExceptionGroup):
+        return "; ".join(describe(e) for e in exc.exceptions)
+    return f"{type(exc).__name__}: {exc}"

@@ -15,9 +15,9 @@ import logging
 import random
 import ssl
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import aiomqtt
 from pydantic import ValidationError
@@ -40,6 +40,8 @@ from companion.telemetry.payloads import (
 )
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 #: A QoS 1 publish not acknowledged within this is treated as a dead connection.
 _PUBLISH_TIMEOUT_S = 5.0
@@ -159,6 +161,8 @@ class MqttReporter:
         self._session_started = False
         self._offline_since_s: float | None = None
         self.connected = False
+        #: True once this connection's subscriptions (commands, leader position) are in place.
+        self.subscribed = False
         self.connects = 0
         self.published = 0
         self.slot_overwrites = 0
@@ -310,6 +314,7 @@ class MqttReporter:
             self.connected = True
             self.connects += 1
             stack.callback(setattr, self, "connected", False)
+            stack.callback(setattr, self, "subscribed", False)
             if self._offline_since_s is None:
                 log.info("MQTT: connected to %s:%d", self.cfg.host, self.cfg.port)
             else:
@@ -348,9 +353,10 @@ class MqttReporter:
             self._push_state(self._sources.state())
         self._wake.set()  # whatever is still buffered goes out now
         if self._verifier is not None:
-            await client.subscribe(self.topics.cmd, qos=1)
+            await _call(client.subscribe(self.topics.cmd, qos=1))
         if self._on_leader_position is not None:
-            await client.subscribe(self.cfg.leader_topic, qos=0)
+            await _call(client.subscribe(self.cfg.leader_topic, qos=0))
+        self.subscribed = True
         async with asyncio.TaskGroup() as tg:
             tg.create_task(self._drain(client), name="companion.mqtt.publish")
             tg.create_task(self._receive(client), name="companion.mqtt.receive")
@@ -360,7 +366,7 @@ class MqttReporter:
             await self._wake.wait()
             self._wake.clear()
             while (item := self.outbox.peek()) is not None:
-                await client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain)
+                await _call(client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain))
                 self.outbox.ack(item)
                 self.published += 1
             if len(self.outbox) == 0:
@@ -369,7 +375,7 @@ class MqttReporter:
                 item = getattr(self, slot)
                 if item is not None:
                     setattr(self, slot, None)
-                    await client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain)
+                    await _call(client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain))
                     self.published += 1
 
     async def _receive(self, client: aiomqtt.Client) -> None:
@@ -401,6 +407,20 @@ class MqttReporter:
         result = self._on_command(cmd)
         log.info("MQTT: command %s: %s", cmd.name.value, result)
         self.event("command", result, "notice", cmd=cmd.name.value, nonce=cmd.nonce)
+
+
+async def _call(awaitable: Awaitable[T]) -> T:
+    """Await an aiomqtt call without losing a cancellation.
+
+    aiomqtt 2.5 waits with ``asyncio.wait_for``, which on Python 3.11 can swallow a cancellation that
+    arrives as the awaited operation completes (CPython gh-86296, fixed in 3.12). The task then keeps
+    running with its cancellation pending and a TaskGroup waiting on it hangs: re-raise it here.
+    """
+    result = await awaitable
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
+    return result
 
 
 def load_mqtt_credentials(cfg: MqttConfig) -> MqttCredentials:

@@ -33,7 +33,7 @@ def split_of(seed: int, index: int) -> str:
 
 
 #: Seconds between frames of a sequence (near-duplicates, but not identical).
-FRAME_DT_S = 0.15
+FRAME_DT_S = 0.1
 
 _AIRFRAMES = ("f450", "phantom", "racer", "heavy", "micro")
 _AIRFRAME_P = (0.3, 0.25, 0.15, 0.15, 0.15)
@@ -274,26 +274,34 @@ def distractor_frame_vertices(tracks: list[DistractorTrack], t_s: float) -> F32 
     return distractor_vertices(items)
 
 
-def _occluder_between(rng: np.random.Generator, p_cam: Vec3, p_leader: Vec3) -> OccluderSpec:
-    """A tree, pole, wall or building corner standing across the line of sight to the leader."""
+def _occluder_between(
+    rng: np.random.Generator, p_cam: Vec3, p_leader: Vec3, leader_radius_m: float
+) -> OccluderSpec:
+    """A tree, pole, wall or building corner whose edge crosses the leader's image: partial occlusion.
+
+    The occluder stands part-way along the line of sight with its edge within the leader's apparent
+    size of that line (a pole, thinner than most airframes, right across it).
+    """
     frac = rng.uniform(0.3, 0.8)
     p = p_cam + frac * (p_leader - p_cam)
     alt = -float(p[2])
-    kind = str(rng.choice(["tree", "conifer", "pole", "wall", "building"], p=[0.35, 0.15, 0.2, 0.15, 0.15]))
+    r_app = leader_radius_m * frac  # the leader's half-size seen at the occluder's distance
+    edge = rng.uniform(-0.8, 0.8) * r_app
+    kind = str(rng.choice(["tree", "conifer", "pole", "wall", "building"], p=[0.3, 0.15, 0.25, 0.15, 0.15]))
     side = np.cross(p_leader - p_cam, np.array([0.0, 0.0, 1.0]))
     side /= max(float(np.linalg.norm(side)), 1e-9)
+    sgn = float(rng.choice([-1.0, 1.0]))
     if kind in ("tree", "conifer"):
         width = rng.uniform(2.0, 6.0)
-        height = alt + rng.uniform(-0.2, 0.3) * width + width / 2.0
-        off = rng.uniform(-0.6, 0.6) * width
-        size = (width, 0.0, max(height, 2.0))
+        off = sgn * (edge + 0.45 * width)  # crown edge (slightly fuzzy) near the line of sight
+        size = (width, 0.0, max(alt + 0.5 * width * rng.uniform(0.3, 1.0), 2.0))
     elif kind == "pole":
-        off = rng.uniform(-0.2, 0.2)
-        size = (rng.uniform(0.08, 0.25), 1.8, alt + rng.uniform(0.5, 4.0))
+        off = rng.uniform(-1.0, 1.0) * r_app
+        size = (rng.uniform(0.05, 0.2), 1.8, alt + rng.uniform(0.5, 4.0))
     else:
         w = rng.uniform(3.0, 12.0)
-        off = rng.choice([-1.0, 1.0]) * rng.uniform(0.3, 0.6) * w
-        size = (w, rng.uniform(0.3, 6.0), alt + rng.uniform(-0.5, 3.0))
+        off = sgn * (edge + 0.5 * w)
+        size = (w, rng.uniform(0.3, 6.0), alt + rng.uniform(0.3, 3.0))
     base = p + side * off
     yaw = math.degrees(math.atan2(side[1], side[0]))
     return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size, yaw_deg=yaw)
@@ -308,24 +316,28 @@ def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> S
     alt = rng.uniform(1.2, 2.5) if a < 0.25 else (rng.uniform(3, 30) if a < 0.75 else rng.uniform(30, 80))
     p_cam0 = np.array([rng.uniform(-10, 10), rng.uniform(-10, 10), -alt])
     R0 = _camera_rotation(rng)
+    # The view drifts slowly across the sequence (so the leader stays in it); motion blur comes from a
+    # separate, sometimes fast, turn rate during each exposure (a shaking or turning follower).
+    drift = rng.normal(0.0, math.radians(4.0), 3)
     fast = rng.random() < 0.3
-    omega = rng.normal(0.0, math.radians(60.0 if fast else 10.0), 3)
-    v_cam = rng.normal(0.0, 1.5, 3) * np.array([1.0, 1.0, 0.3])
+    v_cam = rng.normal(0.0, 0.8, 3) * np.array([1.0, 1.0, 0.3])
     times = [i * FRAME_DT_S for i in range(n_frames)]
     cameras = []
     for t in times:
         p = p_cam0 + v_cam * t
         p[2] = min(p[2], -1.0)
-        cameras.append(CameraPose(R0 @ rotation_vector_matrix(omega * t), p))
-    omegas = [omega.copy() for _ in times]
+        cameras.append(CameraPose(R0 @ rotation_vector_matrix(drift * t), p))
+    omegas = [rng.normal(0.0, math.radians(60.0 if fast else 8.0), 3) for _ in times]
 
     leaders: list[tuple[Mat3, Vec3]] | None = None
     occluders: list[OccluderSpec] = []
     if rng.random() < 0.86:
         K_inv = np.linalg.inv(intr.K)
         p_leader0 = np.zeros(3)
+        # 1-20 m, but never so far that the airframe spans fewer than ~8 px (a micro quad: 7 m).
+        far_m = min(20.0, max(3.0, intr.fx_px * visual.leader.resolved_span_m / 8.0))
         for _ in range(20):
-            rng_m = _log_uniform(rng, 1.0, 20.0) if rng.random() < 0.5 else rng.uniform(1.0, 20.0)
+            rng_m = _log_uniform(rng, 1.0, far_m) if rng.random() < 0.5 else rng.uniform(1.0, far_m)
             edge = rng.random() < 0.12
             lo, hi = (-0.15, 1.15) if edge else (0.02, 0.98)
             u, v = rng.uniform(lo, hi) * intr.width_px, rng.uniform(lo, hi) * intr.height_px
@@ -335,7 +347,7 @@ def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> S
                 break
         else:
             p_leader0[2] = -0.4
-        v_leader = rng.normal(0.0, 2.5, 3) * np.array([1.0, 1.0, 0.3])
+        v_leader = rng.normal(0.0, 1.2, 3) * np.array([1.0, 1.0, 0.3])
         yaw0 = rng.uniform(0, 2 * math.pi)
         yaw_rate = rng.normal(0.0, 0.4)
         tilt = np.clip(rng.normal(0.0, math.radians(12.0), 2), -0.6, 0.6)
@@ -346,11 +358,12 @@ def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> S
             # Both move during the sequence: keep the range within 1-20 m in every frame.
             rel = p - cam.p_ned_cam_m
             dist = float(np.linalg.norm(rel))
-            p = cam.p_ned_cam_m + rel * (min(max(dist, 1.0), 20.0) / max(dist, 1e-9))
+            p = cam.p_ned_cam_m + rel * (min(max(dist, 1.0), far_m) / max(dist, 1e-9))
             p[2] = min(p[2], -0.4)
             leaders.append((R_from_euler(float(tilt[0]), float(tilt[1]), yaw0 + yaw_rate * t), p))
         if rng.random() < 0.15:
-            occluders.append(_occluder_between(rng, cameras[0].p_ned_cam_m, p_leader0))
+            radius = 0.5 * visual.leader.resolved_span_m + 0.1
+            occluders.append(_occluder_between(rng, cameras[0].p_ned_cam_m, p_leader0, radius))
     if occluders:
         visual = visual.model_copy(update={"occluders": tuple(occluders)})
     return SequenceSpec(

@@ -15,7 +15,7 @@ from typing import Any
 import aiomqtt
 import pytest
 
-from companion.app import FollowerService, Parts
+from companion.app import FollowerService, Parts, PartsContext
 from companion.clock import MonotonicClock
 from companion.config import Config
 from companion.errors import LinkLostError
@@ -166,7 +166,7 @@ def make_service(
     cfg = Config.model_validate(data)
     gcs = RecordingGcs()
 
-    async def open_parts(stack: contextlib.AsyncExitStack) -> Parts:
+    async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
         return Parts(mission=mission, gcs=gcs)
 
     notifier = SystemdNotifier(NotifyConfig(notify_path, 0.4))

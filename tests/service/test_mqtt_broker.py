@@ -21,7 +21,7 @@ from companion.config import MqttConfig
 from companion.telemetry.commands import Command, sign_command
 from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
 from companion.telemetry.payloads import HealthMsg, LeaderPositionMsg, PoseMsg, StateMsg
-from tests.mosquitto import Mosquitto
+from tests.mosquitto import Collector, Mosquitto
 
 pytestmark = [pytest.mark.mqtt_broker, pytest.mark.timeout(60)]
 
@@ -32,33 +32,6 @@ KEY = b"0123456789abcdef0123456789abcdef"
 def broker(tmp_path: Path) -> Iterator[Mosquitto]:
     with Mosquitto(tmp_path) as b:
         yield b
-
-
-class Collector:
-    """A persistent-session subscriber that reconnects by itself and records every message."""
-
-    def __init__(self, port: int, topic: str) -> None:
-        self.port = port
-        self.topic = topic
-        self.messages: list[tuple[str, dict[str, Any], bool]] = []
-        self.subscribed = asyncio.Event()
-
-    async def run(self) -> None:
-        while True:
-            try:
-                async with aiomqtt.Client(
-                    "127.0.0.1", self.port, identifier="test-collector", clean_session=False
-                ) as client:
-                    await client.subscribe(self.topic, qos=1)
-                    self.subscribed.set()
-                    async for m in client.messages:
-                        assert isinstance(m.payload, bytes)
-                        self.messages.append((str(m.topic), json.loads(m.payload), m.retain))
-            except aiomqtt.MqttError:
-                await asyncio.sleep(0.05)
-
-    def payloads(self, leaf: str) -> list[dict[str, Any]]:
-        return [p for t, p, _ in self.messages if t.endswith("/" + leaf)]
 
 
 class FakeVehicle:
@@ -154,31 +127,36 @@ async def test_broker_restart_loses_nothing_beyond_the_buffer(
     broker: Mosquitto, buffer_messages: int
 ) -> None:
     vehicle = FakeVehicle()
-    cfg = make_cfg(broker.port, buffer_messages=buffer_messages)
+    # 10 Hz: a connected reporter never fills even the small buffer on a busy machine (that would be a
+    # drop outside the outage and spoil the "oldest dropped" check below).
+    cfg = make_cfg(broker.port, buffer_messages=buffer_messages, state_rate_hz=10.0)
     reporter = MqttReporter(cfg, "f1", vehicle.sources(), MonotonicClock(), time.time)
     collector = Collector(broker.port, "wingman/f1/state")
     async with running(reporter, collector):
         await wait_for(lambda: len(collector.payloads("state")) >= 10)
+        pushed_before = reporter.outbox.pushed
         broker.stop()
         await wait_for(lambda: not reporter.connected, 5)
-        await asyncio.sleep(1.5)  # ~30 state messages produced while the broker is away
-        produced_offline = reporter.outbox.pushed
+        await asyncio.sleep(2.5)  # ~25 state messages produced while the broker is away
+        produced_offline = reporter.outbox.pushed - pushed_before
         broker.start()
-        await wait_for(lambda: reporter.connected and len(reporter.outbox) == 0, 10)
+        await wait_for(lambda: reporter.connected and len(reporter.outbox) == 0, 20)
         sent_until = reporter.outbox.pushed
-        await wait_for(lambda: max(seqs(collector.payloads("state")), default=-1) >= sent_until - 1, 10)
+        await wait_for(lambda: max(seqs(collector.payloads("state")), default=-1) >= sent_until - 1, 20)
         reporter_dropped = reporter.outbox.dropped
     got = seqs(collector.payloads("state"))
     missing = sorted(set(range(got[-1] + 1)) - set(got))
-    assert produced_offline > buffer_messages or buffer_messages == 1000
-    assert len(missing) == reporter_dropped
+    why = f"missing {missing}, dropped {reporter_dropped}, connects {reporter.connects}, got {got[-3:]}"
+    # A message in flight when the broker died may have arrived although it stayed queued and was then
+    # dropped as the oldest: "dropped" may count one message that in fact got through, never fewer.
+    assert len(missing) <= reporter_dropped <= len(missing) + 1, why
     if buffer_messages == 1000:
-        assert missing == []
+        assert missing == [], why
     else:
+        assert produced_offline > buffer_messages, why
         # Exactly the oldest messages of the outage went, the newest buffer_messages survived.
-        assert reporter_dropped > 0
-        assert missing == list(range(missing[0], missing[0] + len(missing)))
-    assert reporter.connects == 2
+        assert missing == list(range(missing[0], missing[0] + len(missing))), why
+    assert reporter.connects >= 2, why  # more when a loaded machine delays a PUBACK past the timeout
 
 
 async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> None:
@@ -196,8 +174,7 @@ async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> 
     )
     collector = Collector(broker.port, "wingman/f1/events")
     async with running(reporter, collector):
-        await wait_for(lambda: reporter.connected)
-        await asyncio.sleep(0.3)  # subscriptions in place
+        await wait_for(lambda: reporter.subscribed)
         async with aiomqtt.Client("127.0.0.1", broker.port) as gcs:
             good = sign_command(KEY, {"cmd": "hold", "time_unix_s": time.time(), "nonce": "n1"})
             await gcs.publish("wingman/f1/cmd", good, qos=1)

@@ -88,7 +88,12 @@ async def test_one_inference_in_flight_and_stale_frames_dropped() -> None:
         return frame.seq
 
     loop = PerceptionLoop(
-        BurstSource(60, 0.005), detector, process, clock=MonotonicClock(), latency=latency, health=health
+        BurstSource(60, 0.005),
+        lambda f: detector.detect(f.rgb),
+        process,
+        clock=MonotonicClock(),
+        latency=latency,
+        health=health,
     )
     async with asyncio.timeout(20):
         await loop.run()
@@ -114,7 +119,7 @@ async def test_cancel_mid_inference_does_not_overlap_the_next_call() -> None:
     detector = SlowDetector(0.2)
     loop = PerceptionLoop(
         BurstSource(1000, 0.01),
-        detector,
+        lambda f: detector.detect(f.rgb),
         lambda f, r: f.seq,
         clock=MonotonicClock(),
         latency=LatencyStats(),

@@ -207,3 +207,32 @@ def test_command_verifier_uses_real_time_scale() -> None:
     v = CommandVerifier(KEY, max_age_s=30)
     now = time.time()
     assert v.verify(sign_command(KEY, _cmd(time_unix_s=now)), now).name is CommandName.LAND
+
+
+def test_stamp_mapper_keeps_relative_timing_and_follows_slips() -> None:
+    from companion.service.stamps import StampMapper
+
+    m = StampMapper(window_s=1.0)
+    # sim clock = service clock - 100 s; transport delay 5 ms + jitter up to 20 ms
+    jitter = [0.0, 0.02, 0.01, 0.0, 0.015]
+    mapped = [m.map(t, t + 100.0 + 0.005 + j) for t, j in zip([0.0, 0.1, 0.2, 0.3, 0.4], jitter, strict=True)]
+    assert mapped[3] == pytest.approx(100.305)
+    assert mapped[4] == pytest.approx(100.405)  # jitter removed, relative timing exact
+    assert all(
+        a <= 100.0 + t + 0.005 + j + 1e-9
+        for a, t, j in zip(mapped, [0, 0.1, 0.2, 0.3, 0.4], jitter, strict=True)
+    )
+    # the simulator slips 0.5 s behind: after the window the new offset is adopted
+    for i in range(30):
+        t = 0.5 + 0.1 * i
+        last = m.map(t, t + 100.5 + 0.005)
+    assert last == pytest.approx(0.5 + 2.9 + 100.505)
+
+
+def test_describe_flattens_task_group_errors() -> None:
+    from companion.service.supervise import describe
+
+    eg = ExceptionGroup(
+        "unhandled errors in a TaskGroup", [ValueError("bad frame"), ExceptionGroup("x", [KeyError("k")])]
+    )
+    assert describe(eg) == "ValueError: bad frame; KeyError: 'k'"

@@ -35,6 +35,7 @@ class ImageCache:
     """Images and leader boxes of a list of samples, decoded once (see module docstring)."""
 
     def __init__(self, folder: Path) -> None:
+        self.folder = folder
         index = np.load(folder / "index.npz")
         self.offsets: NDArray[np.int64] = index["offsets"]
         self.shapes: NDArray[np.int32] = index["shapes"]
@@ -45,6 +46,13 @@ class ImageCache:
 
     def __len__(self) -> int:
         return len(self.shapes)
+
+    def __getstate__(self) -> dict[str, str]:
+        # Pickled (to a spawned loader worker) as its folder, and re-opened there: never the pixels.
+        return {"folder": str(self.folder)}
+
+    def __setstate__(self, state: dict[str, str]) -> None:
+        self.__init__(Path(state["folder"]))  # type: ignore[misc]
 
     def image(self, i: int) -> NDArray[np.uint8]:
         """Cached image ``i`` (h, w, 3) RGB, a read-only view."""

@@ -81,6 +81,11 @@ class TrainConfig:
         return d
 
 
+#: What the sampler hands the dataset: (epoch, image index, mosaic on). The dataset keeps no per-epoch
+#: state, so persistent loader workers (separate processes) always augment for the right epoch.
+SampleKey = tuple[int, int, bool]
+
+
 class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
     """Training samples: (3, S, S) uint8 image and (N, 4) boxes, augmented from ``(seed, epoch, index)``."""
 
@@ -91,35 +96,34 @@ class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
         self.size_px = size_px
         self.ref_px = ref_px
         self.seed = seed
-        self.base = augment
         self.augment = augment
-        self.epoch = 0
-
-    def set_epoch(self, epoch: int, mosaic: bool) -> None:
-        self.epoch = epoch
-        self.augment = self.base if mosaic else replace(self.base, mosaic_p=0.0)
+        self.no_mosaic = replace(augment, mosaic_p=0.0)
 
     def __len__(self) -> int:
         return len(self.cache)
 
-    def __getitem__(self, i: int) -> tuple[Tensor, Tensor]:
-        rng = np.random.default_rng([self.seed, self.epoch, i])
+    def __getitem__(self, key: SampleKey) -> tuple[Tensor, Tensor]:
+        epoch, i, mosaic = key
+        rng = np.random.default_rng([self.seed, epoch, i])
+        cfg = self.augment if mosaic else self.no_mosaic
         img, boxes = training_sample(
-            self.cache, i, size_px=self.size_px, ref_px=self.ref_px, rng=rng, cfg=self.augment
+            self.cache, i, size_px=self.size_px, ref_px=self.ref_px, rng=rng, cfg=cfg
         )
         return torch.from_numpy(img).permute(2, 0, 1).contiguous(), torch.from_numpy(boxes)
 
 
-class EpochSampler(Sampler[int]):
-    """A permutation of the indices drawn from ``(seed, epoch)``."""
+class EpochSampler(Sampler[SampleKey]):
+    """A permutation of the indices drawn from ``(seed, epoch)``, as :data:`SampleKey` tuples."""
 
     def __init__(self, n: int, seed: int) -> None:
         self.n = n
         self.seed = seed
         self.epoch = 0
+        self.mosaic = True
 
-    def __iter__(self) -> Iterator[int]:
-        return iter(np.random.default_rng([self.seed, self.epoch, 7]).permutation(self.n).tolist())
+    def __iter__(self) -> Iterator[SampleKey]:
+        order = np.random.default_rng([self.seed, self.epoch, 7]).permutation(self.n).tolist()
+        return iter([(self.epoch, i, self.mosaic) for i in order])
 
     def __len__(self) -> int:
         return self.n
@@ -231,6 +235,9 @@ def train(
     out.mkdir(parents=True, exist_ok=True)
     device = pick_device(cfg.device)
     torch.set_num_threads(cfg.threads)
+    import cv2  # noqa: PLC0415
+
+    cv2.setNumThreads(1)  # image work here is per sample; torch owns the cores
     torch.manual_seed(cfg.seed)
     data = Path(cfg.data)
     train_samples = find_samples(data, cfg.train_split)
@@ -261,7 +268,10 @@ def train(
         collate_fn=collate,
         drop_last=len(dataset) > cfg.batch_size,
         worker_init_fn=_worker_init,
-        persistent_workers=False,
+        # Spawned, not forked: a forked child can deadlock on locks that the parent's OpenMP or OpenCV
+        # thread pools held at fork time (seen here: a worker stuck in a futex from its first sample).
+        multiprocessing_context="spawn" if cfg.workers else None,
+        persistent_workers=cfg.workers > 0,
         prefetch_factor=4 if cfg.workers else None,
         pin_memory=use_amp,
     )
@@ -298,9 +308,8 @@ def train(
 
     end_epoch = cfg.epochs if stop_after_epochs is None else min(cfg.epochs, start_epoch + stop_after_epochs)
     for epoch in range(start_epoch, end_epoch):
-        mosaic_on = epoch < cfg.epochs - cfg.close_mosaic_epochs
-        dataset.set_epoch(epoch, mosaic_on)
         sampler.epoch = epoch
+        sampler.mosaic = epoch < cfg.epochs - cfg.close_mosaic_epochs
         model.train()
         t0 = time.monotonic()
         sums = {"loss": 0.0, "box": 0.0, "cls": 0.0, "dfl": 0.0}
@@ -329,7 +338,9 @@ def train(
             for key, v in parts.items():
                 sums[key] += v
             if hasattr(bar, "set_postfix"):
-                bar.set_postfix(loss=f"{sums['loss'] / (k + 1):.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
+                bar.set_postfix(
+                    loss=f"{sums['loss'] / (k + 1):.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}", refresh=False
+                )
         row: dict[str, Any] = {"epoch": epoch + 1, "seconds": round(time.monotonic() - t0, 1)}
         row.update({k: round(v / max(1, steps_per_epoch), 4) for k, v in sums.items()})
         last_epoch = epoch == cfg.epochs - 1

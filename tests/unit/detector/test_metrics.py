@@ -63,3 +63,11 @@ def test_a_frame_with_an_unlabelled_leader_is_not_leader_free() -> None:
     assert out["leader_free_images"] == 1
     assert out["leader_free_fp_rate"] == 0.0
     assert out["precision"] == 0.0  # still a false positive for precision (no box to match)
+
+
+def test_loose_iou_ap_is_reported_apart() -> None:
+    s = DetectionStats()
+    s.add(b(0, 0, 10, 10), np.array([0.9], np.float32), b(-4, -4, 14, 14))  # IoU 100/324 = 0.31
+    out = s.summary(0.5)
+    assert out["map50"] == 0.0
+    assert out["ap25"] == pytest.approx(1.0)

@@ -1,0 +1,264 @@
+"""TEST-ONLY harness for the service end to end: ``sitl serve`` with its camera, ``companion run``, a GCS.
+
+Every process is started here and stopped by its PID (SIGTERM, then SIGKILL) whatever happens.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+REPO = Path(__file__).resolve().parents[2]
+
+#: The leader climbs to 5 m 8 m ahead of the follower, hovers, then drifts north at 0.5 m/s.
+SCENARIO = """
+schema_version = 1
+name = "service-e2e"
+description = "Service end-to-end: leader hovers, then flies north slowly."
+seed = 7
+
+[run]
+duration_s = 600.0
+formation_start_s = 20.0
+formation_duration_s = 500.0
+takeoff_altitude_m = 5.0
+
+[leader]
+type = "straight"
+start_s = 45.0
+altitude_m = 5.0
+speed_m_s = 0.5
+heading_deg = 0.0
+
+[wind]
+mean_speed_m_s = 0.5
+from_deg = 270.0
+turbulence_m_s = 0.1
+"""
+
+
+@dataclass(frozen=True)
+class Ports:
+    """A private block of UDP ports so parallel runs never collide."""
+
+    base: int
+
+    @property
+    def api_local(self) -> int:
+        return self.base
+
+    @property
+    def api_remote(self) -> int:  # leader +0, follower +1: where the simulator sends
+        return self.base + 2
+
+    @property
+    def follower_api(self) -> int:
+        return self.api_remote + 1
+
+    @property
+    def gcs_local(self) -> int:
+        return self.base + 4
+
+    @property
+    def gcs_remote(self) -> int:
+        return self.base + 6
+
+    @property
+    def client(self) -> int:
+        """Where the service's MAVSDK listens when a wiretap sits between it and the simulator."""
+        return self.base + 7
+
+    @classmethod
+    def pick(cls) -> Ports:
+        for _ in range(200):
+            base = random.randrange(21000, 59000, 10)
+            if all(_udp_free(base + k) for k in range(8)):
+                return cls(base)
+        raise RuntimeError("no free UDP port block")
+
+
+def _udp_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("0.0.0.0", port))  # noqa: S104 - the simulator binds all interfaces
+        except OSError:
+            return False
+    return True
+
+
+class Process:
+    """A child process with its output in a log file, stopped by PID."""
+
+    def __init__(self, args: list[str], env: dict[str, str], log_path: Path) -> None:
+        self.args = args
+        self.env = env
+        self.log_path = log_path
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        with self.log_path.open("ab") as log:
+            self.proc = subprocess.Popen(
+                self.args, cwd=REPO, env=self.env, stdout=log, stderr=subprocess.STDOUT
+            )
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+    @property
+    def returncode(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def signal(self, sig: int) -> None:
+        assert self.proc is not None
+        self.proc.send_signal(sig)
+
+    async def wait(self, timeout_s: float) -> int:
+        assert self.proc is not None
+        deadline = time.monotonic() + timeout_s
+        while (rc := self.proc.poll()) is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{self.args[2:4]} still running after {timeout_s} s")
+            await asyncio.sleep(0.1)
+        return rc
+
+    def stop(self) -> None:
+        proc, self.proc = self.proc, None
+        if proc is None or proc.poll() is not None:
+            return
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
+def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Process:
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(SCENARIO)
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "SITL_MAVLINK__API_LOCAL_PORT_BASE": str(ports.api_local),
+        "SITL_MAVLINK__API_REMOTE_PORT_BASE": str(ports.api_remote),
+        "SITL_MAVLINK__GCS_LOCAL_PORT_BASE": str(ports.gcs_local),
+        "SITL_MAVLINK__GCS_REMOTE_PORT": str(ports.gcs_remote),
+        "SITL_MAVLINK__REMOTE_HOST": "127.0.0.1",
+        "WINGMAN_TEST_CAMERA_SOCK": str(camera_sock),
+    }
+    args = [
+        sys.executable,
+        "-m",
+        "sitl",
+        "--log-level",
+        "INFO",
+        "serve",
+        "--config",
+        str(REPO / "config/sitl.toml"),
+    ]
+    args += ["--scenario", str(scenario), "--component", "tests.service.sitl_camera:camera"]
+    return Process(args, env, tmp_path / "sitl.log")
+
+
+def service_config(tmp_path: Path, link_port: int, camera_sock: Path, broker_port: int) -> Path:
+    cfg = tmp_path / "wingman.toml"
+    cfg.write_text(
+        f"""
+vehicle_id = "follower1"
+[link]
+url = "udpin://0.0.0.0:{link_port}"
+[camera]
+source = "sim"
+path = "{camera_sock}"
+[detector]
+runtime = "truth"
+[formation]
+offset_cam_m = [0.0, 0.0, 8.0]   # the leader spawns 8 m ahead: the slot is where the follower starts
+[mission]
+shutdown_hold_s = 1.0
+# The rendered camera lags 0.3-0.8 s behind the simulation on the shared 2-core test machine (frames
+# carry that true age, see companion/service/stamps.py); the default 0.5 s would hover on every lag.
+stale_estimate_s = 1.5
+[mqtt]
+enabled = true
+port = {broker_port}
+state_rate_hz = 5.0
+pose_rate_hz = 5.0
+health_rate_hz = 1.0
+reconnect_min_s = 0.2
+reconnect_max_s = 1.0
+[status]
+socket_path = "{tmp_path}/run/status.sock"
+[service]
+auto_start = true
+shutdown_timeout_s = 90.0
+[logging]
+format = "json"
+"""
+    )
+    return cfg
+
+
+def service_process(tmp_path: Path, cfg: Path, notify_sock: Path) -> Process:
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "NOTIFY_SOCKET": str(notify_sock),
+        "WATCHDOG_USEC": "10000000",
+    }
+    args = [sys.executable, "-m", "companion", "run", "--config", str(cfg)]
+    return Process(args, env, tmp_path / "service.log")
+
+
+@dataclass
+class GcsObserver(asyncio.DatagramProtocol):
+    """A ground station on the simulator's GCS link: what the follower (system 2) says about itself."""
+
+    sysid: int = 2
+    armed: bool | None = None
+    landed_state: int | None = None
+    relative_alt_m: float | None = None
+    seen: dict[str, int] = field(default_factory=dict)
+    _parser: Any = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._parser = mavlink2.MAVLink(None)
+        self._parser.robust_parsing = True
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        try:
+            msgs = self._parser.parse_buffer(data) or []
+        except mavlink2.MAVError:
+            return
+        for m in msgs:
+            if m.get_srcSystem() != self.sysid:
+                continue
+            kind = m.get_type()
+            self.seen[kind] = self.seen.get(kind, 0) + 1
+            if kind == "HEARTBEAT" and m.get_srcComponent() == 1:
+                self.armed = bool(m.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
+            elif kind == "EXTENDED_SYS_STATE":
+                self.landed_state = int(m.landed_state)
+            elif kind == "GLOBAL_POSITION_INT":
+                self.relative_alt_m = m.relative_alt / 1000.0
+
+    @property
+    def on_ground(self) -> bool:
+        return self.landed_state == mavlink2.MAV_LANDED_STATE_ON_GROUND
+
+
+async def open_gcs(port: int) -> tuple[asyncio.DatagramTransport, GcsObserver]:
+    loop = asyncio.get_running_loop()
+    transport, proto = await loop.create_datagram_endpoint(GcsObserver, local_addr=("127.0.0.1", port))
+    return transport, proto

@@ -1,0 +1,111 @@
+"""The service's CLI edge as a user meets it: exit codes and one-line errors (subprocesses)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def companion(*args: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    full_env = {**os.environ, "PYTHONPATH": str(cwd), **(env or {})}
+    return subprocess.run(
+        [sys.executable, "-m", "companion", *args],
+        cwd=cwd,
+        env=full_env,
+        capture_output=True,
+        text=True,
+        timeout=90,
+        check=False,
+    )
+
+
+def test_run_with_an_invalid_config_is_one_line_and_exit_2(tmp_path: Path, repo_root: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[mqtt]\nport = 0\n")
+    r = companion("run", "--config", str(bad), cwd=repo_root)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"companion: {bad}: mqtt.port: Input should be greater than or equal to 1 (got 0)"
+    ]
+
+
+def test_run_refuses_an_unauthenticated_command_topic(tmp_path: Path, repo_root: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[mqtt]\nenabled = true\ncommand_topic = true\n")
+    r = companion("run", "--config", str(cfg), cwd=repo_root)
+    assert r.returncode == 2
+    assert "command_key_file" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_run_with_a_missing_model_fails_before_opening_anything(tmp_path: Path, repo_root: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        f'[detector]\nmodel_path = "{tmp_path}/none.pt"\n[status]\nsocket_path = "{tmp_path}/s.sock"\n'
+    )
+    r = companion("run", "--config", str(cfg), cwd=repo_root)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("companion: model file not found")
+    assert "vehicle link" not in r.stderr  # the link was never opened
+
+
+def test_status_and_start_without_a_service(tmp_path: Path, repo_root: Path) -> None:
+    env = {"WINGMAN_STATUS__SOCKET_PATH": str(tmp_path / "none.sock")}
+    for cmd in ("status", "start"):
+        r = companion(cmd, cwd=repo_root, env=env)
+        assert r.returncode == 1
+        assert r.stderr.strip() == f"companion: service not running (nothing listens on {tmp_path}/none.sock)"
+
+
+def test_health_without_a_service_reports_every_check(tmp_path: Path, repo_root: Path) -> None:
+    env = {
+        "WINGMAN_STATUS__SOCKET_PATH": str(tmp_path / "none.sock"),
+        "WINGMAN_DETECTOR__RUNTIME": "truth",
+        "WINGMAN_LINK__URL": "udpin://127.0.0.1:45931",
+        "WINGMAN_CAMERA__PATH": str(tmp_path / "cam.sock"),
+    }
+    r = companion("health", "--json", "--timeout", "1", cwd=repo_root, env=env)
+    assert r.returncode == 1
+    report = json.loads(r.stdout)
+    assert report["healthy"] is False
+    assert report["service_running"] is False
+    checks = {c["name"]: c for c in report["checks"]}
+    assert list(checks) == ["config", "model", "camera", "autopilot", "gps", "broker"]
+    assert checks["config"]["ok"]
+    assert checks["model"]["ok"]  # truth mode: nothing to check
+    assert not checks["camera"]["ok"]
+    assert "cam.sock missing" in checks["camera"]["detail"]
+    assert not checks["autopilot"]["ok"]
+    assert "no heartbeat" in checks["autopilot"]["detail"]
+    assert checks["broker"]["detail"] == "MQTT disabled"
+
+
+def test_exit_guard_ends_a_process_that_a_stuck_thread_keeps_alive(repo_root: Path) -> None:
+    code = (
+        "import threading, time\n"
+        "from companion.commands.run import ExitGuard\n"
+        "threading.Thread(target=time.sleep, args=(3600,), name='stuck-native-call').start()\n"
+        "ExitGuard().arm(0.5, 7, 'teardown')\n"
+    )
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=repo_root,
+        env={**os.environ, "PYTHONPATH": str(repo_root)},
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+    assert r.returncode == 7
+    assert time.monotonic() - t0 < 10
+    assert "teardown did not finish within 0 s; thread stacks follow; exiting 7" in r.stderr
+    assert "Thread 0x" in r.stderr  # faulthandler's dump of every thread
