@@ -70,6 +70,10 @@ class CameraConfig(Section):
     #: realsense: the D400 visual preset loaded at start (High Accuracy drops doubtful depth: fewer holes
     #: filled with wrong values at range, which is what the leader's pose needs).
     preset: Literal["default", "high_accuracy", "high_density", "medium_density"] = "high_accuracy"
+    #: sim and file: how frame stamps reach the service clock. "mapped" (min-offset filter, see
+    #: companion/service/stamps.py) when the source's clock is not the service's; "source" when it already
+    #: is (``companion sim`` runs the service on the simulator's clock): the stamp is then the capture instant.
+    stamps: Literal["mapped", "source"] = "mapped"
     mount: MountConfig = MountConfig()
 
 
@@ -157,6 +161,12 @@ class FormationConfig(Section):
     i_limit_z_m_s: float = 0.4
     #: Feed-forward of the leader's estimated velocity (0 = the paper's pure PID, 1 = full).
     leader_velocity_ff: float = Field(1.0, ge=0.0, le=1.0)
+    #: Feed-forward of the leader's estimated acceleration as a velocity lead, s. PX4's velocity loop
+    #: follows a setpoint with a lag of about 1 / MPC_XY_VEL_P_ACC (0.55 s); without this lead the follower
+    #: trails an accelerating leader by accel x lag / kp_xy (0.7 m at 1.5 m/s^2). 0 turns it off.
+    leader_accel_ff_s: float = Field(0.5, ge=0.0, le=2.0)
+    #: Low-pass time constant of that acceleration estimate (the derivative of the leader's velocity), s.
+    leader_accel_tau_s: float = Field(0.3, gt=0.0, le=5.0)
     kp_yaw: float = 1.5
     max_yaw_rate_deg_s: float = Field(60.0, gt=0)
     max_accel_m_s2: float = Field(3.0, gt=0)

@@ -36,6 +36,7 @@ from companion.estimation.tracker import TrackState
 from companion.evaluation.log import FlightLog
 from companion.evaluation.plots import Snapshot
 from companion.evaluation.scoring import RunScorer, snapshot_times
+from companion.evaluation.trace import RunObserver, leader_estimate
 from companion.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.runner import MissionRunner
@@ -70,22 +71,8 @@ class RunResult:
     log: FlightLog
     snapshots: list[Snapshot]
     extra: dict[str, Any] = field(default_factory=dict)
-
-
-def leader_estimate(track: TrackState) -> LeaderEstimate | None:
-    """The tracker's state as the mission's input (None without a track)."""
-    est = track.estimate
-    if est is None or track.last_measurement_s is None:
-        return None
-    p, v, cov = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2
-    return LeaderEstimate(
-        stamp_s=float(track.stamp_s),
-        status=TrackStatus(track.status.value),
-        p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
-        v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
-        last_measurement_s=float(track.last_measurement_s),
-        var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
-    )
+    #: Every step and frame, for ``trace.jsonl`` (None when not recorded).
+    trace: RunObserver | None = None
 
 
 @dataclass(slots=True)
@@ -109,7 +96,9 @@ class LockstepRun:
         options: harness knobs.
     """
 
-    def __init__(self, world: Any, renderer: Any, cfg: Config, detect: DetectFn, options: LockstepOptions) -> None:
+    def __init__(
+        self, world: Any, renderer: Any, cfg: Config, detect: DetectFn, options: LockstepOptions
+    ) -> None:
         self.world = world
         self.renderer = renderer
         self.cfg = cfg
@@ -140,12 +129,15 @@ class LockstepRun:
         self._in_flight: deque[_InFlight] = deque()
         self._compute_ms: list[float] = []
         self._attitude_stamp_s = -math.inf
+        self._velocity_stamp_s = -math.inf
+        self.observer = RunObserver(self.clock, [])
 
     # ------------------------------------------------------------------ mission callbacks
     def _on_transition(self, tr: Transition) -> None:
         self.scorer.transition(tr.stamp_s, tr.from_state.name, tr.to_state.name, tr.reason.name)
 
     def _on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
+        self.observer.on_step(inputs, out)
         f, ld = self.world.truth("follower"), self.world.truth("leader")
         est = inputs.leader
         self.scorer.tick(
@@ -186,7 +178,9 @@ class LockstepRun:
                 if t_s >= next_truth_s - 1e-9:
                     next_truth_s += truth_period_s
                     f = world.truth("follower")
-                    self.scorer.truth(t_s, f.p_ned_m, f.v_ned_m_s, f.q_ned_body_wxyz, world.truth("leader").p_ned_m)
+                    self.scorer.truth(
+                        t_s, f.p_ned_m, f.v_ned_m_s, f.q_ned_body_wxyz, world.truth("leader").p_ned_m
+                    )
                 if self.options.progress is not None and t_s >= next_progress_s:
                     next_progress_s += 5.0
                     self.options.progress(t_s)
@@ -208,13 +202,19 @@ class LockstepRun:
                 "run_wall_s": round(time.perf_counter() - wall0, 2),
             }
         )
-        return RunResult(self.scorer.freeze(), self.scorer.snapshots, extra)
+        return RunResult(self.scorer.freeze(), self.scorer.snapshots, extra, self.observer)
 
     def _feed_attitude(self) -> None:
+        """What the service's attitude feed does: new attitude and velocity samples into the histories."""
         v = self.link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
             self._attitude_stamp_s = v.attitude_stamp_s
-            self.pipeline.attitude.push(v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad))
+            self.pipeline.attitude.push(
+                v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)
+            )
+        if v.velocity_stamp_s > self._velocity_stamp_s:
+            self._velocity_stamp_s = v.velocity_stamp_s
+            self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
 
     def _capture(self, t_s: float) -> None:
         follower = self.world.truth("follower")
@@ -228,8 +228,10 @@ class LockstepRun:
     def _deliver(self, item: _InFlight) -> None:
         c0 = time.perf_counter()
         track = self.pipeline.process(item.frame, item.result.detections)
-        compute_ms = item.compute_ms + (time.perf_counter() - c0) * 1e3
+        process_ms = (time.perf_counter() - c0) * 1e3
+        compute_ms = item.compute_ms + process_ms
         self._compute_ms.append(compute_ms)
+        self.observer.on_frame(item.frame, item.result, track, process_ms)
         est = leader_estimate(track)
         if est is not None:
             self.runner.submit_leader(est)

@@ -6,7 +6,9 @@ simulator's clock (s). The recorder appends to Python lists (cheap per tick) and
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -170,3 +172,17 @@ class FlightRecorder:
             crashed=self.crashed,
             landed=self.landed,
         )
+
+
+def save_log(log: FlightLog, path: Path) -> None:
+    """The log's arrays as a compressed ``.npz`` (transitions as text rows) for analysis after a run."""
+    arrays: dict[str, Any] = {}
+    for f in fields(log):
+        value = getattr(log, f.name)
+        if isinstance(value, np.ndarray):
+            arrays[f.name] = value
+    arrays["state"] = np.array(log.state, dtype=str)
+    arrays["transitions"] = np.array(
+        [[f"{t.t_s:.3f}", t.from_state, t.to_state, t.reason] for t in log.transitions], dtype=str
+    ).reshape(-1, 4)
+    np.savez_compressed(path, **arrays)

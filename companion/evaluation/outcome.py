@@ -66,7 +66,7 @@ class TruthMonitor:
                 self._crash(t_s, f"hit the ground at {touchdown_m_s:.1f} m/s")
         self.on_ground = contact and (speed_m_s < self.still_m_s or self.on_ground)
         self._descent_m_s = float(v[2]) if not contact else 0.0
-        w, x, y, z = (float(c) for c in np.asarray(q_ned_follower_wxyz, dtype=np.float64))
+        _, x, y, _ = (float(c) for c in np.asarray(q_ned_follower_wxyz, dtype=np.float64))
         # Tilt: angle between body z and NED down, from the quaternion's R[2, 2].
         cos_tilt = 1.0 - 2.0 * (x * x + y * y)
         tilt_deg = math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))

@@ -57,7 +57,9 @@ def judge_detections(truth: GroundTruth | None, detections: Sequence[Detection])
     """(leader visible, leader detected, a false positive) for one frame."""
     visible = leader_visible(truth)
     box = truth.box_xyxy_px if truth is not None else None
-    detected = visible and box is not None and any(iou(d.box_xyxy_px, box) >= DETECTED_IOU for d in detections)
+    detected = (
+        visible and box is not None and any(iou(d.box_xyxy_px, box) >= DETECTED_IOU for d in detections)
+    )
     false_positive = any(box is None or iou(d.box_xyxy_px, box) < FALSE_POSITIVE_IOU for d in detections)
     return visible, detected, false_positive
 
@@ -79,7 +81,7 @@ class RunScorer:
 
     Args:
         window_s: the formation window (start, end), sim s.
-        gps_loss_s: sim time the follower's GPS is cut (None if never); with ``gps_restore_s`` its return.
+        gps_outages_s: the follower's GPS outages as (start, end or None for good), sim s.
         snapshot_times_s: sim times at which to keep a camera frame for the report's strip.
     """
 
@@ -117,7 +119,7 @@ class RunScorer:
     ) -> None:
         self.monitor.update(t_s, p_ned_follower_m, v_ned_follower_m_s, q_ned_follower_wxyz, p_ned_leader_m)
 
-    def tick(
+    def tick(  # noqa: PLR0917 (truth and estimate of one instant, in the order the log keeps them)
         self,
         t_s: float,
         p_ned_follower_m: ArrayLike,
@@ -190,7 +192,10 @@ class RunScorer:
 
     def wants_snapshot(self, stamp_s: float) -> bool:
         """Whether the next frame at ``stamp_s`` would be kept (so a harness copies pixels only then)."""
-        return self._next_snapshot < len(self.snapshot_times_s) and stamp_s >= self.snapshot_times_s[self._next_snapshot]
+        return (
+            self._next_snapshot < len(self.snapshot_times_s)
+            and stamp_s >= self.snapshot_times_s[self._next_snapshot]
+        )
 
     def freeze(self) -> FlightLog:
         rec = self.recorder

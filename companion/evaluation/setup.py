@@ -15,6 +15,7 @@ from pydantic import ValidationError
 from companion.config import Config, deep_merge, format_validation_error, read_toml
 from companion.errors import ConfigError
 from companion.evaluation.lockstep import DetectFn, LockstepOptions, LockstepRun, RunResult
+from companion.evaluation.log import save_log
 from companion.evaluation.metrics import compute_metrics
 from companion.evaluation.plots import write_plots
 from companion.evaluation.report import build_report, write_report
@@ -47,7 +48,9 @@ def scenario_path(name: str, scenario_dir: Path = SCENARIO_DIR) -> Path:
     for c in candidates:
         if c.exists():
             return c
-    known = sorted(q.stem for q in [*scenario_dir.glob("*.toml"), *(scenario_dir / "variants").glob("*.toml")])
+    known = sorted(
+        q.stem for q in [*scenario_dir.glob("*.toml"), *(scenario_dir / "variants").glob("*.toml")]
+    )
     raise ConfigError(name, [f"no such scenario (known: {', '.join(known)})"])
 
 
@@ -140,9 +143,14 @@ def write_run(
     """Metrics, ``report.json``/``report.md`` and the plots of one run into ``out_dir``; the report."""
     offset = cfg.formation.offset_cam_m
     metrics = compute_metrics(result.log, offset)
-    report = build_report(scenario, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **(extra or {})})
+    report = build_report(
+        scenario, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **(extra or {})}
+    )
     report["plots"] = write_plots(result.log, offset, result.snapshots, out_dir / "plots", scenario)
     write_report(out_dir, report)
+    save_log(result.log, out_dir / "flight_log.npz")
+    if result.trace is not None:
+        result.trace.write_trace(out_dir / "trace.jsonl")
     return report
 
 

@@ -241,6 +241,8 @@ class FormationLaw:
         self._i_down_m_s = 0.0
         self._i_acc_heading = np.zeros(2)
         self._v_prev: Vec3 | None = None
+        self._v_leader_prev: Vec3 | None = None
+        self._a_leader = np.zeros(3)
 
     def reset(self) -> None:
         """Forget integrators and slew history (the hover-thrust estimate is a vehicle property: kept)."""
@@ -249,6 +251,24 @@ class FormationLaw:
         self._i_down_m_s = 0.0
         self._i_acc_heading = np.zeros(2)
         self._v_prev = None
+        self._v_leader_prev = None
+        self._a_leader = np.zeros(3)
+
+    def _leader_accel(self, v_leader: Vec3 | None, dt: float) -> Vec3:
+        """Low-passed derivative of the leader's estimated velocity, bounded by the law's acceleration limit."""
+        if v_leader is None:
+            self._v_leader_prev = None
+            self._a_leader = np.zeros(3)
+            return self._a_leader
+        if self._v_leader_prev is not None and dt > 0.0:
+            a_raw = (v_leader - self._v_leader_prev) / dt
+            k = dt / (self.cfg.leader_accel_tau_s + dt)
+            a = self._a_leader + k * (a_raw - self._a_leader)
+            n = float(np.linalg.norm(a))
+            limit = self.cfg.max_accel_m_s2
+            self._a_leader = a * (limit / n) if n > limit else a
+        self._v_leader_prev = np.array(v_leader, dtype=np.float64)
+        return self._a_leader
 
     def seed_velocity(self, v_ned_m_s: Vec3 | None) -> None:
         """Start the acceleration slew from the vehicle's current velocity, not from zero."""
@@ -289,7 +309,12 @@ class FormationLaw:
         err = slot_error(self.slot, p_ned_rel_m, v_ned_rel_m_s, follower.yaw_rad)
         v_rel = np.asarray(v_ned_rel_m_s, dtype=np.float64)
         v_leader = None if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s) + v_rel
-        ff = np.zeros(3) if v_leader is None else cfg.leader_velocity_ff * v_leader
+        a_leader = self._leader_accel(v_leader, dt)
+        ff = (
+            np.zeros(3)
+            if v_leader is None
+            else cfg.leader_velocity_ff * v_leader + cfg.leader_accel_ff_s * a_leader
+        )
 
         v_range = cfg.kp_xy * err.e_range_m + cfg.kd_xy * err.e_range_rate_m_s + self._i_range_m_s
         v_down = cfg.kp_z * err.e_down_m + self._i_down_m_s

@@ -175,7 +175,9 @@ class MessageVehicleLink:
         target_system: the autopilot's MAVLink system id.
     """
 
-    def __init__(self, transport: MessageTransport, clock: Clock, cfg: LinkConfig, target_system: int) -> None:
+    def __init__(
+        self, transport: MessageTransport, clock: Clock, cfg: LinkConfig, target_system: int
+    ) -> None:
         self.transport = transport
         self.clock = clock
         self.cfg = cfg
@@ -240,7 +242,10 @@ class MessageVehicleLink:
             if now_s - self._last_setpoint_s > self.cfg.setpoint_timeout_s:
                 self._stream_active = False
                 self.counters.guard_trips += 1
-                log.error("vehicle link: no fresh setpoint for %.2f s: stopping offboard", now_s - self._last_setpoint_s)
+                log.error(
+                    "vehicle link: no fresh setpoint for %.2f s: stopping offboard",
+                    now_s - self._last_setpoint_s,
+                )
                 self._fire_and_forget_hold()
             elif (
                 self._offboard_started_s is not None
@@ -264,7 +269,7 @@ class MessageVehicleLink:
     def _update(self, **fields: Any) -> None:
         self._state = replace(self._state, **fields)
 
-    def _handle(self, msg: Any, now_s: float) -> None:  # noqa: PLR0912 (one branch per message type)
+    def _handle(self, msg: Any, now_s: float) -> None:
         # Messages that never went through a codec (a lockstep world hands over objects) carry no source
         # (0): the transport is this autopilot's link, so they are its own.
         if msg.get_srcSystem() not in (self.target_system, 0):
@@ -300,9 +305,14 @@ class MessageVehicleLink:
         elif kind == "LOCAL_POSITION_NED":
             self._update(p_ned_m=(msg.x, msg.y, msg.z), local_position_stamp_s=now_s, local_position_ok=True)
         elif kind == "GPS_RAW_INT":
-            self._update(gps_fix_type=int(msg.fix_type), gps_satellites=int(msg.satellites_visible), gps_stamp_s=now_s)
+            self._update(
+                gps_fix_type=int(msg.fix_type), gps_satellites=int(msg.satellites_visible), gps_stamp_s=now_s
+            )
         elif kind == "SYS_STATUS":
-            present, health = int(msg.onboard_control_sensors_present), int(msg.onboard_control_sensors_health)
+            present, health = (
+                int(msg.onboard_control_sensors_present),
+                int(msg.onboard_control_sensors_health),
+            )
             ok = present & health
             global_ok = bool(ok & _GPS_BIT)
             self._update(
@@ -357,7 +367,9 @@ class MessageVehicleLink:
         """The latest telemetry; ``connected`` also requires a heartbeat within the timeouts."""
         now_s = self.clock.now_s()
         st = self._state
-        alive = st.connected and now_s - st.heartbeat_stamp_s <= max(self.cfg.telemetry_timeout_s, HEARTBEAT_TIMEOUT_S)
+        alive = st.connected and now_s - st.heartbeat_stamp_s <= max(
+            self.cfg.telemetry_timeout_s, HEARTBEAT_TIMEOUT_S
+        )
         return replace(st, stamp_s=now_s, connected=alive)
 
     # ------------------------------------------------------------------ commands
@@ -400,10 +412,16 @@ class MessageVehicleLink:
         self._require()
         fut: asyncio.Future[int] = asyncio.get_running_loop().create_future()
         msg = mavlink.MAVLink_param_set_message(
-            self.target_system, AUTOPILOT_COMPONENT, b"MIS_TAKEOFF_ALT", float(altitude_m), mavlink.MAV_PARAM_TYPE_REAL32
+            self.target_system,
+            AUTOPILOT_COMPONENT,
+            b"MIS_TAKEOFF_ALT",
+            float(altitude_m),
+            mavlink.MAV_PARAM_TYPE_REAL32,
         )
         self._send(msg)
-        self._pending.append(_Pending("set_takeoff_altitude", msg, fut, self.clock.now_s(), param_id="MIS_TAKEOFF_ALT"))
+        self._pending.append(
+            _Pending("set_takeoff_altitude", msg, fut, self.clock.now_s(), param_id="MIS_TAKEOFF_ALT")
+        )
         try:
             await fut
         except CommandRejectedError:
