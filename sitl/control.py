@@ -63,18 +63,24 @@ def quat_dcm_z(q: Quat) -> tuple[float, float, float]:
 
 
 def quat_between(u: tuple[float, float, float], v: tuple[float, float, float]) -> Quat:
-    """Shortest rotation taking unit vector ``u`` onto unit vector ``v``."""
-    cx = u[1] * v[2] - u[2] * v[1]
-    cy = u[2] * v[0] - u[0] * v[2]
-    cz = u[0] * v[1] - u[1] * v[0]
-    dot = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-    if dot < -0.999999:
-        # Opposite vectors: rotate 180 deg about any axis orthogonal to u.
+    """Shortest rotation taking unit vector ``u`` onto unit vector ``v``.
+
+    Built from the half-way vector h = (u + v) / |u + v|: q = (u.h, u x h). Unlike (1 + u.v, u x v) it
+    stays accurate when u and v are nearly opposite, where 1 + u.v loses every significant digit.
+    """
+    hx, hy, hz = u[0] + v[0], u[1] + v[1], u[2] + v[2]
+    hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+    if hn < 1e-12:
+        # Exactly opposite: rotate 180 deg about any axis orthogonal to u.
         ax, ay, az = (1.0, 0.0, 0.0) if abs(u[0]) < 0.9 else (0.0, 1.0, 0.0)
         cx, cy, cz = u[1] * az - u[2] * ay, u[2] * ax - u[0] * az, u[0] * ay - u[1] * ax
         n = math.sqrt(cx * cx + cy * cy + cz * cz)
         return (0.0, cx / n, cy / n, cz / n)
-    w = 1.0 + dot
+    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    w = u[0] * hx + u[1] * hy + u[2] * hz
+    cx = u[1] * hz - u[2] * hy
+    cy = u[2] * hx - u[0] * hz
+    cz = u[0] * hy - u[1] * hx
     n = math.sqrt(w * w + cx * cx + cy * cy + cz * cz)
     return (w / n, cx / n, cy / n, cz / n)
 

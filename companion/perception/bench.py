@@ -152,6 +152,8 @@ def run_bench(
         "input_size_px": cfg.detector.input_size_px,
         "threads": cfg.detector.threads,
         "machine": f"{platform.machine()}, {_cpu_count()} CPUs visible",
+        # Other work on a shared machine inflates every figure (p95/p99 most): say how loaded it was.
+        "load_average_1_5_15": _load_average(),
         "total_covers": list(CAMERA_STAGES if perception_built else CAMERA_STAGES[:3]),
         "runtimes": {},
     }
@@ -172,6 +174,12 @@ def run_bench(
     return out
 
 
+def _load_average() -> list[float] | None:
+    import os  # noqa: PLC0415
+
+    return [round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg") else None
+
+
 def _cpu_count() -> int:
     import os  # noqa: PLC0415
 
@@ -183,7 +191,8 @@ def format_bench(result: dict[str, Any]) -> str:
     names = list(result["runtimes"])
     lines = [
         f"{result['frames']} frames {result['frame_size_px'][0]}x{result['frame_size_px'][1]}, input "
-        f"{result['input_size_px']} px, {result['threads']} threads, {result['machine']}",
+        f"{result['input_size_px']} px, {result['threads']} threads, {result['machine']}, "
+        f"load average {result['load_average_1_5_15']}",
         f"{'stage':<22}" + "".join(f"{n:>28}" for n in names),
         f"{'':<22}" + "".join(f"{'p50 / p95 / p99 ms':>28}" for _ in names),
     ]

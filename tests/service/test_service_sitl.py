@@ -204,6 +204,15 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
             assert gcs.on_ground
             assert gcs.relative_alt_m is not None
             assert abs(gcs.relative_alt_m) < 0.5
+        except BaseException:
+            # Failures on the shared machine are hard to reproduce: leave the evidence in the report.
+            print(
+                "--- service log ---\n",
+                svc.log()[-8000:] if svc else "",
+                "\n--- sitl log ---\n",
+                sim.log()[-2000:],
+            )
+            raise
         finally:
             if svc is not None:
                 svc.stop()

@@ -50,6 +50,22 @@ def test_quat_between_rotates_u_onto_v(a: tuple[float, float, float], b: tuple[f
     assert list(R @ u) == pytest.approx(list(v), abs=1e-6)
 
 
+@pytest.mark.parametrize(
+    ("u", "v"),
+    [
+        ((0.0, 0.0, -1.0), (0.0, 1e-5, 1.0)),
+        ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0)),
+        ((0.0, 0.0, 1.0), (0.0, 0.0, 1.0)),
+    ],
+)
+def test_quat_between_nearly_opposite_and_equal(
+    u: tuple[float, float, float], v: tuple[float, float, float]
+) -> None:
+    n = math.sqrt(sum(x * x for x in v))
+    v = (v[0] / n, v[1] / n, v[2] / n)
+    assert list(R_from_quat(quat_between(u, v)) @ u) == pytest.approx(list(v), abs=1e-9)
+
+
 def test_quat_mul_composes_yaws() -> None:
     q = quat_mul(quat_from_euler_fast(0, 0, 0.3), quat_from_euler_fast(0, 0, 0.4))
     assert yaw_of(q) == pytest.approx(0.7)
