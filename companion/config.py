@@ -71,8 +71,9 @@ class CameraConfig(Section):
     #: filled with wrong values at range, which is what the leader's pose needs).
     preset: Literal["default", "high_accuracy", "high_density", "medium_density"] = "high_accuracy"
     #: sim and file: how frame stamps reach the service clock. "mapped" (min-offset filter, see
-    #: companion/service/stamps.py) when the source's clock is not the service's; "source" when it already
-    #: is (``companion sim`` runs the service on the simulator's clock): the stamp is then the capture instant.
+    #: companion/service/stamps.py) when the source's clock is not the service's; "source" when it
+    #: already is (``companion sim`` runs the service on the simulator's clock): the stamp is then the
+    #: capture instant.
     stamps: Literal["mapped", "source"] = "mapped"
     mount: MountConfig = MountConfig()
 

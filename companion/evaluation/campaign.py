@@ -118,19 +118,23 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     extra = {"detector": description, "scenario_file": str(path), "formation_window_s": _window(scenario)}
     if spec.plots:
         return write_run(spec.out_dir, scenario.name, spec.seed, result, cfg, wall_s=wall_s, extra=extra)
-    return write_run_without_plots(spec.out_dir, scenario.name, spec.seed, result, cfg, wall_s, extra)
+    return write_run_without_plots(
+        spec.out_dir, scenario.name, spec.seed, result, cfg, wall_s=wall_s, extra=extra
+    )
 
 
 def write_run_without_plots(
-    out_dir: Path, name: str, seed: int, result: Any, cfg: Any, wall_s: float, extra: dict[str, Any]
+    out_dir: Path, name: str, seed: int, result: Any, cfg: Any, *, wall_s: float, extra: dict[str, Any]
 ) -> dict[str, Any]:
     """The report alone (Monte Carlo runs: fifty sets of plots would cost more than the runs' insight)."""
+    from companion.evaluation.log import save_log  # noqa: PLC0415
     from companion.evaluation.metrics import compute_metrics  # noqa: PLC0415
     from companion.evaluation.report import build_report, write_report  # noqa: PLC0415
 
     metrics = compute_metrics(result.log, cfg.formation.offset_cam_m)
     report = build_report(name, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **extra})
     write_report(out_dir, report)
+    save_log(result.log, out_dir / "flight_log.npz")
     return report
 
 
@@ -203,7 +207,8 @@ class ProgressLine:
             if c.proc is not None and not c.done
         ]
         elapsed = now - self.t0_s
-        text = f"sim: {done}/{self.total} done | {' | '.join(running) or '-'} | {elapsed // 60:.0f}:{elapsed % 60:02.0f}"
+        clock = f"{elapsed // 60:.0f}:{elapsed % 60:02.0f}"
+        text = f"sim: {done}/{self.total} done | {' | '.join(running) or '-'} | {clock}"
         if self.tty:
             pad = max(0, self._width - len(text))
             self.out.write("\r" + text + " " * pad)
@@ -274,6 +279,19 @@ async def _run_children(
     return children
 
 
+#: What the Monte Carlo summary keeps of each run.
+_SEED_KEYS = (
+    "seed",
+    "outcome",
+    "relative_position_rmse_m",
+    "relative_yaw_rmse_deg",
+    "formation_rmse_m",
+    "formation_max_deviation_m",
+    "min_separation_m",
+    "touchdown_m_s",
+)
+
+
 def run_many(
     specs: Sequence[RunSpec],
     out_dir: Path,
@@ -310,19 +328,16 @@ def run_many(
             "wall_s": round(wall_s, 1),
             "failed": failed,
             **monte_carlo_summary(reports.values()),
-            "runs_by_seed": {
-                name: {k: r.get(k) for k in ("seed", "outcome", "relative_position_rmse_m", "formation_rmse_m",
-                                             "formation_max_deviation_m", "min_separation_m", "touchdown_m_s")}
-                for name, r in reports.items()
-            },
-        }  # fmt: skip
+            "runs_by_seed": {name: {k: r.get(k) for k in _SEED_KEYS} for name, r in reports.items()},
+        }
         write_json(out_dir / "summary.json", summary)
         (out_dir / "summary.md").write_text(monte_carlo_markdown(summary))
     else:
         write_summary(out_dir, reports)
         summary = {"reports": reports, "failed": failed, "wall_s": round(wall_s, 1)}
-        write_json(out_dir / "timing.json", {"wall_s": round(wall_s, 1), "jobs": jobs, "failed": failed,
-                                             "runs": {c.name: round(c.wall_s, 1) for c in children}})  # fmt: skip
+        runs_wall_s = {c.name: round(c.wall_s, 1) for c in children}
+        timing = {"wall_s": round(wall_s, 1), "jobs": jobs, "failed": failed, "runs": runs_wall_s}
+        write_json(out_dir / "timing.json", timing)
     if failed:
         raise SimError("runs without a report: " + "; ".join(failed))
     return summary

@@ -32,7 +32,6 @@ import numpy as np
 
 from companion.clock import ManualClock
 from companion.config import Config
-from companion.estimation.tracker import TrackState
 from companion.evaluation.log import FlightLog
 from companion.evaluation.plots import Snapshot
 from companion.evaluation.scoring import RunScorer, snapshot_times
@@ -40,7 +39,7 @@ from companion.evaluation.trace import RunObserver, leader_estimate
 from companion.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.runner import MissionRunner
-from companion.mission.types import LeaderEstimate, MissionInputs, StepOutput, TrackStatus, Transition
+from companion.mission.types import MissionInputs, StepOutput, Transition
 from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.types import DetectorResult, RgbdFrame
 from companion.vehicle.message_link import MessageVehicleLink

@@ -34,23 +34,20 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
-
-import numpy as np
 
 from companion.config import Config
 from companion.errors import CompanionError
 from companion.evaluation.lockstep import RunResult
 from companion.evaluation.scoring import RunScorer, snapshot_times
 from companion.evaluation.simclock import SimClock
-from companion.evaluation.trace import RunObserver, TraceFrame
 from companion.evaluation.sitl_components import RUN_ENV
 from companion.evaluation.tomlw import toml_value
+from companion.evaluation.trace import RunObserver, TraceFrame
 from companion.evaluation.truthlog import TruthTrack, follower_of, leader_of
 from companion.mission.types import MissionInputs, StepOutput
-from companion.perception.types import Detection, DetectorResult, GroundTruth, RgbdFrame
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +146,7 @@ class Child:
             return
         proc.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + timeout_s
-        while proc.poll() is None and time.monotonic() < deadline:
+        while proc.poll() is None and time.monotonic() < deadline:  # noqa: ASYNC110 (a Popen, no event)
             await asyncio.sleep(0.05)
         if proc.poll() is None:
             proc.kill()
@@ -191,7 +188,7 @@ class RealOptions:
     progress: Callable[[float], None] | None = None
 
 
-async def run_real(
+async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     scenario_file: Path,
     scenario: Any,
     seed: int,
@@ -205,7 +202,7 @@ async def run_real(
     from companion.service.wiring import FlightAdapter, make_parts_factory  # noqa: PLC0415
     from sitl.config import load_sitl_config  # noqa: PLC0415
 
-    work_dir.mkdir(parents=True, exist_ok=True)
+    work_dir.mkdir(parents=True, exist_ok=True)  # noqa: ASYNC240 (once, before anything runs)
     sock_dir = Path(tempfile.mkdtemp(prefix="wingman-sim-"))  # Unix socket paths must stay short
     rng = random.Random()  # noqa: S311 (port choice, not crypto)
     ports = Ports.pick(rng)
@@ -325,10 +322,14 @@ def _snapshot(fr: TraceFrame) -> Any:
     )
 
 
+def _sim_ready(clock_path: Path, camera_socket: Path) -> bool:
+    return clock_path.exists() and clock_path.stat().st_size > 0 and camera_socket.exists()
+
+
 async def _wait_for_sim(sim: Child, clock_path: Path, camera_socket: Path, speed: float) -> SimClock:
     """Until the simulator runs, publishes its clock and serves the camera (its render worker is up)."""
     deadline = time.monotonic() + START_TIMEOUT_S
-    while not (clock_path.exists() and clock_path.stat().st_size > 0 and camera_socket.exists()):
+    while not _sim_ready(clock_path, camera_socket):
         if not sim.running:
             raise SimRunError(f"sitl serve exited while starting; its log:\n{sim.tail()}")
         if time.monotonic() > deadline:

@@ -96,5 +96,5 @@ class SimClock:
         return self._last_s
 
     async def sleep_until(self, t_s: float) -> None:
-        while (remaining_s := t_s - self.now_s()) > 0.0:
+        while (remaining_s := t_s - self.now_s()) > 0.0:  # noqa: ASYNC110 (a clock in a file, no event)
             await asyncio.sleep(max(0.0005, remaining_s / self.speed))

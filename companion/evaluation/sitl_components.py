@@ -1,4 +1,4 @@
-"""What ``companion sim`` runs *inside* ``sitl serve`` (``--component companion.evaluation.sitl_components:run``).
+"""What ``companion sim`` runs *inside* ``sitl serve`` (``--component ...evaluation.sitl_components:run``).
 
 Three tasks beside the simulation, configured by the JSON file named in ``$WINGMAN_SIM_RUN`` (written by
 ``companion sim`` for this run; read once here, at the component's edge):
@@ -32,7 +32,7 @@ CLOCK_PERIOD_S = 0.002
 
 async def run(sim: Any) -> None:
     """The component: clock, truth and camera until ``sitl serve`` stops."""
-    settings = json.loads(Path(os.environ[RUN_ENV]).read_text())
+    settings = json.loads(Path(os.environ[RUN_ENV]).read_text())  # noqa: ASYNC240 (once, at start)
     async with asyncio.TaskGroup() as tg:
         tg.create_task(_clock(sim, Path(settings["clock_path"])), name="sim.clock")
         tg.create_task(

@@ -38,6 +38,8 @@ def leader_estimate(track: TrackState) -> LeaderEstimate | None:
 
 @dataclass(slots=True)
 class TraceTick:
+    """One control tick as the run observer saw it (service clock, s; NED m)."""
+
     t_s: float
     rel_est_ned_m: tuple[float, float, float] | None
     transitions: list[tuple[float, str, str, str]]
@@ -47,6 +49,8 @@ class TraceTick:
 
 @dataclass(slots=True)
 class TraceFrame:
+    """One processed camera frame as the run observer saw it (capture stamp, s; NED m)."""
+
     t_s: float
     truth: GroundTruth | None
     detections: list[Detection]

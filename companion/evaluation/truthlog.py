@@ -1,4 +1,4 @@
-"""The simulator's truth, recorded inside ``sitl serve`` for scoring after the run (never read by the service).
+"""The simulator's truth, recorded inside ``sitl serve`` to score the run later (never read by the service).
 
 One row of float64 per sample, appended to a flat file: ``t_s``, then for the follower and the leader
 ``p_ned_m`` (3), ``v_ned_m_s`` (3), ``q_ned_body_wxyz`` (4); world NED frame.
@@ -81,9 +81,11 @@ class TruthTrack:
         """The row at ``t_s``, linearly interpolated (quaternions renormalised); clamped at the ends."""
         i = int(np.searchsorted(self.t_s, t_s))
         if i <= 0:
-            return self.rows[0]
+            first: F64 = self.rows[0]
+            return first
         if i >= self.t_s.size:
-            return self.rows[-1]
+            last: F64 = self.rows[-1]
+            return last
         t0, t1 = self.t_s[i - 1], self.t_s[i]
         a = (t_s - t0) / (t1 - t0) if t1 > t0 else 0.0
         row: F64 = (1.0 - a) * self.rows[i - 1] + a * self.rows[i]

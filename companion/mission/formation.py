@@ -255,7 +255,7 @@ class FormationLaw:
         self._a_leader = np.zeros(3)
 
     def _leader_accel(self, v_leader: Vec3 | None, dt: float) -> Vec3:
-        """Low-passed derivative of the leader's estimated velocity, bounded by the law's acceleration limit."""
+        """Low-passed derivative of the leader's estimated velocity, bounded by the law's acceleration cap."""
         if v_leader is None:
             self._v_leader_prev = None
             self._a_leader = np.zeros(3)

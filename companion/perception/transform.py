@@ -156,7 +156,7 @@ class VelocityHistory:
         return len(self._stamps_s)
 
     def push(self, stamp_s: float, v_ned_m_s: Vec3 | tuple[float, float, float]) -> None:
-        """Add a velocity sample taken at ``stamp_s`` (same clock as the frames); non-finite ones are ignored."""
+        """Add a velocity sample taken at ``stamp_s`` (the frames' clock); non-finite ones are ignored."""
         v = np.asarray(v_ned_m_s, dtype=np.float64)
         if (self._stamps_s and stamp_s <= self._stamps_s[-1]) or not np.all(np.isfinite(v)):
             return
