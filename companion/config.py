@@ -153,9 +153,9 @@ class FormationConfig(Section):
     offset_cam_m: tuple[float, float, float] = (0.0, 0.0, 5.0)
     #: Tuned on the circle (15 m, 3 m/s) against the simulator's PX4-like velocity loop, whose tracking
     #: error varies once per revolution: kp 0.9 / ki 0.05 left 0.27 m RMSE, these 0.13 m.
-    kp_xy: float = 1.2
-    ki_xy: float = 0.3
-    kd_xy: float = 0.3
+    kp_xy: float = 1.8
+    ki_xy: float = 0.1
+    kd_xy: float = 0.8
     i_limit_xy_m_s: float = 0.5
     kp_z: float = 0.8
     ki_z: float = 0.1
@@ -165,7 +165,7 @@ class FormationConfig(Section):
     #: Feed-forward of the leader's estimated acceleration as a velocity lead, s. PX4's velocity loop
     #: follows a setpoint with a lag of about 1 / MPC_XY_VEL_P_ACC (0.55 s); without this lead the follower
     #: trails an accelerating leader by accel x lag / kp_xy (0.7 m at 1.5 m/s^2). 0 turns it off.
-    leader_accel_ff_s: float = Field(0.5, ge=0.0, le=2.0)
+    leader_accel_ff_s: float = Field(0.6, ge=0.0, le=2.0)
     #: Low-pass time constant of that acceleration estimate (the derivative of the leader's velocity), s.
     leader_accel_tau_s: float = Field(0.3, gt=0.0, le=5.0)
     kp_yaw: float = 1.5
