@@ -149,6 +149,13 @@ def _runtime_override(detector: DetectorChoice) -> dict[str, Any]:
     return {"detector": {"runtime": "truth"}} if detector == "truth" else {}
 
 
+def require_weights(overrides: Sequence[str] = ()) -> None:
+    """Fail with one line when the network detector has no weights (checked before any run starts)."""
+    from companion.evaluation.setup import service_config  # noqa: PLC0415
+
+    _require_weights(service_config({}, parse_overrides(overrides)))
+
+
 def _require_weights(cfg: Any) -> None:
     from companion.evaluation.setup import REPO  # noqa: PLC0415
     from companion.perception.detector import model_files  # noqa: PLC0415
@@ -237,12 +244,20 @@ def child_args(spec: RunSpec) -> list[str]:
     return args
 
 
-async def _run_child(child: _Child, env: dict[str, str], line: ProgressLine, children: list[_Child]) -> None:
+async def _run_child(
+    child: _Child, env: dict[str, str], line: ProgressLine, children: list[_Child], *, nice: bool = False
+) -> None:
     child.spec.out_dir.mkdir(parents=True, exist_ok=True)
     child.started_s = time.monotonic()
     with (child.spec.out_dir / "sim.log").open("ab") as err:
+        from companion.evaluation.realpath import die_with_parent, die_with_parent_niced  # noqa: PLC0415
+
         child.proc = await asyncio.create_subprocess_exec(
-            *child_args(child.spec), stdout=asyncio.subprocess.PIPE, stderr=err, env=env
+            *child_args(child.spec),
+            stdout=asyncio.subprocess.PIPE,
+            stderr=err,
+            env=env,
+            preexec_fn=die_with_parent_niced if nice else die_with_parent,  # prctl/nice, no locks
         )
         assert child.proc.stdout is not None  # noqa: S101 (PIPE)
         try:
@@ -267,11 +282,14 @@ async def _run_children(
     specs: Sequence[RunSpec], jobs: int, line: ProgressLine, env: dict[str, str]
 ) -> list[_Child]:
     children = [_Child(s.out_dir.name, s) for s in specs]
-    sem = asyncio.Semaphore(max(1, jobs))
+    mixed = len({s.harness for s in specs}) > 1
+    # Mixed harnesses ('all'): one real-path run at a time (it runs in real time and must keep its camera
+    # rate) beside one lockstep run, which yields the CPU to it (niced); otherwise ``jobs`` side by side.
+    lanes = {h: asyncio.Semaphore(1 if mixed else max(1, jobs)) for h in ("real", "lockstep")}
 
     async def one(c: _Child) -> None:
-        async with sem:
-            await _run_child(c, env, line, children)
+        async with lanes[c.spec.harness]:
+            await _run_child(c, env, line, children, nice=mixed and c.spec.harness == "lockstep")
 
     async with asyncio.TaskGroup() as tg:
         for c in children:

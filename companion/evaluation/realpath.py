@@ -130,7 +130,12 @@ class Child:
     def start(self) -> None:
         with self.log_path.open("ab") as out:
             self.proc = subprocess.Popen(
-                self.args, cwd=REPO, env=self.env, stdout=out, stderr=subprocess.STDOUT
+                self.args,
+                cwd=REPO,
+                env=self.env,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                preexec_fn=die_with_parent,  # noqa: PLW1509 (one prctl call, no locks taken)
             )
 
     def tail(self, n: int = 3000) -> str:
@@ -151,6 +156,25 @@ class Child:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
+
+
+def die_with_parent() -> None:
+    """In the child before exec: SIGTERM when ``companion sim`` dies, however it dies (Linux only).
+
+    Without it an interrupted or killed run left ``sitl serve`` and its render worker running.
+    """
+    if sys.platform != "linux":
+        return
+    import ctypes  # noqa: PLC0415
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
+def die_with_parent_niced() -> None:
+    """:func:`die_with_parent`, and run at nice 10 (a lockstep run beside a real-time one)."""
+    die_with_parent()
+    os.nice(10)
 
 
 def score(observer: RunObserver, truth: TruthTrack, scorer: RunScorer, end_s: float) -> None:
