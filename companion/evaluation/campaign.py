@@ -343,6 +343,8 @@ def run_many(
             "scenario": specs[0].scenario if specs else None,
             "seeds": [s.seed for s in specs],
             "harness": specs[0].harness if specs else None,
+            "detector": next(iter(reports.values())).get("detector") if reports else None,
+            "formation_duration_s": specs[0].duration_s if specs else None,
             "wall_s": round(wall_s, 1),
             "failed": failed,
             **monte_carlo_summary(reports.values()),
@@ -365,6 +367,9 @@ def monte_carlo_markdown(summary: dict[str, Any]) -> str:
     """The Monte Carlo summary as a page: outcomes, then percentiles of each metric."""
     lines = [
         f"# Monte Carlo: `{summary['scenario']}`, {summary['runs']} seeds ({summary['harness']} harness)",
+        "",
+        f"Detector: {summary.get('detector')}. Formation window: "
+        f"{summary.get('formation_duration_s') or 'the scenario default'} s.",
         "",
         "| outcome | runs |",
         "|---|---|",
