@@ -70,6 +70,11 @@ class CameraConfig(Section):
     #: realsense: the D400 visual preset loaded at start (High Accuracy drops doubtful depth: fewer holes
     #: filled with wrong values at range, which is what the leader's pose needs).
     preset: Literal["default", "high_accuracy", "high_density", "medium_density"] = "high_accuracy"
+    #: sim and file: how frame stamps reach the service clock. "mapped" (min-offset filter, see
+    #: companion/service/stamps.py) when the source's clock is not the service's; "source" when it
+    #: already is (``companion sim`` runs the service on the simulator's clock): the stamp is then the
+    #: capture instant.
+    stamps: Literal["mapped", "source"] = "mapped"
     mount: MountConfig = MountConfig()
 
 
@@ -153,15 +158,21 @@ class FormationConfig(Section):
     offset_cam_m: tuple[float, float, float] = (0.0, 0.0, 5.0)
     #: Tuned on the circle (15 m, 3 m/s) against the simulator's PX4-like velocity loop, whose tracking
     #: error varies once per revolution: kp 0.9 / ki 0.05 left 0.27 m RMSE, these 0.13 m.
-    kp_xy: float = 1.2
-    ki_xy: float = 0.3
-    kd_xy: float = 0.3
+    kp_xy: float = 1.8
+    ki_xy: float = 0.1
+    kd_xy: float = 0.8
     i_limit_xy_m_s: float = 0.5
     kp_z: float = 0.8
     ki_z: float = 0.1
     i_limit_z_m_s: float = 0.4
     #: Feed-forward of the leader's estimated velocity (0 = the paper's pure PID, 1 = full).
     leader_velocity_ff: float = Field(1.0, ge=0.0, le=1.0)
+    #: Feed-forward of the leader's estimated acceleration as a velocity lead, s. PX4's velocity loop
+    #: follows a setpoint with a lag of about 1 / MPC_XY_VEL_P_ACC (0.55 s); without this lead the follower
+    #: trails an accelerating leader by accel x lag / kp_xy (0.7 m at 1.5 m/s^2). 0 turns it off.
+    leader_accel_ff_s: float = Field(0.6, ge=0.0, le=2.0)
+    #: Low-pass time constant of that acceleration estimate (the derivative of the leader's velocity), s.
+    leader_accel_tau_s: float = Field(0.3, gt=0.0, le=5.0)
     kp_yaw: float = 1.5
     max_yaw_rate_deg_s: float = Field(60.0, gt=0)
     max_accel_m_s2: float = Field(3.0, gt=0)
@@ -176,8 +187,10 @@ class MissionConfig(Section):
     reacquire_coast_s: float = Field(2.0, ge=0)
     reacquire_scan_s: float = Field(10.0, ge=0)
     scan_yaw_rate_deg_s: float = Field(30.0, gt=0)
-    #: An estimate older than this is stale: the setpoint stream switches to hover, never resends it.
-    stale_estimate_s: float = Field(0.5, gt=0)
+    #: An estimate older than this (since its frame's capture) is stale: HOVER, never resent. Younger
+    #: ones are flown brought to the control instant with the follower's own motion (mission/ego.py),
+    #: so a late frame on a loaded companion computer (0.3-0.8 s measured) is not a stop.
+    stale_estimate_s: float = Field(1.0, gt=0)
     #: Hover this long on a stalled perception pipeline before the abort action.
     stall_hover_s: float = Field(3.0, ge=0)
     acquire_timeout_s: float = Field(60.0, gt=0)

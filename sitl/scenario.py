@@ -1,7 +1,7 @@
 """Scenario files (``config/scenarios/*.toml``): leader path, faults, wind, renderer and harness.
 
 Strict: unknown keys are errors, except inside the opaque ``[visual]`` table, which belongs to the
-renderer.
+renderer, and ``[companion]``, which belongs to the service (``companion sim`` validates it).
 
 Schema (all times are sim seconds from simulator start; all keys optional unless noted)::
 
@@ -15,6 +15,11 @@ Schema (all times are sim seconds from simulator start; all keys optional unless
     formation_start_s = 35.0          # when formation flight starts to count
     formation_duration_s = 70.0       # >= 60 s of formation in every shipped scenario
     takeoff_altitude_m = 5.0          # the follower's takeoff altitude
+    camera_rate_hz = 30.0             # the simulated camera's frame rate (sim time)
+    leader_hidden_s = [[50.0, 53.0]]  # windows when the camera does not see the leader at all
+
+    [companion]                       # opaque to the simulator: service config overrides for companion sim
+    mission = { gps_loss_policy = "land" }
 
     [leader]                          # flown through the leader's own autopilot (offboard)
     type = "straight"                 # none | straight | circle | figure8 | waypoints
@@ -87,12 +92,22 @@ class RunSpec(Section):
     formation_start_s: float = Field(35.0, ge=0)
     formation_duration_s: float = Field(60.0, gt=0)
     takeoff_altitude_m: float = Field(5.0, gt=1.0, le=100.0)
+    #: The simulated camera's frame rate, frames per sim second (the D435i runs up to 30 Hz).
+    camera_rate_hz: float = Field(30.0, gt=0.0, le=90.0)
+    #: Windows [start_s, end_s) in which the camera does not see the leader at all (fault injection).
+    leader_hidden_s: tuple[tuple[float, float], ...] = ()
 
     @model_validator(mode="after")
     def _fits(self) -> RunSpec:
         if self.formation_start_s + self.formation_duration_s > self.duration_s + 1e-9:
             raise ValueError("formation_start_s + formation_duration_s exceeds duration_s")
+        if any(not (0.0 <= a < b) for a, b in self.leader_hidden_s):
+            raise ValueError("leader_hidden_s windows must be [start_s, end_s] with 0 <= start_s < end_s")
         return self
+
+    def leader_hidden(self, t_s: float) -> bool:
+        """Whether the camera is blind to the leader at sim time ``t_s``."""
+        return any(a <= t_s < b for a, b in self.leader_hidden_s)
 
 
 class LeaderSpec(Section):
@@ -252,6 +267,8 @@ class Scenario(Section):
     wind: WindSpec = WindSpec()
     #: Opaque to the simulator: fog, sun elevation, occluders, leader distance... for the renderer.
     visual: dict[str, Any] = Field(default_factory=dict)
+    #: Opaque to the simulator: service config overrides (``companion sim`` validates them).
+    companion: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("schema_version")
     @classmethod

@@ -2,18 +2,144 @@
 
 from __future__ import annotations
 
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
 from typing import Any
 
-from companion.cli import not_built
+from companion.logs import setup_logging
 
 
 def register(sub: Any) -> None:
     """Add this module's commands to the ``companion`` subparsers."""
-    p = sub.add_parser("sim", help="fly a scenario closed-loop in the simulator and write a report")
-    p.add_argument("--scenario", default="all", help="scenario name (config/scenarios/NAME.toml) or 'all'")
+    p = sub.add_parser(
+        "sim",
+        help="fly a scenario closed-loop in the simulator and write a report",
+        description="Fly scenarios closed-loop: sitl serve + the real service (MAVSDK over UDP, the rendered "
+        "camera, the detector, tracker and mission), or --seeds through the lockstep harness.",
+    )
+    p.add_argument(
+        "--scenario", default="all", help="scenario name (config/scenarios/NAME.toml), a path, or 'all'"
+    )
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--seeds", default=None, help="Monte Carlo range, e.g. 1-50 (lockstep harness)")
-    p.add_argument("--out", default="runs/sim", help="output folder")
-    p.add_argument("--speed", type=float, default=1.0, help="simulation speed factor")
+    p.add_argument("--seeds", default=None, help="Monte Carlo over seeds, e.g. 1-50 (lockstep harness)")
+    p.add_argument("--out", type=Path, default=Path("runs/sim"), help="output folder")
+    p.add_argument("--speed", type=float, default=1.0, help="simulation speed factor (real path)")
     p.add_argument("--duration", type=float, default=None, help="formation time in s (scenario default)")
-    p.set_defaults(handler=not_built("sim"))
+    p.add_argument("--jobs", type=int, default=2, help="runs side by side for 'all' and --seeds (default 2)")
+    p.add_argument(
+        "--harness",
+        choices=("real", "lockstep"),
+        default=None,
+        help="real: sitl serve + the service over UDP; lockstep: no sockets. Default: real for one scenario, "
+        "lockstep for --seeds; 'all' flies the paper's four real and the others lockstep",
+    )
+    p.add_argument(
+        "--detector",
+        choices=("network", "truth"),
+        default="network",
+        help="network: the shipped weights (default); truth: the simulator's boxes (harness check only)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a service config key for these runs (TOML value), e.g. formation.kp_xy=1.5",
+    )
+    p.add_argument("--no-plots", action="store_true", help="write the report without plots")
+    p.add_argument("--progress", choices=("line", "json"), default="line", help=argparse.SUPPRESS)
+    p.set_defaults(handler=_sim)
+
+
+def _sim(args: argparse.Namespace) -> int:
+    from companion.evaluation.campaign import RunSpec, parse_seeds, require_weights, run_many, run_one
+    from companion.evaluation.setup import all_scenarios, scenario_path
+
+    out: Path = args.out
+    harness = args.harness or ("lockstep" if args.seeds else "real")
+    common: dict[str, Any] = {
+        "harness": harness,
+        "detector": args.detector,
+        "speed": args.speed,
+        "duration_s": args.duration,
+        "plots": not args.no_plots,
+        "overrides": tuple(args.set),
+    }
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p),
+    }
+    if args.detector == "network":
+        require_weights(tuple(args.set))  # one clear line now, not one per child run
+    if args.seeds is not None:
+        if args.scenario == "all":
+            raise SystemExit("companion sim: --seeds needs one --scenario")
+        scenario_path(args.scenario)  # fail fast on a typo
+        specs = [
+            RunSpec(args.scenario, s, out / f"seed-{s:03d}", **{**common, "plots": False})
+            for s in parse_seeds(args.seeds)
+        ]
+        summary = run_many(specs, out, jobs=args.jobs, env=env, stream=sys.stdout, monte_carlo=True)
+        print(f"sim: {summary['runs']} runs, outcomes {summary['outcomes']}; {out / 'summary.md'}")
+        return 0
+    if args.scenario == "all":
+        specs = [
+            RunSpec(name, args.seed, out / name, **{**common, "harness": _all_harness(name, args.harness)})
+            for name in all_scenarios()
+        ]
+        run_many(specs, out, jobs=args.jobs, env=env, stream=sys.stdout, monte_carlo=False)
+        print(f"sim: {len(specs)} scenarios; {out / 'summary.md'}")
+        return 0
+    # One scenario, in this process.
+    out.mkdir(parents=True, exist_ok=True)
+    _log_to(out / "sim.log" if args.progress == "json" else None, args)
+    spec = RunSpec(args.scenario, args.seed, out, **common)
+    end_s: list[float] = [float("nan")]
+
+    def progress(t_s: float) -> None:
+        if args.progress == "json":
+            print(json.dumps({"t_s": round(t_s, 1), "end_s": end_s[0]}), flush=True)
+        else:
+            print(f"\rsim: {spec.scenario} t = {t_s:5.1f} s", end="", flush=True)
+
+    from companion.evaluation.campaign import effective_scenario
+
+    end_s[0] = effective_scenario(scenario_path(spec.scenario), spec.duration_s).run.duration_s
+    report = run_one(spec, progress)
+    if args.progress == "line":
+        print()
+        print(
+            f"sim: {report['scenario']}: {report['outcome']}, relative position RMSE "
+            f"{_fmt(report['relative_position_rmse_m'])} m, formation max deviation "
+            f"{_fmt(report['formation_max_deviation_m'])} m; {out / 'report.md'}"
+        )
+    return 0
+
+
+#: The paper's scenarios: ``all`` flies them on the real path; the others in lockstep beside them, so that
+#: ``all`` fits in 10 minutes on two cores (docs/evaluation.md). ``--harness`` forces one harness for all.
+PAPER_SCENARIOS = ("straight", "circle", "gps-loss", "visibility")
+
+
+def _all_harness(name: str, forced: str | None) -> str:
+    if forced is not None:
+        return forced
+    return "real" if name in PAPER_SCENARIOS else "lockstep"
+
+
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
+def _log_to(path: Path | None, args: argparse.Namespace) -> None:
+    """Service and simulator-client logs: to stderr for a single run, to a file for a child of 'all'."""
+    import logging
+
+    setup_logging(args.log_format or "human", args.log_level or "WARNING")
+    if path is not None:
+        handler = logging.FileHandler(path)
+        handler.setFormatter(logging.getLogger().handlers[0].formatter)
+        logging.getLogger().handlers[:] = [handler]

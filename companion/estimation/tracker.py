@@ -220,6 +220,8 @@ class TargetTracker:
         self._track_id = 0
         #: The last accepted measurement was ranged from box size (no stereo depth).
         self._size_ranged = False
+        #: The follower's velocity at the filter's current time (ego-motion), NED m/s; None if unknown.
+        self._v_follower: Vec3 | None = None
 
     @property
     def has_track(self) -> bool:
@@ -232,7 +234,9 @@ class TargetTracker:
         self._window.clear()
         self._hits = 0
 
-    def predict_cam(self, stamp_s: float, R_ned_body: Mat3) -> tuple[Vec3, Mat3] | None:
+    def predict_cam(
+        self, stamp_s: float, R_ned_body: Mat3, v_ned_follower_m_s: Vec3 | None = None
+    ) -> tuple[Vec3, Mat3] | None:
         """Where a usable track expects the leader at ``stamp_s`` (camera frame, m) and its covariance.
 
         Does not change the track. None without a confirmed track or once it is lost.
@@ -242,12 +246,18 @@ class TargetTracker:
             return None
         dt = max(0.0, stamp_s - self._stamp_s)
         F = _EYE6 + dt * _F_DT
-        x = F @ kf.x[:, 0]
+        x = F @ kf.x[:, 0] + self._ego_shift(dt, v_ned_follower_m_s)
         P = F @ kf.P @ F.T + self._Q(dt, x[:3])
         est = RelativeEstimate(x[:3], x[3:], P, R_ned_body, self.camera)
         return est.p_cam_leader_m, est.cov_cam_m2
 
-    def step(self, stamp_s: float, measurements: Sequence[LeaderMeasurement], R_ned_body: Mat3) -> TrackState:
+    def step(
+        self,
+        stamp_s: float,
+        measurements: Sequence[LeaderMeasurement],
+        R_ned_body: Mat3,
+        v_ned_follower_m_s: Vec3 | None = None,
+    ) -> TrackState:
         """Advance to ``stamp_s`` with this frame's measurements (may be empty) and attitude.
 
         Args:
@@ -255,10 +265,15 @@ class TargetTracker:
                 predict backwards (the measurement is applied at the filter's current time).
             measurements: pose of every detection in this frame, camera frame.
             R_ned_body: the follower's attitude at ``stamp_s`` (from :class:`AttitudeHistory`).
+            v_ned_follower_m_s: the follower's own velocity at ``stamp_s`` (telemetry, NED), or None.
+                Its change since the previous step is the follower's own manoeuvre: the prediction
+                subtracts it from the relative velocity (ego-motion), so the track does not lag behind
+                the follower's accelerations, and coasting follows them. Only the change is used, so a
+                drifting but smooth estimate (PX4 dead-reckoning after a GPS loss) still serves.
         """
         cfg = self.cfg
         if self._kf is not None:
-            self._predict(self._kf, stamp_s)
+            self._predict(self._kf, stamp_s, v_ned_follower_m_s)
             since = self._stamp_s - self._last_meas_s
             if since > cfg.lost_timeout_s or (not self._confirmed and since > cfg.coast_timeout_s):
                 self.reset()
@@ -279,6 +294,7 @@ class TargetTracker:
         if self._kf is None and candidates:
             accepted = max(candidates, key=lambda c: c.meas.score)
             self._start(stamp_s, accepted)
+            self._v_follower = None if v_ned_follower_m_s is None else np.asarray(v_ned_follower_m_s, float)
             if cfg.confirm_hits <= 1:
                 self._confirmed = True
         return self._state(stamp_s, R_ned_body, accepted, len(measurements), n_rejected)
@@ -339,12 +355,23 @@ class TargetTracker:
         self._hits = 1
         self._size_ranged = c.meas.range_source == "size"
 
-    def _predict(self, kf: KalmanFilter, stamp_s: float) -> None:
+    def _predict(self, kf: KalmanFilter, stamp_s: float, v_follower: Vec3 | None) -> None:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
         kf.predict(F=_EYE6 + dt * _F_DT, Q=self._Q(dt, kf.x[:3, 0]))
+        kf.x[:, 0] += self._ego_shift(dt, v_follower)
+        self._v_follower = None if v_follower is None else np.asarray(v_follower, dtype=np.float64)
         self._stamp_s = stamp_s
+
+    def _ego_shift(self, dt: float, v_follower: Vec3 | None) -> NDArray[np.float64]:
+        """The state change the follower's own velocity change causes over ``dt`` (linear in between)."""
+        shift = np.zeros(6)
+        if v_follower is not None and self._v_follower is not None:
+            dv = np.asarray(v_follower, dtype=np.float64) - self._v_follower
+            shift[:3] = -0.5 * dt * dv
+            shift[3:] = -dv
+        return shift
 
     def _Q(self, dt: float, p_ned_m: Vec3) -> Mat6:
         """Discrete white-noise acceleration, per axis ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q``.

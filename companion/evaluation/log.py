@@ -6,7 +6,9 @@ simulator's clock (s). The recorder appends to Python lists (cheap per tick) and
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,6 +18,8 @@ Vec3T = tuple[float, float, float]
 _NAN3: Vec3T = (float("nan"), float("nan"), float("nan"))
 # t, follower, leader, yaw, estimate, formation, gps_ok, state, follower velocity
 _Tick = tuple[float, Vec3T, Vec3T, float, Vec3T, bool, bool, str, Vec3T]
+# t, visible, detected, false positive, latency, estimate, truth, follower yaw, formation
+_Frame = tuple[float, bool, bool, bool, float, Vec3T, Vec3T, float, bool]
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,7 +51,13 @@ class FlightLog:
     frame_leader_visible: NDArray[np.bool_]  # M, truth: some of the leader is in the image
     frame_detected: NDArray[np.bool_]  # M, the detector's box matched the truth box (IoU >= 0.5)
     frame_false_positive: NDArray[np.bool_]  # M, a box was reported that matches no leader
-    frame_latency_ms: F64  # M, capture -> estimate, NaN when not measured
+    frame_latency_ms: F64  # M, frame arrival -> estimate, NaN when not measured
+    #: M x 3: the tracker's estimate of leader - follower (NED) at the frame's stamp, after this frame; NaN
+    #: when it had none. Scored against ``frame_rel_true_ned_m`` (the truth at the same instant).
+    frame_rel_est_ned_m: F64 = field(default_factory=lambda: np.empty((0, 3)))
+    frame_rel_true_ned_m: F64 = field(default_factory=lambda: np.empty((0, 3)))  # M x 3, truth
+    frame_yaw_follower_rad: F64 = field(default_factory=lambda: np.empty(0))  # M, truth
+    frame_formation: NDArray[np.bool_] = field(default_factory=lambda: np.empty(0, dtype=bool))  # M
     transitions: list[Transition] = field(default_factory=list)
     gps_loss_t_s: float | None = None
     crashed: bool = False
@@ -59,7 +69,7 @@ class FlightRecorder:
     """Append-only recorder used by the harness; :meth:`freeze` produces the :class:`FlightLog`."""
 
     _ticks: list[_Tick] = field(default_factory=list)
-    _frames: list[tuple[float, bool, bool, bool, float]] = field(default_factory=list)
+    _frames: list[_Frame] = field(default_factory=list)
     transitions: list[Transition] = field(default_factory=list)
     gps_loss_t_s: float | None = None
     crashed: bool = False
@@ -101,9 +111,25 @@ class FlightRecorder:
         detected: bool,
         false_positive: bool,
         latency_ms: float = float("nan"),
+        rel_est_ned_m: Vec3T | None = None,
+        rel_true_ned_m: Vec3T | None = None,
+        yaw_follower_rad: float = float("nan"),
+        formation: bool = False,
     ) -> None:
-        """Record one camera frame's detection outcome against the truth."""
-        self._frames.append((t_s, leader_visible, detected, false_positive, latency_ms))
+        """Record one camera frame's detection outcome, and optionally its estimate, against the truth."""
+        self._frames.append(
+            (
+                t_s,
+                leader_visible,
+                detected,
+                false_positive,
+                latency_ms,
+                rel_est_ned_m if rel_est_ned_m is not None else _NAN3,
+                rel_true_ned_m if rel_true_ned_m is not None else _NAN3,
+                yaw_follower_rad,
+                formation,
+            )
+        )
 
     def transition(self, t_s: float, from_state: str, to_state: str, reason: str) -> None:
         """Record a mission transition."""
@@ -113,10 +139,14 @@ class FlightRecorder:
         """Arrays of everything recorded so far."""
         n = len(self._ticks)
         cols = list(zip(*self._ticks, strict=True)) if n else [()] * 9
-        fcols = list(zip(*self._frames, strict=True)) if self._frames else [()] * 5
+        m = len(self._frames)
+        fcols = list(zip(*self._frames, strict=True)) if m else [()] * 9
 
         def vec(i: int) -> F64:
             return np.array(cols[i], dtype=np.float64).reshape(n, 3)
+
+        def fvec(i: int) -> F64:
+            return np.array(fcols[i], dtype=np.float64).reshape(m, 3)
 
         return FlightLog(
             t_s=np.array(cols[0], dtype=np.float64),
@@ -133,8 +163,26 @@ class FlightRecorder:
             frame_detected=np.array(fcols[2], dtype=bool),
             frame_false_positive=np.array(fcols[3], dtype=bool),
             frame_latency_ms=np.array(fcols[4], dtype=np.float64),
+            frame_rel_est_ned_m=fvec(5),
+            frame_rel_true_ned_m=fvec(6),
+            frame_yaw_follower_rad=np.array(fcols[7], dtype=np.float64),
+            frame_formation=np.array(fcols[8], dtype=bool),
             transitions=list(self.transitions),
             gps_loss_t_s=self.gps_loss_t_s,
             crashed=self.crashed,
             landed=self.landed,
         )
+
+
+def save_log(log: FlightLog, path: Path) -> None:
+    """The log's arrays as a compressed ``.npz`` (transitions as text rows) for analysis after a run."""
+    arrays: dict[str, Any] = {}
+    for f in fields(log):
+        value = getattr(log, f.name)
+        if isinstance(value, np.ndarray):
+            arrays[f.name] = value
+    arrays["state"] = np.array(log.state, dtype=str)
+    arrays["transitions"] = np.array(
+        [[f"{t.t_s:.3f}", t.from_state, t.to_state, t.reason] for t in log.transitions], dtype=str
+    ).reshape(-1, 4)
+    np.savez_compressed(path, **arrays)

@@ -108,17 +108,38 @@ class FlightMetrics:
     outcome: str
 
 
+def _bearing_errors(rel_est: F64, rel_true: F64, yaw: F64) -> F64:
+    h_true = to_heading_frame(rel_true, yaw)
+    h_est = to_heading_frame(rel_est, yaw)
+    az_err = np.arctan2(h_est[:, 1], h_est[:, 0]) - np.arctan2(h_true[:, 1], h_true[:, 0])
+    wrapped: F64 = (az_err + math.pi) % (2 * math.pi) - math.pi
+    return wrapped
+
+
 def relative_errors(log: FlightLog) -> tuple[F64, F64]:
-    """Per-tick relative position error norms (m) and bearing errors (rad) where an estimate exists."""
+    """Relative position error norms (m) and bearing errors (rad) of the estimate against the truth.
+
+    Per camera frame when the log has per-frame estimates (the tracker's estimate at the frame's stamp,
+    scored against the truth at that instant, over frames in formation); otherwise per control tick.
+    """
+    if log.frame_rel_est_ned_m.size and np.isfinite(log.frame_rel_est_ned_m).all(axis=1).any():
+        have = (
+            log.frame_formation
+            & np.all(np.isfinite(log.frame_rel_est_ned_m), axis=1)
+            & np.all(np.isfinite(log.frame_rel_true_ned_m), axis=1)
+        )
+        est, true = log.frame_rel_est_ned_m[have], log.frame_rel_true_ned_m[have]
+        err = np.linalg.norm(est - true, axis=1)
+        return err, _bearing_errors(est, true, log.frame_yaw_follower_rad[have])
+    return tick_relative_errors(log)
+
+
+def tick_relative_errors(log: FlightLog) -> tuple[F64, F64]:
+    """Per control tick: the estimate the mission held at the tick against the truth at the tick."""
     rel_true = log.p_ned_leader_m - log.p_ned_follower_m
     have = log.formation & np.all(np.isfinite(log.rel_ned_est_m), axis=1)
     err = np.linalg.norm(log.rel_ned_est_m[have] - rel_true[have], axis=1)
-    yaw = log.yaw_follower_rad[have]
-    h_true = to_heading_frame(rel_true[have], yaw)
-    h_est = to_heading_frame(log.rel_ned_est_m[have], yaw)
-    az_err = np.arctan2(h_est[:, 1], h_est[:, 0]) - np.arctan2(h_true[:, 1], h_true[:, 0])
-    az_err = (az_err + math.pi) % (2 * math.pi) - math.pi
-    return err, az_err
+    return err, _bearing_errors(log.rel_ned_est_m[have], rel_true[have], log.yaw_follower_rad[have])
 
 
 def formation_errors(log: FlightLog, offset_cam_m: Sequence[float]) -> F64:

@@ -47,6 +47,10 @@ from companion.vehicle.types import AttitudeSetpoint, Vec3T, VelocityBodySetpoin
 
 #: A gap between two law updates longer than this restarts the integrators and the slew (s).
 MAX_DT_S = 0.5
+#: The first command after :meth:`FormationLaw.seed_velocity` slews from the seeded velocity over this
+#: long (one control period at the default 20 Hz): without it the first command of FOLLOW jumped straight
+#: to the full PID output, and the vehicle pitched past 40 deg and lost the leader from view (s).
+FIRST_SLEW_DT_S = 0.05
 #: Below this horizontal range the line-of-sight bearing is meaningless (m).
 MIN_BEARING_RANGE_M = 0.5
 
@@ -237,6 +241,8 @@ class FormationLaw:
         self._i_down_m_s = 0.0
         self._i_acc_heading = np.zeros(2)
         self._v_prev: Vec3 | None = None
+        self._v_leader_prev: Vec3 | None = None
+        self._a_leader = np.zeros(3)
 
     def reset(self) -> None:
         """Forget integrators and slew history (the hover-thrust estimate is a vehicle property: kept)."""
@@ -245,6 +251,24 @@ class FormationLaw:
         self._i_down_m_s = 0.0
         self._i_acc_heading = np.zeros(2)
         self._v_prev = None
+        self._v_leader_prev = None
+        self._a_leader = np.zeros(3)
+
+    def _leader_accel(self, v_leader: Vec3 | None, dt: float) -> Vec3:
+        """Low-passed derivative of the leader's estimated velocity, bounded by the law's acceleration cap."""
+        if v_leader is None:
+            self._v_leader_prev = None
+            self._a_leader = np.zeros(3)
+            return self._a_leader
+        if self._v_leader_prev is not None and dt > 0.0:
+            a_raw = (v_leader - self._v_leader_prev) / dt
+            k = dt / (self.cfg.leader_accel_tau_s + dt)
+            a = self._a_leader + k * (a_raw - self._a_leader)
+            n = float(np.linalg.norm(a))
+            limit = self.cfg.max_accel_m_s2
+            self._a_leader = a * (limit / n) if n > limit else a
+        self._v_leader_prev = np.array(v_leader, dtype=np.float64)
+        return self._a_leader
 
     def seed_velocity(self, v_ned_m_s: Vec3 | None) -> None:
         """Start the acceleration slew from the vehicle's current velocity, not from zero."""
@@ -285,17 +309,22 @@ class FormationLaw:
         err = slot_error(self.slot, p_ned_rel_m, v_ned_rel_m_s, follower.yaw_rad)
         v_rel = np.asarray(v_ned_rel_m_s, dtype=np.float64)
         v_leader = None if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s) + v_rel
-        ff = np.zeros(3) if v_leader is None else cfg.leader_velocity_ff * v_leader
+        a_leader = self._leader_accel(v_leader, dt)
+        ff = (
+            np.zeros(3)
+            if v_leader is None
+            else cfg.leader_velocity_ff * v_leader + cfg.leader_accel_ff_s * a_leader
+        )
 
         v_range = cfg.kp_xy * err.e_range_m + cfg.kd_xy * err.e_range_rate_m_s + self._i_range_m_s
         v_down = cfg.kp_z * err.e_down_m + self._i_down_m_s
         raw = ff + v_range * err.u_los + np.array([0.0, 0.0, v_down])
 
         v = clamp_speed(raw, lim)
-        if self._v_prev is not None and dt > 0.0:
+        if self._v_prev is not None:
             dv = v - self._v_prev
             n = float(np.linalg.norm(dv))
-            max_dv = cfg.max_accel_m_s2 * dt
+            max_dv = cfg.max_accel_m_s2 * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
             if n > max_dv:
                 v = self._v_prev + dv * (max_dv / n)
         v = separation_limit(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, lim)

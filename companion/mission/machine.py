@@ -31,6 +31,8 @@ import numpy as np
 
 from companion.config import Config
 from companion.frames import Vec3, wrap_pi
+from companion.mission.ego import HOLD_S as EGO_STALE_S
+from companion.mission.ego import EgoMotion
 from companion.mission.formation import FollowerState, FormationLaw, Slot
 from companion.mission.safety import SafetyLimits
 from companion.mission.types import (
@@ -144,6 +146,8 @@ class MissionMachine:
         # Per-state memory.
         self._attitude_kind = False
         self._last_leader: LeaderEstimate | None = None
+        #: The follower's own velocity history, to bring camera-time estimates to the control instant.
+        self._ego = EgoMotion()
         self._leader_lost_p_ned_m: Vec3 | None = None
         self._leader_lost_v_ned_m_s: Vec3 | None = None
         self._scan_sign = 1.0
@@ -168,6 +172,11 @@ class MissionMachine:
         veh = inp.vehicle
         self._seed_hover_thrust(veh)
         self._update_gps(veh, now_s)
+        if self._gps_ok and veh.position_valid is not False:
+            if now_s - veh.velocity_stamp_s <= EGO_STALE_S:
+                self._ego.push(min(veh.velocity_stamp_s, now_s), np.array(veh.v_ned_m_s))
+        else:
+            self._ego.clear()
         if inp.start_requested and not self._prev_start:
             self._start_latched = True
         self._prev_start = inp.start_requested
@@ -650,13 +659,16 @@ class MissionMachine:
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
-        cmd = self.law.velocity(
-            np.array(est.p_ned_rel_m),
-            np.array(est.v_ned_rel_m_s),
-            self._follower(veh, velocity_valid=True),
-            self._now_s,
-        )
+        p_rel, v_rel = self._relative_now(est)
+        cmd = self.law.velocity(p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s)
         return cmd.setpoint, None, cmd.error.error_ned_m
+
+    def _relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
+        """The estimate brought from its frame's capture instant to now (see :mod:`companion.mission.ego`)."""
+        rel = self._ego.predict(
+            est.stamp_s, np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s), self._now_s
+        )
+        return rel.p_ned_rel_m, rel.v_ned_rel_m_s
 
     def _external_fix(self, inp: MissionInputs) -> ExternalPosition | None:
         """The follower's position for PX4: the leader's shared position minus the seen relative vector."""
@@ -690,7 +702,7 @@ class MissionMachine:
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
-        p_rel, v_rel = np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s)
+        p_rel, v_rel = self._relative_now(est)
         ext = self._external_fix(inp) if self.m.gps_loss_policy == "vision_external_position" else None
 
         if self.vision_mode == VisionMode.EXTERNAL_POSITION:

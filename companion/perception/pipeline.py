@@ -5,6 +5,7 @@ The service, ``companion replay`` and ``companion bench`` all drive perception t
 
     pipeline = PerceptionPipeline.from_config(cfg)
     pipeline.attitude.push(stamp_s, q_ned_body)                 # from telemetry, as it arrives
+    pipeline.velocity.push(stamp_s, v_ned_m_s)                  # optional: ego-motion for the tracker
     measurements = pipeline.measure(frame, result.detections)   # pose stage (pure, per detection)
     state = pipeline.track(frame.stamp_s, measurements)         # attitude at the stamp + tracker step
 
@@ -23,7 +24,7 @@ from companion.config import Config, LeaderConfig, PoseConfig, TrackerConfig
 from companion.estimation.tracker import TargetTracker, TrackState, TrackStatus
 from companion.frames import Mat3
 from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
-from companion.perception.transform import AttitudeHistory, CameraGeometry
+from companion.perception.transform import AttitudeHistory, CameraGeometry, VelocityHistory
 from companion.perception.types import Detection, RgbdFrame
 
 
@@ -51,6 +52,8 @@ class PerceptionPipeline:
         self.camera = camera
         self.tracker = TargetTracker(tracker, camera)
         self.attitude = attitude if attitude is not None else AttitudeHistory()
+        #: The follower's own velocity from telemetry (ego-motion for the tracker); may stay empty.
+        self.velocity = VelocityHistory()
         self.counters = PipelineCounters()
         self.size = (
             SizeCalibrator(
@@ -72,7 +75,7 @@ class PerceptionPipeline:
         R = self._attitude_at(frame.stamp_s)
         R_ned_body = R if R is not None else self._last_R_ned_body
         down_cam = self.camera.R_ned_cam(R_ned_body)[2]
-        predicted = self.tracker.predict_cam(frame.stamp_s, R_ned_body)
+        predicted = self.tracker.predict_cam(frame.stamp_s, R_ned_body, self.velocity.v_at(frame.stamp_s))
         return measure_all(
             frame.depth_m,
             frame.intrinsics,
@@ -110,7 +113,7 @@ class PerceptionPipeline:
             measurements = ()
             R = self._last_R_ned_body
         self._last_R_ned_body = R
-        state = self.tracker.step(stamp_s, measurements, R)
+        state = self.tracker.step(stamp_s, measurements, R, self.velocity.v_at(stamp_s))
         if self.size is not None and state.measurement is not None and state.status == TrackStatus.CONFIRMED:
             self.size.update(state.measurement)
         return state

@@ -134,3 +134,49 @@ class AttitudeHistory:
         """``R_ned_body`` at ``stamp_s``, or None (see :meth:`q_at`)."""
         q = self.q_at(stamp_s)
         return None if q is None else R_from_quat(q)
+
+
+class VelocityHistory:
+    """Recent follower velocities (NED, m/s) from telemetry, looked up at frame timestamps.
+
+    The tracker uses their *changes* between frames as the follower's own manoeuvre (ego-motion). Fed in
+    time order; lookups between two samples interpolate linearly, up to ``max_extrapolation_s`` outside
+    the held span take the nearest sample, farther ones return None.
+    """
+
+    def __init__(self, capacity: int = 512, max_extrapolation_s: float = 0.1) -> None:
+        if capacity < 2:
+            raise ValueError("capacity must be >= 2")
+        self._capacity = capacity
+        self._max_extrapolation_s = max_extrapolation_s
+        self._stamps_s: list[float] = []
+        self._values: list[Vec3] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps_s)
+
+    def push(self, stamp_s: float, v_ned_m_s: Vec3 | tuple[float, float, float]) -> None:
+        """Add a velocity sample taken at ``stamp_s`` (the frames' clock); non-finite ones are ignored."""
+        v = np.asarray(v_ned_m_s, dtype=np.float64)
+        if (self._stamps_s and stamp_s <= self._stamps_s[-1]) or not np.all(np.isfinite(v)):
+            return
+        self._stamps_s.append(stamp_s)
+        self._values.append(v)
+        if len(self._stamps_s) > 2 * self._capacity:
+            del self._stamps_s[: self._capacity]
+            del self._values[: self._capacity]
+
+    def v_at(self, stamp_s: float) -> Vec3 | None:
+        """Velocity at ``stamp_s``, or None when too far from every sample."""
+        stamps = self._stamps_s
+        if not stamps:
+            return None
+        i = bisect.bisect_left(stamps, stamp_s)
+        if i == 0:
+            return self._values[0] if stamps[0] - stamp_s <= self._max_extrapolation_s else None
+        if i == len(stamps):
+            return self._values[-1] if stamp_s - stamps[-1] <= self._max_extrapolation_s else None
+        t0, t1 = stamps[i - 1], stamps[i]
+        a = (stamp_s - t0) / (t1 - t0)
+        out: Vec3 = (1.0 - a) * self._values[i - 1] + a * self._values[i]
+        return out

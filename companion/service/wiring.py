@@ -277,14 +277,21 @@ class FlightAdapter:
             except CompanionError as exc:
                 log.error("operator: %s failed: %s", name, exc)
 
-    async def feed_attitude(self, history: Any) -> None:
-        """Copy each new attitude sample from telemetry into perception's history (same clock)."""
+    async def feed_attitude(self, history: Any, velocity: Any = None) -> None:
+        """Copy each new attitude (and velocity) sample from telemetry into perception's histories.
+
+        Same clock as the frames. The velocity is the follower's own, for the tracker's ego-motion.
+        """
         last_stamp_s = NEVER_S
+        last_v_stamp_s = NEVER_S
         while True:
             v = self.link.snapshot()
             if v.attitude_stamp_s > last_stamp_s:
                 last_stamp_s = v.attitude_stamp_s
                 history.push(last_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad))
+            if velocity is not None and v.velocity_stamp_s > last_v_stamp_s:
+                last_v_stamp_s = v.velocity_stamp_s
+                velocity.push(last_v_stamp_s, v.v_ned_m_s)
             await asyncio.sleep(_ATTITUDE_POLL_S)
 
 
@@ -310,8 +317,16 @@ class LinkGcs:
         await direct.send_message(msg)
 
 
-def make_parts_factory(cfg: Config, clock: Clock) -> PartsFactory:
-    """The factory ``FollowerService`` calls to open the parts on its exit stack."""
+#: An observer of the per-frame path: (frame, detector result, tracker state, pose + tracker wall ms).
+FrameObserver = Callable[[RgbdFrame, DetectorResult, Any, float], None]
+
+
+def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | None = None) -> PartsFactory:
+    """The factory ``FollowerService`` calls to open the parts on its exit stack.
+
+    ``on_frame`` (optional, for ``companion sim``'s scoring) sees every processed frame after the mission
+    got its estimate; it must not block and never feeds anything back.
+    """
 
     async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
         needed = dict(PERCEPTION_MODULES)
@@ -326,7 +341,8 @@ def make_parts_factory(cfg: Config, clock: Clock) -> PartsFactory:
         sources_mod: Any = importlib.import_module("companion.perception.sources")
         pipeline = pipeline_mod.PerceptionPipeline.from_config(cfg)
         source: Any = sources_mod.open_source(cfg.camera, clock=ctx.clock)
-        if cfg.camera.source != "realsense":  # the RealSense source already stamps on arrival, our clock
+        # The RealSense source already stamps on arrival, our clock; "source" stamps are on it already too.
+        if cfg.camera.source != "realsense" and cfg.camera.stamps == "mapped":
             source = ServiceClockSource(source, ctx.clock)
         source = await stack.enter_async_context(source)
 
@@ -336,8 +352,11 @@ def make_parts_factory(cfg: Config, clock: Clock) -> PartsFactory:
         flight = FlightAdapter(cfg, link, clock)
 
         def process(frame: RgbdFrame, result: DetectorResult) -> Any:
+            t0_s = time.perf_counter()
             track = pipeline.process(frame, result.detections)
             flight.submit_track(track)
+            if on_frame is not None:
+                on_frame(frame, result, track, (time.perf_counter() - t0_s) * 1e3)
             return track
 
         perception: PerceptionLoop[Any] = PerceptionLoop(
@@ -350,7 +369,7 @@ def make_parts_factory(cfg: Config, clock: Clock) -> PartsFactory:
             on_leader_position=flight.on_leader_position,
             background={
                 "companion.vehicle": link.run,
-                "companion.attitude": lambda: flight.feed_attitude(pipeline.attitude),
+                "companion.attitude": lambda: flight.feed_attitude(pipeline.attitude, pipeline.velocity),
             },
         )
 

@@ -137,6 +137,16 @@ def test_acceleration_slew_limits_command_changes() -> None:
     assert np.linalg.norm(cmd.v_ned_m_s) <= 3.0 * 0.05 + 1e-9
 
 
+def test_first_command_after_a_seed_is_slewed() -> None:
+    # FOLLOW starts with a 3 m range error: the first command moves from the seeded velocity by one
+    # control period of acceleration, not straight to the PID output (which pitched the vehicle past 40 deg).
+    lw = law()
+    lw.seed_velocity(np.array([0.0, 0.0, -1.5]))
+    cmd = lw.velocity(np.array([8.0, 0.0, 0.0]), np.zeros(3), hover(v=(0.0, 0.0, -1.5)), 20.0)
+    dv = np.asarray(cmd.v_ned_m_s) - np.array([0.0, 0.0, -1.5])
+    assert np.linalg.norm(dv) == pytest.approx(3.0 * 0.05)
+
+
 def test_integrators_are_bounded_and_reset() -> None:
     lw = law(kp_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, ki_xy=1.0, i_limit_xy_m_s=0.3)
     out = None

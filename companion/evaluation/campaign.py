@@ -1,0 +1,430 @@
+"""``companion sim``'s work: one scenario, every scenario side by side, or a Monte Carlo over seeds.
+
+* :func:`run_one` flies one scenario (real path by default, or lockstep) and writes its report and plots.
+* :func:`run_many` runs several single runs as child processes (``companion sim`` itself), ``jobs`` at a
+  time, shows one progress line for all of them, and writes ``summary.json`` / ``summary.md``.
+
+A child reports progress as JSON lines on its stdout (``--progress json``); everything else it says goes
+to its log file in its own output folder.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import sys
+import time
+import tomllib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, TextIO
+
+from companion.config import deep_merge
+from companion.errors import CompanionError, ConfigError
+from companion.evaluation.metrics import monte_carlo_summary
+from companion.evaluation.report import write_json
+
+log = logging.getLogger(__name__)
+
+Harness = Literal["real", "lockstep"]
+DetectorChoice = Literal["network", "truth"]
+#: After the formation window a run keeps flying this long (s) when ``--duration`` reshapes it.
+TAIL_S = 2.0
+
+
+class SimError(CompanionError):
+    """A run failed to produce a report."""
+
+    exit_code = 1
+
+
+@dataclass(frozen=True, slots=True)
+class RunSpec:
+    """One run: which scenario, seed, harness, detector, and where its report goes."""
+
+    scenario: str
+    seed: int
+    out_dir: Path
+    harness: Harness = "real"
+    detector: DetectorChoice = "network"
+    speed: float = 1.0
+    duration_s: float | None = None
+    plots: bool = True
+    #: ``section.key=value`` service config overrides (TOML values) on top of the scenario's.
+    overrides: tuple[str, ...] = ()
+
+
+def effective_scenario(path: Path, duration_s: float | None) -> Any:
+    """The scenario file's model, with the formation window reshaped to ``duration_s`` when given."""
+    from sitl.scenario import load_scenario  # noqa: PLC0415 (pydantic models of the simulator)
+
+    sc = load_scenario(path)
+    if duration_s is None:
+        return sc
+    if not (math.isfinite(duration_s) and duration_s > 0):
+        raise ConfigError("--duration", [f"must be a positive number of seconds (got {duration_s})"])
+    run = sc.run.model_copy(
+        update={
+            "formation_duration_s": duration_s,
+            "duration_s": sc.run.formation_start_s + duration_s + TAIL_S,
+        }
+    )
+    return sc.model_copy(update={"run": run})
+
+
+def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> dict[str, Any]:
+    """Fly one scenario and write ``report.json``, ``report.md`` and the plots; returns the report."""
+    from companion.evaluation.lockstep import LockstepOptions  # noqa: PLC0415 (numpy, the cores)
+    from companion.evaluation.realpath import RealOptions, run_real  # noqa: PLC0415
+    from companion.evaluation.setup import (  # noqa: PLC0415
+        load_detect,
+        run_lockstep,
+        scenario_path,
+        service_config,
+        write_run,
+    )
+    from companion.evaluation.tomlw import dumps  # noqa: PLC0415
+
+    path = scenario_path(spec.scenario)
+    scenario = effective_scenario(path, spec.duration_s)
+    spec.out_dir.mkdir(parents=True, exist_ok=True)
+    run_file = spec.out_dir / "scenario.toml"
+    run_file.write_text(dumps(scenario.model_dump(mode="json")))
+    cfg = service_config(
+        scenario.companion, deep_merge(parse_overrides(spec.overrides), _runtime_override(spec.detector))
+    )
+    if spec.detector == "network":
+        _require_weights(cfg)
+    wall0 = time.perf_counter()
+    if spec.harness == "lockstep":
+        detect, description = load_detect(cfg, spec.detector)
+        result = run_lockstep(run_file, spec.seed, cfg, detect, LockstepOptions(progress=progress))
+    else:
+        description = "ground-truth boxes (NOT the network)" if spec.detector == "truth" else _describe(cfg)
+        result = asyncio.run(
+            run_real(
+                run_file,
+                scenario,
+                spec.seed,
+                cfg,
+                spec.out_dir / "logs",
+                RealOptions(speed=spec.speed, progress=progress),
+            )
+        )
+    wall_s = time.perf_counter() - wall0
+    extra = {"detector": description, "scenario_file": str(path), "formation_window_s": _window(scenario)}
+    if spec.plots:
+        return write_run(spec.out_dir, scenario.name, spec.seed, result, cfg, wall_s=wall_s, extra=extra)
+    return write_run_without_plots(
+        spec.out_dir, scenario.name, spec.seed, result, cfg, wall_s=wall_s, extra=extra
+    )
+
+
+def write_run_without_plots(
+    out_dir: Path, name: str, seed: int, result: Any, cfg: Any, *, wall_s: float, extra: dict[str, Any]
+) -> dict[str, Any]:
+    """The report alone (Monte Carlo runs: fifty sets of plots would cost more than the runs' insight)."""
+    from companion.evaluation.log import save_log  # noqa: PLC0415
+    from companion.evaluation.metrics import compute_metrics  # noqa: PLC0415
+    from companion.evaluation.report import build_report, write_report  # noqa: PLC0415
+
+    metrics = compute_metrics(result.log, cfg.formation.offset_cam_m)
+    report = build_report(name, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **extra})
+    write_report(out_dir, report)
+    save_log(result.log, out_dir / "flight_log.npz")
+    return report
+
+
+def _window(scenario: Any) -> list[float]:
+    return [
+        scenario.run.formation_start_s,
+        scenario.run.formation_start_s + scenario.run.formation_duration_s,
+    ]
+
+
+def _runtime_override(detector: DetectorChoice) -> dict[str, Any]:
+    return {"detector": {"runtime": "truth"}} if detector == "truth" else {}
+
+
+def require_weights(overrides: Sequence[str] = ()) -> None:
+    """Fail with one line when the network detector has no weights (checked before any run starts)."""
+    from companion.evaluation.setup import service_config  # noqa: PLC0415
+
+    _require_weights(service_config({}, parse_overrides(overrides)))
+
+
+def _require_weights(cfg: Any) -> None:
+    from companion.evaluation.setup import REPO  # noqa: PLC0415
+    from companion.perception.detector import model_files  # noqa: PLC0415
+
+    pt, onnx = model_files(cfg.detector, REPO)
+    if not pt.exists() and not onnx.exists():
+        raise ConfigError(
+            str(pt),
+            ["no detector weights (train and ship them: companion detector train; --detector truth checks "
+             "the harness without them, but its figures are not vision results)"],
+        )  # fmt: skip
+
+
+def _describe(cfg: Any) -> str:
+    from companion.evaluation.setup import REPO  # noqa: PLC0415
+    from companion.perception.detector import choose_runtime  # noqa: PLC0415
+
+    runtime, path = choose_runtime(cfg.detector, REPO)
+    return f"{runtime}: {path.relative_to(REPO) if path.is_relative_to(REPO) else path}"
+
+
+# ---------------------------------------------------------------------- many runs, as child processes
+@dataclass(slots=True)
+class _Child:
+    name: str
+    spec: RunSpec
+    proc: asyncio.subprocess.Process | None = None
+    t_s: float = 0.0
+    end_s: float = math.nan
+    done: bool = False
+    rc: int | None = None
+    started_s: float = 0.0
+    wall_s: float = 0.0
+
+
+@dataclass(slots=True)
+class ProgressLine:
+    """One line, rewritten in place on a terminal (new lines elsewhere, at most every 10 s)."""
+
+    out: TextIO
+    total: int
+    tty: bool = False
+    _last_s: float = -math.inf
+    _width: int = 0
+    t0_s: float = field(default_factory=time.monotonic)
+
+    def show(self, children: Sequence[_Child], force: bool = False) -> None:
+        now = time.monotonic()
+        if not self.tty and not force and now - self._last_s < 10.0:
+            return
+        self._last_s = now
+        done = sum(c.done for c in children)
+        running = [
+            f"{c.name} {c.t_s:.0f}/{c.end_s:.0f} s" if math.isfinite(c.end_s) else f"{c.name} starting"
+            for c in children
+            if c.proc is not None and not c.done
+        ]
+        elapsed = now - self.t0_s
+        clock = f"{elapsed // 60:.0f}:{elapsed % 60:02.0f}"
+        text = f"sim: {done}/{self.total} done | {' | '.join(running) or '-'} | {clock}"
+        if self.tty:
+            pad = max(0, self._width - len(text))
+            self.out.write("\r" + text + " " * pad)
+            self._width = len(text)
+        else:
+            self.out.write(text + "\n")
+        self.out.flush()
+
+    def close(self) -> None:
+        if self.tty:
+            self.out.write("\n")
+            self.out.flush()
+
+
+def child_args(spec: RunSpec) -> list[str]:
+    """The ``companion sim`` command line of one child run."""
+    args = [sys.executable, "-m", "companion", "sim", "--scenario", spec.scenario, "--seed", str(spec.seed)]
+    args += ["--out", str(spec.out_dir), "--speed", repr(spec.speed), "--harness", spec.harness]
+    args += ["--detector", spec.detector, "--progress", "json"]
+    if spec.duration_s is not None:
+        args += ["--duration", repr(spec.duration_s)]
+    if not spec.plots:
+        args += ["--no-plots"]
+    for o in spec.overrides:
+        args += ["--set", o]
+    return args
+
+
+async def _run_child(
+    child: _Child, env: dict[str, str], line: ProgressLine, children: list[_Child], *, nice: bool = False
+) -> None:
+    child.spec.out_dir.mkdir(parents=True, exist_ok=True)
+    child.started_s = time.monotonic()
+    with (child.spec.out_dir / "sim.log").open("ab") as err:
+        from companion.evaluation.realpath import die_with_parent, die_with_parent_niced  # noqa: PLC0415
+
+        child.proc = await asyncio.create_subprocess_exec(
+            *child_args(child.spec),
+            stdout=asyncio.subprocess.PIPE,
+            stderr=err,
+            env=env,
+            preexec_fn=die_with_parent_niced if nice else die_with_parent,  # prctl/nice, no locks
+        )
+        assert child.proc.stdout is not None  # noqa: S101 (PIPE)
+        try:
+            async for raw in child.proc.stdout:
+                try:
+                    msg = json.loads(raw)
+                except json.JSONDecodeError:
+                    continue
+                child.t_s, child.end_s = float(msg.get("t_s", 0.0)), float(msg.get("end_s", math.nan))
+                line.show(children)
+            child.rc = await child.proc.wait()
+        finally:
+            if child.proc.returncode is None:
+                child.proc.terminate()
+                await child.proc.wait()
+    child.done = True
+    child.wall_s = time.monotonic() - child.started_s
+    line.show(children, force=True)
+
+
+async def _run_children(
+    specs: Sequence[RunSpec], jobs: int, line: ProgressLine, env: dict[str, str]
+) -> list[_Child]:
+    children = [_Child(s.out_dir.name, s) for s in specs]
+    mixed = len({s.harness for s in specs}) > 1
+    # Mixed harnesses ('all'): one real-path run at a time (it runs in real time and must keep its camera
+    # rate) beside one lockstep run, which yields the CPU to it (niced); otherwise ``jobs`` side by side.
+    lanes = {h: asyncio.Semaphore(1 if mixed else max(1, jobs)) for h in ("real", "lockstep")}
+
+    async def one(c: _Child) -> None:
+        async with lanes[c.spec.harness]:
+            await _run_child(c, env, line, children, nice=mixed and c.spec.harness == "lockstep")
+
+    async with asyncio.TaskGroup() as tg:
+        for c in children:
+            tg.create_task(one(c), name=f"sim.{c.name}")
+    return children
+
+
+#: What the Monte Carlo summary keeps of each run.
+_SEED_KEYS = (
+    "seed",
+    "outcome",
+    "relative_position_rmse_m",
+    "relative_yaw_rmse_deg",
+    "formation_rmse_m",
+    "formation_max_deviation_m",
+    "min_separation_m",
+    "touchdown_m_s",
+)
+
+
+def run_many(
+    specs: Sequence[RunSpec],
+    out_dir: Path,
+    *,
+    jobs: int,
+    env: dict[str, str],
+    stream: TextIO,
+    monte_carlo: bool,
+) -> dict[str, Any]:
+    """Run ``specs`` as child processes, ``jobs`` at a time; write and return the summary."""
+    from companion.evaluation.report import write_summary  # noqa: PLC0415
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    line = ProgressLine(stream, len(specs), tty=stream.isatty())
+    wall0 = time.perf_counter()
+    try:
+        children = asyncio.run(_run_children(specs, jobs, line, env))
+    finally:
+        line.close()
+    wall_s = time.perf_counter() - wall0
+    reports: dict[str, dict[str, Any]] = {}
+    failed: list[str] = []
+    for c in children:
+        p = c.spec.out_dir / "report.json"
+        if c.rc == 0 and p.exists():
+            reports[c.name] = json.loads(p.read_text())
+        else:
+            failed.append(f"{c.name} (exit {c.rc}; see {c.spec.out_dir / 'sim.log'})")
+    if monte_carlo:
+        summary = {
+            "scenario": specs[0].scenario if specs else None,
+            "seeds": [s.seed for s in specs],
+            "harness": specs[0].harness if specs else None,
+            "detector": next(iter(reports.values())).get("detector") if reports else None,
+            "formation_duration_s": specs[0].duration_s if specs else None,
+            "wall_s": round(wall_s, 1),
+            "failed": failed,
+            **monte_carlo_summary(reports.values()),
+            "runs_by_seed": {name: {k: r.get(k) for k in _SEED_KEYS} for name, r in reports.items()},
+        }
+        write_json(out_dir / "summary.json", summary)
+        (out_dir / "summary.md").write_text(monte_carlo_markdown(summary))
+    else:
+        write_summary(out_dir, reports)
+        summary = {"reports": reports, "failed": failed, "wall_s": round(wall_s, 1)}
+        runs_wall_s = {c.name: round(c.wall_s, 1) for c in children}
+        timing = {"wall_s": round(wall_s, 1), "jobs": jobs, "failed": failed, "runs": runs_wall_s}
+        write_json(out_dir / "timing.json", timing)
+    if failed:
+        raise SimError("runs without a report: " + "; ".join(failed))
+    return summary
+
+
+def monte_carlo_markdown(summary: dict[str, Any]) -> str:
+    """The Monte Carlo summary as a page: outcomes, then percentiles of each metric."""
+    lines = [
+        f"# Monte Carlo: `{summary['scenario']}`, {summary['runs']} seeds ({summary['harness']} harness)",
+        "",
+        f"Detector: {summary.get('detector')}. Formation window: "
+        f"{summary.get('formation_duration_s') or 'the scenario default'} s.",
+        "",
+        "| outcome | runs |",
+        "|---|---|",
+    ]
+    lines += [f"| {k} | {v} |" for k, v in summary["outcomes"].items()]
+    lines += ["", "| metric | p5 | p50 | p95 | max |", "|---|---|---|---|---|"]
+    for key in (
+        "relative_position_rmse_m",
+        "relative_yaw_rmse_deg",
+        "formation_rmse_m",
+        "formation_max_deviation_m",
+        "min_separation_m",
+        "detection_recall",
+    ):
+        v = summary.get(key)
+        if v is None:
+            lines.append(f"| {key} | n/a | n/a | n/a | n/a |")
+        else:
+            lines.append(f"| {key} | {v['p5']:.3f} | {v['p50']:.3f} | {v['p95']:.3f} | {v['max']:.3f} |")
+    if summary.get("failed"):
+        lines += ["", "Runs without a report: " + ", ".join(summary["failed"])]
+    lines += ["", f"Wall time: {summary['wall_s']:.0f} s."]
+    return "\n".join(lines) + "\n"
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``section.key=value`` strings (values parse as TOML, else strings) -> a nested dict."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        path = [k for k in key.strip().split(".") if k]
+        if not sep or not path:
+            raise ConfigError("--set", [f"expected SECTION.KEY=VALUE (got {item!r})"])
+        try:
+            value: Any = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw
+        node = out
+        for k in path[:-1]:
+            node = node.setdefault(k, {})
+        node[path[-1]] = value
+    return out
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``1-50`` or ``3,7,9`` or ``5`` -> the seeds."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            a, sep, b = part.strip().partition("-")
+            seeds += list(range(int(a), int(b) + 1)) if sep else [int(a)]
+    except ValueError:
+        raise ConfigError(
+            "--seeds", [f"expected a range like 1-50 or a list like 1,2,3 (got {text!r})"]
+        ) from None
+    if not seeds or any(s < 0 for s in seeds):
+        raise ConfigError("--seeds", [f"no seeds in {text!r}"])
+    return seeds

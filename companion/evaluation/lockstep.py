@@ -1,0 +1,252 @@
+"""The lockstep closed loop: the simulator, the camera and the service's cores on one clock, no sockets.
+
+Fast and repeatable (Monte Carlo): a :class:`sitl.world.World` steps the physics and the PX4-like autopilots;
+an in-process :class:`sitl.render.renderer.Renderer` draws the follower's camera; the *same* detector,
+:class:`~companion.perception.pipeline.PerceptionPipeline` (pose + tracker), :class:`MissionMachine`
+(formation law + mission) and :class:`MissionRunner` as in the service fly the follower through a
+:class:`~companion.vehicle.message_link.MessageVehicleLink` that speaks MAVLink messages to
+``world.link("follower")``. Everything runs on sim time (a :class:`ManualClock` set from the world).
+
+What differs from the real path (``companion sim`` over UDP with MAVSDK) and why:
+
+* Compute is instantaneous in sim time, so perception latency is modelled: a frame captured at ``t`` reaches
+  the tracker and the mission at ``t + perception_latency_s`` (default 60 ms: the D435i's own latency plus
+  detection; the real path measures its own).
+* The camera renders only once the follower is armed (nothing before takeoff reaches the mission).
+
+Truth reaches only the :class:`~companion.evaluation.scoring.RunScorer`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from companion.clock import ManualClock
+from companion.config import Config
+from companion.evaluation.log import FlightLog
+from companion.evaluation.plots import Snapshot
+from companion.evaluation.scoring import RunScorer, snapshot_times
+from companion.evaluation.trace import RunObserver, leader_estimate
+from companion.frames import quat_from_euler
+from companion.mission.machine import MissionMachine
+from companion.mission.runner import MissionRunner
+from companion.mission.types import MissionInputs, StepOutput, Transition
+from companion.perception.pipeline import PerceptionPipeline
+from companion.perception.types import DetectorResult, RgbdFrame
+from companion.vehicle.message_link import MessageVehicleLink
+
+log = logging.getLogger(__name__)
+
+DetectFn = Callable[[RgbdFrame], DetectorResult]
+#: Truth samples for crash and landing detection, per sim second.
+TRUTH_RATE_HZ = 50.0
+
+
+@dataclass(frozen=True, slots=True)
+class LockstepOptions:
+    """Knobs of the lockstep harness (the scenario and the service config carry everything else)."""
+
+    #: Capture -> estimate delivered to the mission, sim s.
+    perception_latency_s: float = 0.06
+    #: Camera frames kept for the report's strip.
+    snapshots: int = 5
+    #: Called now and then with the sim time (a progress line).
+    progress: Callable[[float], None] | None = None
+
+
+@dataclass(slots=True)
+class RunResult:
+    """One run: the frozen log, the camera strip and figures beyond the contract."""
+
+    log: FlightLog
+    snapshots: list[Snapshot]
+    extra: dict[str, Any] = field(default_factory=dict)
+    #: Every step and frame, for ``trace.jsonl`` (None when not recorded).
+    trace: RunObserver | None = None
+
+
+@dataclass(slots=True)
+class _InFlight:
+    """A frame whose estimate reaches the mission at ``due_s``."""
+
+    due_s: float
+    frame: RgbdFrame
+    result: DetectorResult
+    compute_ms: float
+
+
+class LockstepRun:
+    """One scenario flown in lockstep. ``await run()`` returns the :class:`RunResult`.
+
+    Args:
+        world: the simulation (``sitl.world.World``) with the scenario loaded; nothing stepped yet.
+        renderer: an entered ``sitl.render.renderer.Renderer`` for the follower's camera.
+        cfg: the service config the cores are built from (the scenario's overrides applied).
+        detect: the detector on one frame.
+        options: harness knobs.
+    """
+
+    def __init__(
+        self, world: Any, renderer: Any, cfg: Config, detect: DetectFn, options: LockstepOptions
+    ) -> None:
+        self.world = world
+        self.renderer = renderer
+        self.cfg = cfg
+        self.detect = detect
+        self.options = options
+        sc = world.scenario
+        self.scenario = sc
+        self.clock = ManualClock(world.t_s)
+        follower = world.vehicle("follower")
+        self.link = MessageVehicleLink(world.link("follower"), self.clock, cfg.link, follower.sysid)
+        self.machine = MissionMachine(cfg)
+        self.runner = MissionRunner(
+            self.link,
+            self.machine,
+            self.clock,
+            rate_hz=cfg.link.setpoint_rate_hz,
+            command_timeout_s=cfg.link.command_timeout_s,
+            on_transition=self._on_transition,
+            on_step=self._on_step,
+        )
+        self.pipeline = PerceptionPipeline.from_config(cfg)
+        window = (sc.run.formation_start_s, sc.run.formation_start_s + sc.run.formation_duration_s)
+        outages = [
+            (o.at_s, None if o.duration_s is None else o.at_s + o.duration_s)
+            for o in sc.faults("follower").gps.outages
+        ]
+        self.scorer = RunScorer(window, outages, snapshot_times(window, options.snapshots))
+        self._in_flight: deque[_InFlight] = deque()
+        self._compute_ms: list[float] = []
+        self._attitude_stamp_s = -math.inf
+        self._velocity_stamp_s = -math.inf
+        self.observer = RunObserver(self.clock, [])
+
+    # ------------------------------------------------------------------ mission callbacks
+    def _on_transition(self, tr: Transition) -> None:
+        self.scorer.transition(tr.stamp_s, tr.from_state.name, tr.to_state.name, tr.reason.name)
+
+    def _on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
+        self.observer.on_step(inputs, out)
+        f, ld = self.world.truth("follower"), self.world.truth("leader")
+        est = inputs.leader
+        self.scorer.tick(
+            self.clock.now_s(),
+            f.p_ned_m,
+            f.v_ned_m_s,
+            f.q_ned_body_wxyz,
+            ld.p_ned_m,
+            None if est is None or not est.usable else est.p_ned_rel_m,
+        )
+
+    # ------------------------------------------------------------------ the loop
+    async def run(self) -> RunResult:
+        sc = self.scenario
+        world = self.world
+        frame_period_s = 1.0 / sc.run.camera_rate_hz
+        truth_period_s = 1.0 / TRUTH_RATE_HZ
+        next_frame_s = 0.0
+        next_truth_s = 0.0
+        next_progress_s = 0.0
+        end_s = sc.run.duration_s
+        wall0 = time.perf_counter()
+        self.runner.request_start()
+        async with asyncio.TaskGroup() as tg:
+            mission = tg.create_task(self.runner.run(), name="lockstep.mission")
+            while world.t_s < end_s - 1e-9 and not mission.done():
+                world.step()
+                t_s = world.t_s
+                self.clock.set(t_s)
+                self.link.pump()
+                self._feed_attitude()
+                if t_s >= next_frame_s - 1e-9:
+                    next_frame_s += frame_period_s
+                    if self.link.snapshot().armed or self._in_flight:
+                        self._capture(t_s)
+                while self._in_flight and self._in_flight[0].due_s <= t_s + 1e-9:
+                    self._deliver(self._in_flight.popleft())
+                if t_s >= next_truth_s - 1e-9:
+                    next_truth_s += truth_period_s
+                    f = world.truth("follower")
+                    self.scorer.truth(
+                        t_s, f.p_ned_m, f.v_ned_m_s, f.q_ned_body_wxyz, world.truth("leader").p_ned_m
+                    )
+                if self.options.progress is not None and t_s >= next_progress_s:
+                    next_progress_s += 5.0
+                    self.options.progress(t_s)
+                await asyncio.sleep(0)  # the runner and its command executor run here
+            mission.cancel()
+        extra = self.scorer.extra()
+        extra.update(
+            {
+                "harness": "lockstep",
+                "perception_latency_model_s": self.options.perception_latency_s,
+                "detector_compute_ms": _percentiles(self._compute_ms),
+                "camera_rate_hz": sc.run.camera_rate_hz,
+                "link": {
+                    "setpoints_sent": self.link.counters.setpoints_sent,
+                    "commands_sent": self.link.counters.commands_sent,
+                    "command_retries": self.link.counters.command_retries,
+                    "guard_trips": self.link.counters.guard_trips,
+                },
+                "run_wall_s": round(time.perf_counter() - wall0, 2),
+            }
+        )
+        return RunResult(self.scorer.freeze(), self.scorer.snapshots, extra, self.observer)
+
+    def _feed_attitude(self) -> None:
+        """What the service's attitude feed does: new attitude and velocity samples into the histories."""
+        v = self.link.snapshot()
+        if v.attitude_stamp_s > self._attitude_stamp_s:
+            self._attitude_stamp_s = v.attitude_stamp_s
+            self.pipeline.attitude.push(
+                v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)
+            )
+        if v.velocity_stamp_s > self._velocity_stamp_s:
+            self._velocity_stamp_s = v.velocity_stamp_s
+            self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
+
+    def _capture(self, t_s: float) -> None:
+        follower = self.world.truth("follower")
+        leader = None if self.scenario.run.leader_hidden(t_s) else self.world.truth("leader")
+        frame = self.renderer.render(follower, leader, t_s)
+        c0 = time.perf_counter()
+        result = self.detect(frame)
+        self._in_flight.append(_InFlight(t_s + self.options.perception_latency_s, frame, result, 0.0))
+        self._in_flight[-1].compute_ms = (time.perf_counter() - c0) * 1e3
+
+    def _deliver(self, item: _InFlight) -> None:
+        c0 = time.perf_counter()
+        track = self.pipeline.process(item.frame, item.result.detections)
+        process_ms = (time.perf_counter() - c0) * 1e3
+        compute_ms = item.compute_ms + process_ms
+        self._compute_ms.append(compute_ms)
+        self.observer.on_frame(item.frame, item.result, track, process_ms)
+        est = leader_estimate(track)
+        if est is not None:
+            self.runner.submit_leader(est)
+        stamp_s = item.frame.stamp_s
+        self.scorer.frame(
+            stamp_s,
+            item.frame.truth,
+            item.result.detections,
+            est.p_ned_rel_m if est is not None and est.usable else None,
+            latency_ms=compute_ms,
+            rgb=item.frame.rgb if self.scorer.wants_snapshot(stamp_s) else None,
+        )
+
+
+def _percentiles(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"p50": None, "p95": None, "p99": None}
+    p50, p95, p99 = np.percentile(np.asarray(values), [50, 95, 99])
+    return {"p50": round(float(p50), 2), "p95": round(float(p95), 2), "p99": round(float(p99), 2)}

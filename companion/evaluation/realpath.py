@@ -1,0 +1,386 @@
+"""The real path: ``sitl serve`` in its own process, the service in this one, talking MAVLink over UDP.
+
+One run (:func:`run_real`):
+
+1. ``sitl serve`` starts with the scenario, the leader spawned in the follower's slot, a private block of UDP
+   ports, and :mod:`companion.evaluation.sitl_components` inside it (sim clock, truth recorder, the rendered
+   camera on a Unix socket).
+2. :class:`~companion.app.FollowerService` runs here with the parts ``companion run`` builds
+   (:func:`companion.service.wiring.make_parts_factory`): MAVSDK 4 over UDP, the simulator frame source, the
+   detector, pose, tracker, mission runner. Its clock is the simulator's (:class:`SimClock`), so ``--speed``
+   above 1 changes nothing the service can tell apart, and a host too slow for the speed only slows the run.
+3. Two observers record what the service did: every control step (the mission's inputs and output) and
+   every processed frame (detections, the tracker's estimate, the frame's ground truth). Neither feeds
+   anything back.
+4. At the scenario's end (or when the mission is over) the service is cancelled and the simulator stopped;
+   the run is scored offline against the recorded truth (:class:`~companion.evaluation.scoring.RunScorer`).
+
+Every process started here is stopped here, by its PID, whatever happens.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import random
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, cast
+
+from companion.config import Config
+from companion.errors import CompanionError
+from companion.evaluation.lockstep import RunResult
+from companion.evaluation.scoring import RunScorer, snapshot_times
+from companion.evaluation.simclock import SimClock
+from companion.evaluation.sitl_components import RUN_ENV
+from companion.evaluation.tomlw import toml_value
+from companion.evaluation.trace import RunObserver, TraceFrame
+from companion.evaluation.truthlog import TruthTrack, follower_of, leader_of
+from companion.mission.types import MissionInputs, StepOutput
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[2]
+SITL_BASE_CONFIG = REPO / "config" / "sitl.toml"
+COMPONENT = "companion.evaluation.sitl_components:run"
+#: Truth samples per sim second (crash and landing detection, tick scoring).
+TRUTH_RATE_HZ = 50.0
+#: Wall time allowed for ``sitl serve`` (and its camera worker) to come up.
+START_TIMEOUT_S = 90.0
+
+
+class SimRunError(CompanionError):
+    """A closed-loop run could not be carried out (a process did not start, or died)."""
+
+    exit_code = 1
+
+
+@dataclass(frozen=True, slots=True)
+class Ports:
+    """A private block of UDP ports (API links only), so runs side by side never collide."""
+
+    base: int
+
+    @property
+    def api_local(self) -> int:
+        return self.base
+
+    @property
+    def api_remote(self) -> int:
+        return self.base + 2
+
+    @property
+    def follower_api(self) -> int:
+        return self.api_remote + 1
+
+    @classmethod
+    def pick(cls, rng: random.Random) -> Ports:
+        for _ in range(200):
+            base = rng.randrange(20000, 60000, 10)
+            if all(_udp_free(base + k) for k in range(4)):
+                return cls(base)
+        raise SimRunError("no free block of UDP ports")
+
+
+def _udp_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("0.0.0.0", port))  # noqa: S104 (the simulator binds all interfaces)
+        except OSError:
+            return False
+    return True
+
+
+def sitl_environment(cfg: Config, ports: Ports, base_vehicles: list[dict[str, Any]]) -> dict[str, str]:
+    """``SITL_*`` overrides for this run: private ports, no GCS links, the leader in the follower's slot."""
+    x_right, _, z_forward = cfg.formation.offset_cam_m
+    vehicles = [
+        {**v, "spawn_ned_m": [z_forward, x_right, 0.0]} if v.get("role") == "leader" else v
+        for v in base_vehicles
+    ]
+    return {
+        "SITL_MAVLINK__API_LOCAL_PORT_BASE": str(ports.api_local),
+        "SITL_MAVLINK__API_REMOTE_PORT_BASE": str(ports.api_remote),
+        "SITL_MAVLINK__REMOTE_HOST": "127.0.0.1",
+        "SITL_MAVLINK__GCS_ENABLED": "false",
+        "SITL_VEHICLES": toml_value(vehicles),
+    }
+
+
+class Child:
+    """A child process with its output in a log file, stopped by its PID (SIGTERM, then SIGKILL)."""
+
+    def __init__(self, args: list[str], env: dict[str, str], log_path: Path) -> None:
+        self.args = args
+        self.env = env
+        self.log_path = log_path
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        with self.log_path.open("ab") as out:
+            self.proc = subprocess.Popen(
+                self.args,
+                cwd=REPO,
+                env=self.env,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                preexec_fn=die_with_parent,  # noqa: PLW1509 (one prctl call, no locks taken)
+            )
+
+    def tail(self, n: int = 3000) -> str:
+        return self.log_path.read_text(errors="replace")[-n:] if self.log_path.exists() else ""
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    async def stop(self, timeout_s: float = 15.0) -> None:
+        proc, self.proc = self.proc, None
+        if proc is None or proc.poll() is not None:
+            return
+        proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        while proc.poll() is None and time.monotonic() < deadline:  # noqa: ASYNC110 (a Popen, no event)
+            await asyncio.sleep(0.05)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
+def die_with_parent() -> None:
+    """In the child before exec: SIGTERM when ``companion sim`` dies, however it dies (Linux only).
+
+    Without it an interrupted or killed run left ``sitl serve`` and its render worker running.
+    """
+    if sys.platform != "linux":
+        return
+    import ctypes  # noqa: PLC0415
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
+def die_with_parent_niced() -> None:
+    """:func:`die_with_parent`, and run at nice 10 (a lockstep run beside a real-time one)."""
+    die_with_parent()
+    os.nice(10)
+
+
+def score(observer: RunObserver, truth: TruthTrack, scorer: RunScorer, end_s: float) -> None:
+    """Feed the scorer in time order: truth samples, transitions, ticks and frames."""
+    events: list[tuple[float, int, Any]] = [(float(t), 0, i) for i, t in enumerate(truth.t_s) if t <= end_s]
+    events += [(tk.t_s, 1, tk) for tk in observer.ticks]
+    events += [(fr.t_s, 2, fr) for fr in observer.frames]
+    events.sort(key=lambda e: (e[0], e[1]))
+    for t_s, kind, item in events:
+        if kind == 0:
+            row = truth.rows[item]
+            fp, fv, fq = follower_of(row)
+            lp, _, _ = leader_of(row)
+            scorer.truth(t_s, fp, fv, fq, lp)
+        elif kind == 1:
+            for tr in item.transitions:
+                scorer.transition(*tr)
+            row = truth.at(t_s)
+            fp, fv, fq = follower_of(row)
+            lp, _, _ = leader_of(row)
+            scorer.tick(t_s, fp, fv, fq, lp, item.rel_est_ned_m)
+        else:
+            scorer.frame(
+                t_s, item.truth, item.detections, item.rel_est_ned_m, latency_ms=item.compute_ms, rgb=item.rgb
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class RealOptions:
+    """Knobs of the real-path run."""
+
+    speed: float = 1.0
+    snapshots: int = 5
+    #: Called now and then with the sim time (a progress line).
+    progress: Callable[[float], None] | None = None
+
+
+async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
+    scenario_file: Path,
+    scenario: Any,
+    seed: int,
+    cfg: Config,
+    work_dir: Path,
+    options: RealOptions,
+) -> RunResult:
+    """Fly ``scenario`` through the real service against ``sitl serve``; logs go to ``work_dir``."""
+    from companion.app import FollowerService  # noqa: PLC0415 (the service's imports are heavy)
+    from companion.service.systemd import NotifyConfig, SystemdNotifier  # noqa: PLC0415
+    from companion.service.wiring import FlightAdapter, make_parts_factory  # noqa: PLC0415
+    from sitl.config import load_sitl_config  # noqa: PLC0415
+
+    work_dir.mkdir(parents=True, exist_ok=True)  # noqa: ASYNC240 (once, before anything runs)
+    sock_dir = Path(tempfile.mkdtemp(prefix="wingman-sim-"))  # Unix socket paths must stay short
+    rng = random.Random()  # noqa: S311 (port choice, not crypto)
+    ports = Ports.pick(rng)
+    clock_path = sock_dir / "clock"
+    truth_path = work_dir / "truth.f64"
+    settings = {
+        "camera_socket": str(sock_dir / "camera.sock"),
+        "camera_rate_hz": scenario.run.camera_rate_hz,
+        "clock_path": str(clock_path),
+        "truth_path": str(truth_path),
+        "truth_rate_hz": TRUTH_RATE_HZ,
+        "seed": seed,
+        "mount": cfg.camera.mount.model_dump(mode="json"),
+        "leader_hidden_s": [list(w) for w in scenario.run.leader_hidden_s],
+    }
+    settings_path = work_dir / "sim.json"
+    settings_path.write_text(json.dumps(settings, indent=2))
+    base_vehicles = [
+        v.model_dump(mode="json") for v in load_sitl_config(SITL_BASE_CONFIG, environ={}).vehicles
+    ]
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+        RUN_ENV: str(settings_path),
+        **sitl_environment(cfg, ports, base_vehicles),
+    }
+    args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--config", str(SITL_BASE_CONFIG)]
+    args += ["--scenario", str(scenario_file), "--speed", repr(options.speed), "--seed", str(seed)]
+    args += ["--component", COMPONENT]
+    sim = Child(args, env, work_dir / "sitl.log")
+    service_cfg = cfg.model_copy(
+        update={
+            "link": cfg.link.model_copy(update={"url": f"udpin://0.0.0.0:{ports.follower_api}"}),
+            "camera": cfg.camera.model_copy(
+                update={"source": "sim", "path": settings["camera_socket"], "stamps": "source"}
+            ),
+            "status": cfg.status.model_copy(update={"socket_path": str(sock_dir / "status.sock")}),
+            "service": cfg.service.model_copy(update={"auto_start": True}),
+            "mqtt": cfg.mqtt.model_copy(update={"enabled": False}),
+        }
+    )
+    (work_dir / "service-config.json").write_text(service_cfg.model_dump_json(indent=2))
+    window = (
+        scenario.run.formation_start_s,
+        scenario.run.formation_start_s + scenario.run.formation_duration_s,
+    )
+    wall0 = time.perf_counter()
+    sim_clock: SimClock | None = None
+    service: Any = None
+    try:
+        sim.start()
+        sim_clock = await _wait_for_sim(sim, clock_path, Path(settings["camera_socket"]), options.speed)
+        observer = RunObserver(sim_clock, snapshot_times(window, options.snapshots))
+        factory = make_parts_factory(service_cfg, sim_clock, on_frame=observer.on_frame)
+
+        async def open_parts(stack: contextlib.AsyncExitStack, ctx: Any) -> Any:
+            parts = await factory(stack, ctx)
+            flight = cast(FlightAdapter, parts.mission)
+            own = flight.runner.on_step
+
+            def on_step(inputs: MissionInputs, out: StepOutput) -> None:
+                if own is not None:
+                    own(inputs, out)
+                observer.on_step(inputs, out)
+
+            flight.runner.on_step = on_step
+            return parts
+
+        with SystemdNotifier(NotifyConfig()) as notifier:
+            service = FollowerService(
+                service_cfg, open_parts, clock=sim_clock, wall_time_s=time.time, notifier=notifier
+            )
+            await _fly(service, sim, sim_clock, scenario.run.duration_s, options.progress)
+        end_s = sim_clock.now_s()
+    finally:
+        await sim.stop()
+        if sim_clock is not None:
+            sim_clock.close()
+        shutil.rmtree(sock_dir, ignore_errors=True)
+    truth = TruthTrack.read(truth_path)
+    if len(truth) < 2:
+        raise SimRunError(f"the simulator recorded no truth; its log:\n{sim.tail()}")
+    outages = [
+        (o.at_s, None if o.duration_s is None else o.at_s + o.duration_s)
+        for o in scenario.faults("follower").gps.outages
+    ]
+    scorer = RunScorer(window, outages, [])
+    score(observer, truth, scorer, end_s)
+    scorer.snapshots = [_snapshot(fr) for fr in observer.frames if fr.rgb is not None]
+    extra = scorer.extra()
+    latency = service.latency.summary() if service is not None else {}
+    extra.update(
+        {
+            "harness": "real",
+            "speed": options.speed,
+            "camera_rate_hz": scenario.run.camera_rate_hz,
+            "service_latency_ms": latency,
+            "frames_received": service.frames() if service is not None else {},
+            "run_wall_s": round(time.perf_counter() - wall0, 2),
+            "sim_end_s": round(end_s, 2),
+        }
+    )
+    return RunResult(scorer.freeze(), scorer.snapshots, extra, observer)
+
+
+def _snapshot(fr: TraceFrame) -> Any:
+    from companion.evaluation.plots import Snapshot  # noqa: PLC0415
+
+    best = max(fr.detections, key=lambda d: d.score, default=None)
+    assert fr.rgb is not None  # noqa: S101 (filtered by the caller)
+    return Snapshot(
+        fr.t_s,
+        fr.rgb,
+        None if best is None else best.box_xyxy_px,
+        None if fr.truth is None else fr.truth.box_xyxy_px,
+        None if best is None else best.score,
+    )
+
+
+def _sim_ready(clock_path: Path, camera_socket: Path) -> bool:
+    return clock_path.exists() and clock_path.stat().st_size > 0 and camera_socket.exists()
+
+
+async def _wait_for_sim(sim: Child, clock_path: Path, camera_socket: Path, speed: float) -> SimClock:
+    """Until the simulator runs, publishes its clock and serves the camera (its render worker is up)."""
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not _sim_ready(clock_path, camera_socket):
+        if not sim.running:
+            raise SimRunError(f"sitl serve exited while starting; its log:\n{sim.tail()}")
+        if time.monotonic() > deadline:
+            raise SimRunError(
+                f"sitl serve did not start within {START_TIMEOUT_S:.0f} s; its log:\n{sim.tail()}"
+            )
+        await asyncio.sleep(0.1)
+    return SimClock(clock_path, speed)
+
+
+async def _fly(
+    service: Any, sim: Child, clock: SimClock, end_s: float, progress: Callable[[float], None] | None
+) -> None:
+    """Run the service until the scenario ends, the mission is over, or the simulator dies."""
+    async with asyncio.TaskGroup() as tg:
+        task = tg.create_task(service.run(), name="sim.service")
+        next_progress_s = 0.0
+        while not task.done():
+            now_s = clock.now_s()
+            if now_s >= end_s:
+                break
+            if not sim.running:
+                task.cancel()
+                raise SimRunError(f"sitl serve died at sim t = {now_s:.1f} s; its log:\n{sim.tail()}")
+            if progress is not None and now_s >= next_progress_s:
+                next_progress_s = now_s + 5.0
+                progress(now_s)
+            await asyncio.sleep(0.1)
+        if not task.done():
+            task.cancel()

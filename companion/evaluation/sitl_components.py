@@ -1,0 +1,86 @@
+"""What ``companion sim`` runs *inside* ``sitl serve`` (``--component ...evaluation.sitl_components:run``).
+
+Three tasks beside the simulation, configured by the JSON file named in ``$WINGMAN_SIM_RUN`` (written by
+``companion sim`` for this run; read once here, at the component's edge):
+
+* ``clock``: publishes the sim time for the service (:mod:`companion.evaluation.simclock`);
+* ``truth``: records both vehicles' truth for scoring (:mod:`companion.evaluation.truthlog`);
+* ``camera``: the renderer's :class:`~sitl.render.server.CameraServer` for the follower at the scenario's
+  camera rate, blind to the leader inside the scenario's ``[run] leader_hidden_s`` windows.
+
+Keys: ``camera_socket``, ``camera_rate_hz``, ``clock_path``, ``truth_path``, ``truth_rate_hz``, ``seed``,
+``mount`` (the service's ``[camera.mount]``), ``leader_hidden_s``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from companion.config import MountConfig
+from companion.evaluation.simclock import SimClockWriter
+from companion.evaluation.truthlog import TruthWriter, truth_row
+
+RUN_ENV = "WINGMAN_SIM_RUN"
+#: How often the clock is published, sim s (the simulation advances in 5 ms physics steps).
+CLOCK_PERIOD_S = 0.002
+
+
+async def run(sim: Any) -> None:
+    """The component: clock, truth and camera until ``sitl serve`` stops."""
+    settings = json.loads(Path(os.environ[RUN_ENV]).read_text())  # noqa: ASYNC240 (once, at start)
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(_clock(sim, Path(settings["clock_path"])), name="sim.clock")
+        tg.create_task(
+            _truth(sim, Path(settings["truth_path"]), float(settings["truth_rate_hz"])), name="sim.truth"
+        )
+        tg.create_task(_camera(sim, settings), name="sim.camera")
+
+
+async def _clock(sim: Any, path: Path) -> None:
+    with SimClockWriter(path) as writer:
+        while True:
+            writer.publish(sim.t_s, time.monotonic())
+            await sim.wait_until(sim.t_s + CLOCK_PERIOD_S)
+
+
+async def _truth(sim: Any, path: Path, rate_hz: float) -> None:
+    period_s = 1.0 / rate_hz
+    next_s = 0.0
+    with TruthWriter(path) as writer:
+        while True:
+            await sim.wait_until(next_s)
+            t_s = sim.t_s
+            writer.write(truth_row(t_s, sim.truth("follower"), sim.truth("leader")))
+            next_s = max(next_s + period_s, t_s)
+
+
+async def _camera(sim: Any, settings: dict[str, Any]) -> None:
+    from sitl.render.config import CameraModel, visual_from_mapping  # noqa: PLC0415 (renderer: heavy)
+    from sitl.render.server import CameraServer  # noqa: PLC0415
+
+    scenario = sim.scenario
+    hidden = [(float(a), float(b)) for a, b in settings.get("leader_hidden_s", [])]
+
+    def truth() -> tuple[Any, Any]:
+        t_s = sim.t_s
+        leader = None if any(a <= t_s < b for a, b in hidden) else sim.truth("leader")
+        return sim.truth("follower"), leader
+
+    rate_hz = float(settings["camera_rate_hz"])
+    async with CameraServer(
+        settings["camera_socket"],
+        truth,
+        lambda: sim.t_s,
+        rate_hz=rate_hz,
+        camera=CameraModel(rate_hz=rate_hz),
+        visual=visual_from_mapping(scenario.visual, f"scenario {scenario.name} [visual]"),
+        mount=MountConfig.model_validate(settings["mount"]),
+        seed=int(settings["seed"]),
+        wait_until=sim.wait_until,
+    ) as server:
+        await server.run()

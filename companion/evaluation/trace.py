@@ -1,0 +1,144 @@
+"""What the service did during a run, step by step and frame by frame: for scoring and a trace file.
+
+:class:`RunObserver` is fed by the control loop's ``on_step`` and the perception path's per-frame hook; it
+only records (it never feeds anything back). ``write_trace`` writes every step and frame as JSON lines
+(``trace.jsonl``: estimate age, setpoint, vehicle velocity, what the tracker did with each frame, the
+truth beside the estimate) for a post-mortem.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.estimation.tracker import TrackState
+from companion.mission.types import LeaderEstimate, MissionInputs, StepOutput, TrackStatus
+from companion.perception.types import Detection, DetectorResult, GroundTruth, RgbdFrame
+
+
+def leader_estimate(track: TrackState) -> LeaderEstimate | None:
+    """The tracker's state as the mission's input (None without a track)."""
+    est = track.estimate
+    if est is None or track.last_measurement_s is None:
+        return None
+    p, v, cov = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2
+    return LeaderEstimate(
+        stamp_s=float(track.stamp_s),
+        status=TrackStatus(track.status.value),
+        p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
+        v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
+        last_measurement_s=float(track.last_measurement_s),
+        var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
+    )
+
+
+@dataclass(slots=True)
+class TraceTick:
+    """One control tick as the run observer saw it (service clock, s; NED m)."""
+
+    t_s: float
+    rel_est_ned_m: tuple[float, float, float] | None
+    transitions: list[tuple[float, str, str, str]]
+    #: For the run's trace file: the estimate's age, the setpoint, the vehicle's velocity and height.
+    trace: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(slots=True)
+class TraceFrame:
+    """One processed camera frame as the run observer saw it (capture stamp, s; NED m)."""
+
+    t_s: float
+    truth: GroundTruth | None
+    detections: list[Detection]
+    rel_est_ned_m: tuple[float, float, float] | None
+    compute_ms: float
+    rgb: np.ndarray | None
+    #: For the trace file: what the tracker did with this frame.
+    track: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(slots=True)
+class RunObserver:
+    """Records the service's control steps and processed frames (on its loop; never feeds back)."""
+
+    clock: Any
+    snapshot_times_s: list[float]
+    ticks: list[TraceTick] = field(default_factory=list)
+    frames: list[TraceFrame] = field(default_factory=list)
+    _next_snapshot: int = 0
+
+    def on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
+        est = inputs.leader
+        now_s = self.clock.now_s()
+        v = inputs.vehicle
+        sp = out.setpoint
+        trace = {
+            "state": out.state.name,
+            "est_age_s": None if est is None else round(now_s - est.stamp_s, 3),
+            "est_status": None if est is None else est.status.value,
+            "v_ned_m_s": [round(c, 3) for c in v.v_ned_m_s],
+            "alt_rel_m": round(v.alt_rel_m, 3),
+            "setpoint": None if sp is None else {k: getattr(sp, k) for k in type(sp).__slots__},
+        }
+        transitions = [
+            (tr.stamp_s, tr.from_state.name, tr.to_state.name, tr.reason.name) for tr in out.transitions
+        ]
+        rel = est.p_ned_rel_m if est is not None and est.usable else None
+        self.ticks.append(TraceTick(now_s, rel, transitions, trace))
+
+    def write_trace(self, path: Path) -> None:
+        """Every tick and frame as JSON lines (no pixels): the run's record for a post-mortem."""
+        with path.open("w") as f:
+            for tk in self.ticks:
+                f.write(json.dumps({"tick": round(tk.t_s, 4), "est": tk.rel_est_ned_m, **tk.trace}) + "\n")
+            for fr in self.frames:
+                tr = fr.truth
+                rel = None
+                if tr is not None and tr.p_ned_leader_m is not None and tr.p_ned_follower_m is not None:
+                    rel = [
+                        round(float(a - b), 4)
+                        for a, b in zip(tr.p_ned_leader_m, tr.p_ned_follower_m, strict=True)
+                    ]
+                row = {
+                    "frame": round(fr.t_s, 4),
+                    "visible": None if tr is None else round(tr.visible_fraction, 3),
+                    "boxes": [[round(c, 1) for c in d.box_xyxy_px] for d in fr.detections],
+                    "est": fr.rel_est_ned_m,
+                    "true": rel,
+                    "compute_ms": round(fr.compute_ms, 2),
+                    **fr.track,
+                }
+                f.write(json.dumps(row) + "\n")
+
+    def on_frame(self, frame: RgbdFrame, result: DetectorResult, track: Any, process_ms: float) -> None:
+        est = leader_estimate(track)
+        timing = result.timing
+        detector_ms = (
+            0.0 if timing is None else timing.preprocess_ms + timing.inference_ms + timing.postprocess_ms
+        )
+        keep = (
+            self._next_snapshot < len(self.snapshot_times_s)
+            and frame.stamp_s >= self.snapshot_times_s[self._next_snapshot]
+        )
+        if keep:
+            self._next_snapshot += 1
+        self.frames.append(
+            TraceFrame(
+                frame.stamp_s,
+                frame.truth,
+                list(result.detections),
+                est.p_ned_rel_m if est is not None and est.usable else None,
+                detector_ms + process_ms,
+                frame.rgb.copy() if keep else None,
+                {
+                    "status": track.status.value,
+                    "candidates": track.n_candidates,
+                    "size_rejected": track.n_size_rejected,
+                    "updated": track.measurement is not None,
+                },
+            )
+        )

@@ -1,0 +1,513 @@
+"""``MessageVehicleLink``: the :class:`~companion.vehicle.link.VehicleLink` over MAVLink *message objects*.
+
+No sockets and no threads: it sends pymavlink message objects to a :class:`MessageTransport` and reads what
+comes back when its owner calls :meth:`MessageVehicleLink.pump`. Its use is the lockstep evaluation harness
+(``sitl.world.World.link(...)`` is such a transport), where the simulation and the service share one clock
+and MAVSDK, which needs real UDP and real time, cannot run.
+
+It does on the wire what :class:`~companion.vehicle.mavsdk_link.MavsdkVehicleLink` makes MAVSDK 4 do, so the
+mission sees the same vehicle through either link:
+
+* telemetry is assembled as MAVSDK's telemetry plugin does (flight mode from HEARTBEAT custom mode,
+  health from SYS_STATUS present/health bits, velocity from GLOBAL_POSITION_INT, position from
+  LOCAL_POSITION_NED, ``position_valid`` from ESTIMATOR_STATUS), stamped on arrival on the given clock;
+* commands are COMMAND_LONG resent every 0.5 s up to three times, matched to their COMMAND_ACK;
+  ``takeoff`` sets MIS_TAKEOFF_ALT first, as MAVSDK's ``set_takeoff_altitude`` + ``takeoff`` do;
+* setpoints are sent at once and then resent at 20 Hz (MAVSDK's offboard plugin), with the same setpoint
+  guard as the MAVSDK link (no fresh setpoint for ``setpoint_timeout_s``: stop offboard) and MAVSDK's
+  watchdog (a non-offboard HEARTBEAT more than 3 s after start ends the stream).
+
+Time: everything is on the clock passed in (sim time in lockstep); :meth:`pump` must be called often (every
+physics step in the harness) because retries, resends and timeouts are checked there.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.clock import Clock
+from companion.config import LinkConfig
+from companion.errors import CommandRejectedError, LinkLostError
+from companion.frames import quat_from_euler
+from companion.vehicle.types import (
+    AttitudeSetpoint,
+    ExternalPosition,
+    FlightMode,
+    LandedState,
+    Setpoint,
+    Severity,
+    StatusText,
+    VehicleState,
+    VelocityBodySetpoint,
+    VelocityNedSetpoint,
+)
+
+log = logging.getLogger("companion.vehicle")
+
+#: MAVSDK's companion-computer identity: the autopilot's system id, component 195.
+COMPANION_COMPONENT = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
+AUTOPILOT_COMPONENT = 1
+#: MAVSDK resends offboard setpoints at this rate.
+RESEND_PERIOD_S = 0.05
+#: MAVSDK's command protocol: COMMAND_LONG timeout and retries.
+COMMAND_RETRY_S = 0.5
+COMMAND_RETRIES = 3
+#: MAVSDK declares the system disconnected after this long without a HEARTBEAT.
+HEARTBEAT_TIMEOUT_S = 3.0
+#: MAVSDK's offboard watchdog grace after start.
+OFFBOARD_GRACE_S = 3.0
+#: MAVSDK asks for HOME_POSITION this often until it has one.
+HOME_REQUEST_PERIOD_S = 2.0
+_HEARTBEAT_PERIOD_S = 1.0
+
+# POSITION_TARGET_TYPEMASK as MAVSDK's offboard plugin sets it.
+_IGNORE_POS = 1 | 2 | 4
+_IGNORE_ACC = 64 | 128 | 256
+_IGNORE_YAW, _IGNORE_YAW_RATE = 1024, 2048
+VELOCITY_BODY_MASK = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW
+VELOCITY_NED_MASK = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW_RATE
+#: SET_ATTITUDE_TARGET: body rates ignored, attitude + thrust used.
+ATTITUDE_MASK = 1 | 2 | 4
+
+# SYS_STATUS sensor bits MAVSDK's health reads.
+_GPS_BIT, _FLOW_BIT, _VISION_BIT = 32, 64, 128
+_PREARM_BIT = 1 << 28
+#: ESTIMATOR_STATUS flags PX4's offboard velocity/position checks depend on (VELOCITY_HORIZ | POS_HORIZ_REL).
+_EST_POS_VEL_FLAGS = 2 | 8
+
+# PX4 custom modes (main << 16 | sub << 24), as MAVSDK decodes them.
+_AUTO_SUB_MODES = {
+    1: FlightMode.READY,
+    2: FlightMode.TAKEOFF,
+    3: FlightMode.HOLD,
+    4: FlightMode.MISSION,
+    5: FlightMode.RETURN_TO_LAUNCH,
+    6: FlightMode.LAND,
+    8: FlightMode.FOLLOW_ME,
+}
+_MAIN_MODES = {
+    1: FlightMode.MANUAL,
+    2: FlightMode.ALTCTL,
+    3: FlightMode.POSCTL,
+    5: FlightMode.ACRO,
+    6: FlightMode.OFFBOARD,
+    7: FlightMode.STABILIZED,
+    8: FlightMode.RATTITUDE,
+}
+_LANDED = {
+    1: LandedState.ON_GROUND,
+    2: LandedState.IN_AIR,
+    3: LandedState.TAKING_OFF,
+    4: LandedState.LANDING,
+}
+_SEVERITY = {
+    0: Severity.EMERGENCY,
+    1: Severity.ALERT,
+    2: Severity.CRITICAL,
+    3: Severity.ERROR,
+    4: Severity.WARNING,
+    5: Severity.NOTICE,
+    6: Severity.INFO,
+    7: Severity.DEBUG,
+}
+_SEVERITY_CODE = {s: c for c, s in _SEVERITY.items()}
+
+
+class MessageTransport(Protocol):
+    """Carries pymavlink message objects to and from one autopilot link (e.g. ``sitl`` ``MessageLink``)."""
+
+    def send(self, msg: Any, src_system: int, src_component: int) -> None: ...
+
+    def receive(self) -> list[Any]: ...
+
+
+def flight_mode_of(base_mode: int, custom_mode: int) -> FlightMode:
+    """PX4's custom mode as MAVSDK names it (UNKNOWN without the custom-mode flag or for other modes)."""
+    if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+        return FlightMode.UNKNOWN
+    main = (custom_mode >> 16) & 0xFF
+    sub = (custom_mode >> 24) & 0xFF
+    if main == 4:
+        return _AUTO_SUB_MODES.get(sub, FlightMode.UNKNOWN)
+    return _MAIN_MODES.get(main, FlightMode.UNKNOWN)
+
+
+@dataclass(slots=True)
+class _Pending:
+    """A command waiting for its ACK (or a parameter write waiting for its echo)."""
+
+    name: str
+    msg: Any
+    future: asyncio.Future[int]
+    sent_s: float
+    tries: int = 1
+    #: For PARAM_SET: the parameter id whose PARAM_VALUE completes it.
+    param_id: str | None = None
+    command_id: int | None = None
+
+
+@dataclass(slots=True)
+class LinkCounters:
+    """What went over the link (for reports and tests)."""
+
+    setpoints_sent: int = 0
+    commands_sent: int = 0
+    command_retries: int = 0
+    guard_trips: int = 0
+    watchdog_stops: int = 0
+    messages_in: int = 0
+    by_type: dict[str, int] = field(default_factory=dict)
+
+
+class MessageVehicleLink:
+    """A :class:`~companion.vehicle.link.VehicleLink` over a message transport; see the module docstring.
+
+    Args:
+        transport: where messages go and come from.
+        clock: the link's clock (sim time in lockstep); telemetry is stamped on it.
+        cfg: the service's link config (setpoint guard, telemetry timeout).
+        target_system: the autopilot's MAVLink system id.
+    """
+
+    def __init__(
+        self, transport: MessageTransport, clock: Clock, cfg: LinkConfig, target_system: int
+    ) -> None:
+        self.transport = transport
+        self.clock = clock
+        self.cfg = cfg
+        self.target_system = target_system
+        self.own_system = target_system
+        self._state = VehicleState()
+        self._pending: list[_Pending] = []
+        self._setpoint_msg: Any = None
+        self._stream_active = False
+        self._last_setpoint_s = -math.inf
+        self._last_sent_s = -math.inf
+        self._offboard_started_s: float | None = None
+        self._last_heartbeat_out_s = -math.inf
+        self._last_home_request_s = -math.inf
+        self._hover_requested = False
+        self.counters = LinkCounters()
+
+    # ------------------------------------------------------------------ the owner's side
+    def pump(self) -> None:
+        """Read what arrived, then do what is due: retries, timeouts, resends, the guards, heartbeats."""
+        now_s = self.clock.now_s()
+        for msg in self.transport.receive():
+            self._handle(msg, now_s)
+        self._due(now_s)
+
+    def _send(self, msg: Any) -> None:
+        self.transport.send(msg, self.own_system, COMPANION_COMPONENT)
+
+    def _due(self, now_s: float) -> None:
+        if now_s - self._last_heartbeat_out_s >= _HEARTBEAT_PERIOD_S:
+            self._last_heartbeat_out_s = now_s
+            self._send(
+                mavlink.MAVLink_heartbeat_message(
+                    mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3
+                )
+            )
+        st = self._state
+        if st.connected:
+            if not st.home_position_ok and now_s - self._last_home_request_s >= HOME_REQUEST_PERIOD_S:
+                self._last_home_request_s = now_s
+                self._command_msg(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+            if not self._hover_requested:
+                self._hover_requested = True
+                self._send(
+                    mavlink.MAVLink_param_request_read_message(
+                        self.target_system, AUTOPILOT_COMPONENT, b"MPC_THR_HOVER", -1
+                    )
+                )
+        for p in list(self._pending):
+            if now_s - p.sent_s < COMMAND_RETRY_S:
+                continue
+            if p.tries >= COMMAND_RETRIES:
+                self._pending.remove(p)
+                if not p.future.done():
+                    p.future.set_exception(CommandRejectedError(p.name, "TIMEOUT"))
+                continue
+            p.tries += 1
+            p.sent_s = now_s
+            self.counters.command_retries += 1
+            self._send(p.msg)
+        if self._stream_active:
+            if now_s - self._last_setpoint_s > self.cfg.setpoint_timeout_s:
+                self._stream_active = False
+                self.counters.guard_trips += 1
+                log.error(
+                    "vehicle link: no fresh setpoint for %.2f s: stopping offboard",
+                    now_s - self._last_setpoint_s,
+                )
+                self._fire_and_forget_hold()
+            elif (
+                self._offboard_started_s is not None
+                and now_s - self._offboard_started_s > OFFBOARD_GRACE_S
+                and st.flight_mode != FlightMode.OFFBOARD
+                and st.heartbeat_stamp_s > self._offboard_started_s + OFFBOARD_GRACE_S
+            ):
+                # MAVSDK's watchdog: the autopilot left offboard, so the resend stops by itself.
+                self._stream_active = False
+                self._offboard_started_s = None
+                self.counters.watchdog_stops += 1
+            elif now_s - self._last_sent_s >= RESEND_PERIOD_S - 1e-9:
+                self._send_setpoint(now_s)
+
+    def _send_setpoint(self, now_s: float) -> None:
+        self._last_sent_s = now_s
+        self.counters.setpoints_sent += 1
+        self._send(self._setpoint_msg)
+
+    # ------------------------------------------------------------------ telemetry
+    def _update(self, **fields: Any) -> None:
+        self._state = replace(self._state, **fields)
+
+    def _handle(self, msg: Any, now_s: float) -> None:
+        # Messages that never went through a codec (a lockstep world hands over objects) carry no source
+        # (0): the transport is this autopilot's link, so they are its own.
+        if msg.get_srcSystem() not in (self.target_system, 0):
+            return
+        kind = msg.get_type()
+        c = self.counters
+        c.messages_in += 1
+        c.by_type[kind] = c.by_type.get(kind, 0) + 1
+        st = self._state
+        if kind == "HEARTBEAT":
+            if msg.get_srcComponent() not in (AUTOPILOT_COMPONENT, 0):
+                return
+            if not st.connected:
+                log.info("vehicle link: autopilot found (sysid %d)", self.target_system)
+            self._update(
+                connected=True,
+                heartbeat_stamp_s=now_s,
+                armed=bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED),
+                flight_mode=flight_mode_of(int(msg.base_mode), int(msg.custom_mode)),
+            )
+        elif kind == "ATTITUDE":
+            self._update(roll_rad=msg.roll, pitch_rad=msg.pitch, yaw_rad=msg.yaw, attitude_stamp_s=now_s)
+        elif kind == "GLOBAL_POSITION_INT":
+            self._update(
+                v_ned_m_s=(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0),
+                velocity_stamp_s=now_s,
+                lat_deg=msg.lat * 1e-7,
+                lon_deg=msg.lon * 1e-7,
+                alt_amsl_m=msg.alt / 1000.0,
+                alt_rel_m=msg.relative_alt / 1000.0,
+                global_position_stamp_s=now_s,
+            )
+        elif kind == "LOCAL_POSITION_NED":
+            self._update(p_ned_m=(msg.x, msg.y, msg.z), local_position_stamp_s=now_s, local_position_ok=True)
+        elif kind == "GPS_RAW_INT":
+            self._update(
+                gps_fix_type=int(msg.fix_type), gps_satellites=int(msg.satellites_visible), gps_stamp_s=now_s
+            )
+        elif kind == "SYS_STATUS":
+            present, health = (
+                int(msg.onboard_control_sensors_present),
+                int(msg.onboard_control_sensors_health),
+            )
+            ok = present & health
+            global_ok = bool(ok & _GPS_BIT)
+            self._update(
+                global_position_ok=global_ok,
+                local_position_ok=global_ok or bool(ok & (_FLOW_BIT | _VISION_BIT)),
+                armable=bool(health & _PREARM_BIT),
+                health_stamp_s=now_s,
+            )
+        elif kind == "HOME_POSITION":
+            self._update(home_position_ok=True)
+        elif kind == "EXTENDED_SYS_STATE":
+            self._update(landed_state=_LANDED.get(int(msg.landed_state), LandedState.UNKNOWN))
+        elif kind == "ESTIMATOR_STATUS":
+            valid = (int(msg.flags) & _EST_POS_VEL_FLAGS) == _EST_POS_VEL_FLAGS
+            self._update(position_valid=valid, estimator_stamp_s=now_s)
+        elif kind == "BATTERY_STATUS":
+            remaining = int(msg.battery_remaining)
+            self._update(
+                battery_remaining_frac=remaining / 100.0 if remaining >= 0 else math.nan,
+                battery_voltage_v=msg.voltages[0] / 1000.0 if msg.voltages[0] != 65535 else math.nan,
+            )
+        elif kind == "STATUSTEXT":
+            text = StatusText(now_s, _SEVERITY.get(int(msg.severity), Severity.INFO), _text(msg.text))
+            log.info("autopilot: [%s] %s", text.severity.value, text.text)
+            self._update(last_status_text=text, status_text_seq=st.status_text_seq + 1)
+        elif kind == "COMMAND_ACK":
+            self._on_ack(int(msg.command), int(msg.result))
+        elif kind == "PARAM_VALUE":
+            self._on_param(_text(msg.param_id), float(msg.param_value))
+
+    def _on_ack(self, command: int, result: int) -> None:
+        if result == mavlink.MAV_RESULT_IN_PROGRESS:
+            return
+        for p in self._pending:
+            if p.command_id == command:
+                self._pending.remove(p)
+                if not p.future.done():
+                    p.future.set_result(result)
+                return
+
+    def _on_param(self, name: str, value: float) -> None:
+        if name == "MPC_THR_HOVER" and 0.05 < value < 0.95 and self._state.hover_thrust_norm is None:
+            self._update(hover_thrust_norm=value)
+        for p in self._pending:
+            if p.param_id == name:
+                self._pending.remove(p)
+                if not p.future.done():
+                    p.future.set_result(mavlink.MAV_RESULT_ACCEPTED)
+                return
+
+    def snapshot(self) -> VehicleState:
+        """The latest telemetry; ``connected`` also requires a heartbeat within the timeouts."""
+        now_s = self.clock.now_s()
+        st = self._state
+        alive = st.connected and now_s - st.heartbeat_stamp_s <= max(
+            self.cfg.telemetry_timeout_s, HEARTBEAT_TIMEOUT_S
+        )
+        return replace(st, stamp_s=now_s, connected=alive)
+
+    # ------------------------------------------------------------------ commands
+    def _require(self) -> None:
+        if not self.snapshot().connected:
+            raise LinkLostError("no autopilot connected")
+
+    def _command_msg(self, command: int, *params: float) -> Any:
+        p = [float(x) for x in params] + [math.nan] * (7 - len(params))
+        msg = mavlink.MAVLink_command_long_message(self.target_system, AUTOPILOT_COMPONENT, command, 0, *p)
+        self._send(msg)
+        return msg
+
+    async def _command(self, name: str, command: int, *params: float) -> None:
+        self._require()
+        fut: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        msg = self._command_msg(command, *params)
+        self.counters.commands_sent += 1
+        self._pending.append(_Pending(name, msg, fut, self.clock.now_s(), command_id=command))
+        result = await fut
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            raise CommandRejectedError(name, _result_name(result))
+
+    def _fire_and_forget_hold(self) -> None:
+        self._command_msg(mavlink.MAV_CMD_DO_SET_MODE, *self._mode_params(4, 3))
+
+    def _mode_params(self, main: int, sub: int) -> tuple[float, float, float]:
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
+            mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self._state.armed else 0
+        )
+        return float(base), float(main), float(sub)
+
+    async def arm(self) -> None:
+        await self._command("arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0)
+
+    async def disarm(self) -> None:
+        await self._command("disarm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 0.0)
+
+    async def takeoff(self, altitude_m: float) -> None:
+        self._require()
+        fut: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        msg = mavlink.MAVLink_param_set_message(
+            self.target_system,
+            AUTOPILOT_COMPONENT,
+            b"MIS_TAKEOFF_ALT",
+            float(altitude_m),
+            mavlink.MAV_PARAM_TYPE_REAL32,
+        )
+        self._send(msg)
+        self._pending.append(
+            _Pending("set_takeoff_altitude", msg, fut, self.clock.now_s(), param_id="MIS_TAKEOFF_ALT")
+        )
+        try:
+            await fut
+        except CommandRejectedError:
+            log.warning("vehicle link: takeoff altitude not set; PX4 uses MIS_TAKEOFF_ALT")
+        await self._command("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF)
+
+    async def land(self) -> None:
+        await self._command("land", mavlink.MAV_CMD_NAV_LAND)
+
+    async def hold(self) -> None:
+        await self._command("hold", mavlink.MAV_CMD_DO_SET_MODE, *self._mode_params(4, 3))
+
+    async def return_to_launch(self) -> None:
+        await self._command("return_to_launch", mavlink.MAV_CMD_DO_SET_MODE, *self._mode_params(4, 5))
+
+    # ------------------------------------------------------------------ offboard
+    async def set_setpoint(self, setpoint: Setpoint) -> None:
+        self._require()
+        self._setpoint_msg = self._setpoint_message(setpoint)
+        now_s = self.clock.now_s()
+        self._last_setpoint_s = now_s
+        self._stream_active = True
+        self._send_setpoint(now_s)
+
+    def _setpoint_message(self, setpoint: Setpoint) -> Any:
+        ts, tc = self.target_system, AUTOPILOT_COMPONENT
+        if isinstance(setpoint, VelocityBodySetpoint):
+            f, r, d = setpoint.v_body_m_s
+            return mavlink.MAVLink_set_position_target_local_ned_message(
+                0, ts, tc, mavlink.MAV_FRAME_BODY_NED, VELOCITY_BODY_MASK, 0, 0, 0, f, r, d, 0, 0, 0, 0,
+                setpoint.yaw_rate_rad_s,
+            )  # fmt: skip
+        if isinstance(setpoint, VelocityNedSetpoint):
+            n, e, d = setpoint.v_ned_m_s
+            return mavlink.MAVLink_set_position_target_local_ned_message(
+                0, ts, tc, mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_NED_MASK, 0, 0, 0, n, e, d, 0, 0, 0,
+                setpoint.yaw_rad, 0,
+            )  # fmt: skip
+        a: AttitudeSetpoint = setpoint
+        q = quat_from_euler(a.roll_rad, a.pitch_rad, a.yaw_rad)
+        return mavlink.MAVLink_set_attitude_target_message(
+            0, ts, tc, ATTITUDE_MASK, [float(x) for x in q], 0.0, 0.0, 0.0, float(a.thrust_norm)
+        )
+
+    async def start_offboard(self, setpoint: Setpoint) -> None:
+        await self.set_setpoint(setpoint)
+        await self._command("start_offboard", mavlink.MAV_CMD_DO_SET_MODE, *self._mode_params(6, 0))
+        self._offboard_started_s = self.clock.now_s()
+
+    async def stop_offboard(self) -> None:
+        self._stream_active = False
+        self._offboard_started_s = None
+        await self._command("stop_offboard", mavlink.MAV_CMD_DO_SET_MODE, *self._mode_params(4, 3))
+
+    async def release_offboard(self) -> None:
+        self._stream_active = False
+        self._offboard_started_s = None
+
+    @property
+    def guard_trips(self) -> int:
+        return self.counters.guard_trips
+
+    # ------------------------------------------------------------------ estimator input, GCS text
+    async def send_external_position(self, fix: ExternalPosition) -> None:
+        self._require()
+        cov = [math.nan] * 21
+        cov[0], cov[6], cov[11] = fix.variance_m2
+        cov[15] = cov[18] = cov[20] = 1.0
+        self._send(
+            mavlink.MAVLink_vision_position_estimate_message(
+                int(max(0.0, fix.stamp_s) * 1e6), *fix.p_ned_m, fix.roll_rad, fix.pitch_rad, fix.yaw_rad,
+                cov, fix.reset_counter,
+            )
+        )  # fmt: skip
+
+    async def send_status_text(self, text: str, severity: Severity) -> None:
+        self._require()
+        self._send(mavlink.MAVLink_statustext_message(_SEVERITY_CODE[severity], text[:50].encode(), 0, 0))
+
+
+def _text(raw: Any) -> str:
+    if isinstance(raw, bytes):
+        raw = raw.decode("utf-8", "replace")
+    return str(raw).rstrip("\x00")
+
+
+def _result_name(result: int) -> str:
+    enum = mavlink.enums["MAV_RESULT"]
+    return enum[result].name.removeprefix("MAV_RESULT_") if result in enum else str(result)

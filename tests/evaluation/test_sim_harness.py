@@ -1,0 +1,67 @@
+"""``companion sim`` end to end, short: the lockstep harness in-process and the real path through the CLI.
+
+Both fly the simulator's ground-truth boxes (``--detector truth``) so they need no trained weights; the
+detector itself has its own tests. What is checked is the harness: a closed loop that reaches formation,
+the report.json contract, the report page and plots, and the summary of ``all``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from companion.evaluation.campaign import RunSpec, run_one
+from companion.evaluation.report import missing_keys, summary_markdown, write_summary
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _check_report(out: Path, scenario: str, harness: str) -> dict[str, object]:
+    report = json.loads((out / "report.json").read_text())
+    assert missing_keys(report) == []
+    assert report["scenario"] == scenario
+    assert report["harness"] == harness
+    assert report["outcome"] == "completed"
+    assert "ground-truth boxes" in str(report["detector"])
+    assert report["frames"] > 20
+    assert report["formation_max_deviation_m"] is not None
+    assert report["relative_position_rmse_m"] < 0.5
+    assert (out / "report.md").read_text().startswith(f"# Scenario `{scenario}`")
+    return report
+
+
+@pytest.mark.render
+@pytest.mark.slow
+def test_lockstep_run_writes_the_report_and_plots(tmp_path: Path) -> None:
+    spec = RunSpec("straight", 2, tmp_path, harness="lockstep", detector="truth", duration_s=4.0)
+    report = run_one(spec)
+    _check_report(tmp_path, "straight", "lockstep")
+    for name in ("trajectories", "errors", "estimate_vs_truth", "camera"):
+        assert (tmp_path / "plots" / f"{name}.png").stat().st_size > 5000
+    # The summary of 'all' puts the paper's figures beside ours.
+    write_summary(tmp_path / "all", {"straight": report})
+    md = (tmp_path / "all" / "summary.md").read_text()
+    assert "| Straight line | 0.25 / " in md
+    assert json.loads((tmp_path / "all" / "summary.json").read_text())["straight"]["seed"] == 2
+    assert summary_markdown({"straight": report}) in md or "Straight line" in md
+
+
+@pytest.mark.sitl
+@pytest.mark.render
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_real_path_cli_run(tmp_path: Path) -> None:
+    """``sitl serve`` + the service over UDP (MAVSDK), driven by the CLI exactly as a user runs it."""
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    cmd = [sys.executable, "-m", "companion", "sim", "--scenario", "straight", "--duration", "3",
+           "--detector", "truth", "--no-plots", "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=220, check=False)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "sim: straight: completed" in proc.stdout
+    _check_report(out, "straight", "real")

@@ -1,0 +1,109 @@
+"""``companion sim``'s pure parts: seeds, overrides, child command lines, the Monte Carlo page, ego-motion."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.errors import ConfigError
+from companion.evaluation.campaign import (
+    RunSpec,
+    child_args,
+    effective_scenario,
+    monte_carlo_markdown,
+    parse_overrides,
+    parse_seeds,
+)
+from companion.evaluation.setup import all_scenarios, scenario_path
+from companion.mission.ego import EgoMotion
+
+
+def test_parse_seeds_ranges_and_lists() -> None:
+    assert parse_seeds("1-50") == list(range(1, 51))
+    assert parse_seeds("3,7, 9") == [3, 7, 9]
+    assert parse_seeds("5") == [5]
+    assert parse_seeds("1-2,8") == [1, 2, 8]
+    for bad in ("", "a-b", "5-", "-3"):
+        with pytest.raises(ConfigError):
+            parse_seeds(bad)
+
+
+def test_parse_overrides_nests_and_parses_toml() -> None:
+    got = parse_overrides(["formation.kp_xy=1.5", "detector.runtime=truth", "a.b.c=[1, 2]"])
+    assert got == {"formation": {"kp_xy": 1.5}, "detector": {"runtime": "truth"}, "a": {"b": {"c": [1, 2]}}}
+    with pytest.raises(ConfigError):
+        parse_overrides(["no_equals"])
+
+
+def test_all_scenarios_paper_first_and_at_least_eight() -> None:
+    names = all_scenarios()
+    assert names[:4] == ["straight", "circle", "gps-loss", "visibility"]
+    assert {"figure8", "leader-occluded", "link-loss", "wind"} <= set(names)
+    assert scenario_path("gps-loss-land").exists()  # variants resolve too
+
+
+def test_duration_reshapes_the_formation_window() -> None:
+    sc = effective_scenario(scenario_path("straight"), 15.0)
+    assert sc.run.formation_duration_s == 15.0
+    assert math.isclose(sc.run.duration_s, sc.run.formation_start_s + 15.0 + 2.0)
+    full = effective_scenario(scenario_path("straight"), None)
+    assert full.run.formation_duration_s >= 60.0  # the issue: at least 60 s of formation
+    with pytest.raises(ConfigError):
+        effective_scenario(scenario_path("straight"), -1.0)
+
+
+def test_child_args_round_trip_the_spec(tmp_path: object) -> None:
+    spec = RunSpec("circle", 4, tmp_path / "c", harness="lockstep", detector="truth", duration_s=9.0,  # type: ignore[operator]
+                   plots=False, overrides=("formation.kp_xy=2",))  # fmt: skip
+    args = child_args(spec)
+    assert args[args.index("--scenario") + 1] == "circle"
+    assert args[args.index("--harness") + 1] == "lockstep"
+    assert args[args.index("--detector") + 1] == "truth"
+    assert "--no-plots" in args
+    assert args[args.index("--set") + 1] == "formation.kp_xy=2"
+
+
+def test_monte_carlo_page_has_outcomes_and_percentiles() -> None:
+    stats = {"p5": 0.1, "p50": 0.2, "p95": 0.3, "max": 0.4}
+    md = monte_carlo_markdown(
+        {
+            "scenario": "gps-loss",
+            "runs": 3,
+            "harness": "lockstep",
+            "outcomes": {"completed": 2, "landed_safely": 1},
+            "relative_position_rmse_m": stats,
+            "wall_s": 12.0,
+            "failed": [],
+        }
+    )
+    assert "| completed | 2 |" in md
+    assert "| relative_position_rmse_m | 0.100 | 0.200 | 0.300 | 0.400 |" in md
+    assert "| formation_rmse_m | n/a |" in md
+
+
+def test_ego_motion_brings_an_old_estimate_to_now() -> None:
+    """Follower accelerating at 1 m/s^2 north, leader at a constant 2 m/s north."""
+    ego = EgoMotion()
+    for k in range(41):
+        t = k * 0.025
+        ego.push(t, np.array([1.0 * t, 0.0, 0.0]))
+    stamp, now = 0.5, 1.0
+    p_f = lambda t: 0.5 * t * t  # noqa: E731
+    p_rel_stamp = np.array([5.0 + 2.0 * stamp - p_f(stamp), 0.0, 0.0])
+    v_rel_stamp = np.array([2.0 - stamp, 0.0, 0.0])
+    rel = ego.predict(stamp, p_rel_stamp, v_rel_stamp, now)
+    assert rel.v_ned_leader_m_s is not None
+    assert np.allclose(rel.v_ned_leader_m_s, [2.0, 0.0, 0.0])
+    assert np.allclose(rel.p_ned_rel_m, [5.0 + 2.0 * now - p_f(now), 0.0, 0.0], atol=1e-3)
+    assert np.allclose(rel.v_ned_rel_m_s, [2.0 - now, 0.0, 0.0], atol=1e-9)
+
+
+def test_ego_motion_without_history_is_constant_relative_velocity() -> None:
+    rel = EgoMotion().predict(1.0, np.array([5.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), 1.2)
+    assert rel.v_ned_leader_m_s is None
+    assert np.allclose(rel.p_ned_rel_m, [5.2, 0.0, 0.0])
+    # Never further than MAX_PREDICT_S ahead.
+    far = EgoMotion().predict(0.0, np.zeros(3), np.array([1.0, 0.0, 0.0]), 10.0)
+    assert far.p_ned_rel_m[0] == pytest.approx(1.0)
