@@ -50,13 +50,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         for line in str(exc).splitlines() or [type(exc).__name__]:
             print(f"companion: {line}", file=sys.stderr)
         return exc.exit_code
-
-
-def not_built(what: str) -> Handler:
-    """A handler for a command that exists but is not implemented: says so and exits 2, never pretends."""
-
-    def handler(_args: argparse.Namespace) -> int:
-        print(f"companion {what}: not built yet", file=sys.stderr)
-        return 2
-
-    return handler

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import pytest
 
-from companion.cli import main as companion_main
 from sitl.cli import main as sitl_main
 
 
@@ -55,14 +54,6 @@ def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> N
     assert len(lines) == 2
     assert "link.connect_timeout_s" in lines[0]
     assert lines[1] == f"companion: {p}: mqtt.portt: unknown key"
-
-
-@pytest.mark.parametrize("argv", [["sim"]])
-def test_unbuilt_commands_say_so(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
-    # Once a command is built this list shrinks; a command never pretends to work.
-    code = companion_main(argv)
-    if code == 2:
-        assert "not built yet" in capsys.readouterr().err
 
 
 def test_sitl_unknown_command_is_usage_error() -> None:
