@@ -57,12 +57,23 @@ def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> N
     assert lines[1] == f"companion: {p}: mqtt.portt: unknown key"
 
 
-@pytest.mark.parametrize("argv", [["sim"]])
-def test_unbuilt_commands_say_so(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
-    # Once a command is built this list shrinks; a command never pretends to work.
-    code = companion_main(argv)
-    if code == 2:
-        assert "not built yet" in capsys.readouterr().err
+def test_sim_without_weights_says_so_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The network detector is the default; with no weights nothing starts and one line says why."""
+    missing = tmp_path / "none" / "leader_detector.pt"
+    argv = [
+        "sim",
+        "--scenario",
+        "all",
+        "--out",
+        str(tmp_path / "out"),
+        "--set",
+        f'detector.model_path="{missing}"',
+    ]
+    assert companion_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "no detector weights" in err[0]
+    assert not (tmp_path / "out").exists()
 
 
 def test_sitl_unknown_command_is_usage_error() -> None:
