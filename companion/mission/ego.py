@@ -96,8 +96,13 @@ class EgoMotion:
             d += 0.5 * (t[k + 1] - t[k]) * (v[k] + v[k + 1])
         return d
 
-    def predict(self, stamp_s: float, p_rel: Vec3, v_rel: Vec3, now_s: float) -> RelativeNow:
-        """The estimate taken at ``stamp_s`` brought to ``now_s`` (see the module doc)."""
+    def predict(
+        self, stamp_s: float, p_rel: Vec3, v_rel: Vec3, now_s: float, a_leader: Vec3 | None = None
+    ) -> RelativeNow:
+        """The estimate taken at ``stamp_s`` brought to ``now_s`` (see the module doc).
+
+        ``a_leader`` (NED, m/s^2), when given, carries the leader's velocity forward over the age too.
+        """
         p = np.asarray(p_rel, dtype=np.float64)
         v = np.asarray(v_rel, dtype=np.float64)
         age = min(max(0.0, now_s - stamp_s), MAX_PREDICT_S)
@@ -108,4 +113,7 @@ class EgoMotion:
         if v_f0 is None or v_f1 is None or disp is None:
             return RelativeNow(p + v * age, v, None)
         v_leader = v_f0 + v
-        return RelativeNow(p + v_leader * age - disp, v_leader - v_f1, v_leader)
+        a = np.zeros(3) if a_leader is None else np.asarray(a_leader, dtype=np.float64)
+        p_now = p + v_leader * age + 0.5 * a * age * age - disp
+        v_leader_now = v_leader + a * age
+        return RelativeNow(p_now, v_leader_now - v_f1, v_leader_now)

@@ -270,6 +270,11 @@ class FormationLaw:
         self._v_leader_prev = np.array(v_leader, dtype=np.float64)
         return self._a_leader
 
+    @property
+    def leader_accel_ned_m_s2(self) -> Vec3:
+        """The law's current estimate of the leader's acceleration (NED, m/s^2; zero when unknown)."""
+        return self._a_leader
+
     def seed_velocity(self, v_ned_m_s: Vec3 | None) -> None:
         """Start the acceleration slew from the vehicle's current velocity, not from zero."""
         self._v_prev = None if v_ned_m_s is None else np.array(v_ned_m_s, dtype=np.float64)

@@ -666,7 +666,11 @@ class MissionMachine:
     def _relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
         """The estimate brought from its frame's capture instant to now (see :mod:`companion.mission.ego`)."""
         rel = self._ego.predict(
-            est.stamp_s, np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s), self._now_s
+            est.stamp_s,
+            np.array(est.p_ned_rel_m),
+            np.array(est.v_ned_rel_m_s),
+            self._now_s,
+            self.law.leader_accel_ned_m_s2,
         )
         return rel.p_ned_rel_m, rel.v_ned_rel_m_s
 

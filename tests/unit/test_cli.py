@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from companion.cli import main as companion_main
 from sitl.cli import main as sitl_main
 
 
@@ -54,6 +55,25 @@ def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> N
     assert len(lines) == 2
     assert "link.connect_timeout_s" in lines[0]
     assert lines[1] == f"companion: {p}: mqtt.portt: unknown key"
+
+
+def test_sim_without_weights_says_so_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The network detector is the default; with no weights nothing starts and one line says why."""
+    missing = tmp_path / "none" / "leader_detector.pt"
+    argv = [
+        "sim",
+        "--scenario",
+        "all",
+        "--out",
+        str(tmp_path / "out"),
+        "--set",
+        f'detector.model_path="{missing}"',
+    ]
+    assert companion_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "no detector weights" in err[0]
+    assert not (tmp_path / "out").exists()
 
 
 def test_sitl_unknown_command_is_usage_error() -> None:
