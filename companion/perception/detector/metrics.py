@@ -125,7 +125,10 @@ class DetectionStats:
                 leader_free_fp += int(above.any())
             if r.range_m is not None and len(r.gt_boxes):
                 m = gt_match[:, i50]
-                found = (m >= 0) & (r.pred_scores[np.maximum(m, 0)] >= conf_threshold)
+                if len(r.pred_scores):
+                    found = (m >= 0) & (r.pred_scores[np.maximum(m, 0)] >= conf_threshold)
+                else:  # nothing predicted in this image: every box is missed
+                    found = np.zeros(len(m), bool)
                 for b, (lo, hi) in enumerate(RANGE_BINS_M):
                     if lo <= r.range_m < hi:
                         bin_total[b] += len(found)

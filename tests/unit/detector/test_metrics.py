@@ -71,3 +71,11 @@ def test_loose_iou_ap_is_reported_apart() -> None:
     out = s.summary(0.5)
     assert out["map50"] == 0.0
     assert out["ap25"] == pytest.approx(1.0)
+
+
+def test_a_labelled_frame_with_no_prediction_counts_as_a_miss_in_its_range_bin() -> None:
+    s = DetectionStats()
+    s.add(E, np.zeros(0, np.float32), b(0, 0, 10, 10), range_m=7.0)
+    out = s.summary(conf_threshold=0.5)
+    assert out["recall_by_range_m"]["5-10"] == {"recall": 0.0, "boxes": 1}
+    assert out["recall"] == 0.0
