@@ -119,16 +119,11 @@ class AttitudeHistory:
 
     def q_at(self, stamp_s: float) -> Quat | None:
         """Attitude quaternion (w, x, y, z) at ``stamp_s``, or None when too far from every sample."""
-        stamps = self._stamps_s
-        if not stamps:
+        b = _bracket(self._stamps_s, stamp_s, self._max_extrapolation_s)
+        if b is None:
             return None
-        i = bisect.bisect_left(stamps, stamp_s)
-        if i == 0:
-            return self._quats[0] if stamps[0] - stamp_s <= self._max_extrapolation_s else None
-        if i == len(stamps):
-            return self._quats[-1] if stamp_s - stamps[-1] <= self._max_extrapolation_s else None
-        t0, t1 = stamps[i - 1], stamps[i]
-        return slerp(self._quats[i - 1], self._quats[i], (stamp_s - t0) / (t1 - t0))
+        i, a = b
+        return self._quats[i] if a == 0.0 else slerp(self._quats[i], self._quats[i + 1], a)
 
     def R_at(self, stamp_s: float) -> Mat3 | None:
         """``R_ned_body`` at ``stamp_s``, or None (see :meth:`q_at`)."""
@@ -168,15 +163,28 @@ class VelocityHistory:
 
     def v_at(self, stamp_s: float) -> Vec3 | None:
         """Velocity at ``stamp_s``, or None when too far from every sample."""
-        stamps = self._stamps_s
-        if not stamps:
+        b = _bracket(self._stamps_s, stamp_s, self._max_extrapolation_s)
+        if b is None:
             return None
-        i = bisect.bisect_left(stamps, stamp_s)
-        if i == 0:
-            return self._values[0] if stamps[0] - stamp_s <= self._max_extrapolation_s else None
-        if i == len(stamps):
-            return self._values[-1] if stamp_s - stamps[-1] <= self._max_extrapolation_s else None
-        t0, t1 = stamps[i - 1], stamps[i]
-        a = (stamp_s - t0) / (t1 - t0)
-        out: Vec3 = (1.0 - a) * self._values[i - 1] + a * self._values[i]
+        i, a = b
+        if a == 0.0:
+            return self._values[i]
+        out: Vec3 = (1.0 - a) * self._values[i] + a * self._values[i + 1]
         return out
+
+
+def _bracket(stamps_s: list[float], stamp_s: float, max_extrapolation_s: float) -> tuple[int, float] | None:
+    """Where ``stamp_s`` falls in sorted ``stamps_s``: ``(i, a)`` to blend samples i and i+1 by ``a``.
+
+    Outside the held span the nearest sample is taken (``a`` = 0) up to ``max_extrapolation_s`` away;
+    farther, or with no samples, None.
+    """
+    if not stamps_s:
+        return None
+    i = bisect.bisect_left(stamps_s, stamp_s)
+    if i == 0:
+        return (0, 0.0) if stamps_s[0] - stamp_s <= max_extrapolation_s else None
+    if i == len(stamps_s):
+        return (i - 1, 0.0) if stamp_s - stamps_s[-1] <= max_extrapolation_s else None
+    t0, t1 = stamps_s[i - 1], stamps_s[i]
+    return i - 1, (stamp_s - t0) / (t1 - t0)
