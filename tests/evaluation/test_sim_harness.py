@@ -65,3 +65,59 @@ def test_real_path_cli_run(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "sim: straight: completed" in proc.stdout
     _check_report(out, "straight", "real")
+
+
+HIDDEN_SCENARIO = """
+schema_version = 1
+name = "test-hidden"
+description = "Leader flies slowly north; the camera is blind to it for 3 s, then for 20 s."
+seed = 3
+
+[run]
+duration_s = 70.0
+formation_start_s = 22.0
+formation_duration_s = 48.0
+takeoff_altitude_m = 5.0
+camera_rate_hz = 15.0
+leader_hidden_s = [[30.0, 33.0], [40.0, 60.0]]
+
+[leader]
+type = "straight"
+start_s = 22.0
+altitude_m = 5.0
+speed_m_s = 1.0
+heading_deg = 0.0
+"""
+
+
+@pytest.mark.sitl
+@pytest.mark.render
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_real_path_leader_hidden_3_s_reacquired_then_20_s_aborts(tmp_path: Path) -> None:
+    """Issue 6: hidden 3 s -> re-acquired (FOLLOW again); hidden 20 s -> REACQUIRE_TIMEOUT -> the configured
+    abort (``mission.leader_lost_action = "land"``) -> landed and disarmed, no crash."""
+    scenario = tmp_path / "hidden.toml"
+    scenario.write_text(HIDDEN_SCENARIO)
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    cmd = [sys.executable, "-m", "companion", "sim", "--scenario", str(scenario), "--detector", "truth",
+           "--set", 'mission.leader_lost_action="land"', "--no-plots", "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    steps = [(t, a, b, why) for t, a, b, why in report["transitions"]]
+    print(*steps, sep="\n")
+    lost = [s for s in steps if s[3] == "LEADER_LOST"]
+    back = [s for s in steps if s[3] == "LEADER_REACQUIRED"]
+    timeout = [s for s in steps if s[3] == "REACQUIRE_TIMEOUT"]
+    # Window 1 (30-33 s): lost once the tracker stops coasting, and re-acquired within 1.5 s of the end.
+    assert lost and 30.0 <= lost[0][0] < 33.0, steps
+    assert back and 30.0 < back[0][0] <= 34.5 and back[0][2] == "FOLLOW", steps
+    # Window 2 (40-60 s): lost again, no re-acquisition inside the window, and the abort before it ends.
+    assert len(lost) >= 2 and 40.0 <= lost[1][0] < 44.0, steps
+    assert not [s for s in back if 40.0 <= s[0] < 60.0], steps
+    assert timeout and 40.0 < timeout[0][0] < 60.0, steps
+    assert timeout[0][2] in ("PX4_LAND", "CONTROLLED_LANDING"), steps
+    assert report["outcome"] == "landed_safely", report["outcome"]
+    assert report["min_separation_m"] >= 2.0
