@@ -61,7 +61,20 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--count", type=int, required=True)
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--seq-len", type=int, default=6, help="frames per sequence (splits are by sequence)")
+    d.add_argument(
+        "--profile",
+        choices=("wide", "formation"),
+        default="wide",
+        help="wide: drones seen every way (default); formation: the follower's in-flight view of the leader",
+    )
     d.set_defaults(handler=_lazy("sitl.dataset", "main_dataset", "dataset"))
+
+    m = sub.add_parser(
+        "dataset-merge", help="join `sitl dataset` folders into one by symbolic links (splits kept)"
+    )
+    m.add_argument("--out", type=Path, required=True)
+    m.add_argument("sources", type=Path, nargs="+", help="dataset folders (their names must differ)")
+    m.set_defaults(handler=_lazy("sitl.dataset", "main_merge", "dataset-merge"))
 
     c = sub.add_parser(
         "contact-sheet", help="PNG of 16 random dataset frames with boxes and false-colour depth"

@@ -239,9 +239,18 @@ def _render_sequence(renderer: Renderer, spec: SequenceSpec) -> list[dict[str, A
 
 
 def generate(
-    out_dir: Path, count: int, seed: int, seq_len: int = 6, camera: CameraModel | None = None
+    out_dir: Path,
+    count: int,
+    seed: int,
+    *,
+    seq_len: int = 6,
+    camera: CameraModel | None = None,
+    profile: str = "wide",
 ) -> dict[str, int]:
-    """Render ``count`` frames into ``out_dir`` (layout in the module docstring); frames per split."""
+    """Render ``count`` frames into ``out_dir`` (layout in the module docstring); frames per split.
+
+    ``profile`` picks the view distribution (:data:`sitl.render.randomize.PROFILES`).
+    """
     camera = camera or CameraModel()
     intr = camera.intrinsics
     writer = DatasetWriter(out_dir, intr, seed)
@@ -251,11 +260,63 @@ def generate(
         tqdm(total=count, unit="frame", desc="sitl dataset") as bar,
     ):
         for s in range(n_seq):
-            spec = sample_sequence(seed, s, min(seq_len, count - s * seq_len), intr)
+            spec = sample_sequence(seed, s, min(seq_len, count - s * seq_len), intr, profile)
             for frame in _render_sequence(renderer, spec):
                 writer.add(spec, frame)
                 bar.update(1)
     return writer.close()
+
+
+def merge(out_dir: Path, sources: list[Path]) -> dict[str, int]:
+    """Join ``sitl dataset`` folders into ``out_dir`` by symbolic links (nothing is copied).
+
+    Each source's files get its folder name as a prefix (``render_s1__s000001_f00.jpg``) so names never
+    collide, splits stay as each source made them (by sequence), and the manifests are concatenated with
+    the image paths rewritten. Returns images per split.
+    """
+    if not sources:
+        raise ValueError("dataset-merge: give at least one source folder")
+    names = [src.resolve().name for src in sources]
+    if len(set(names)) != len(names):
+        raise ValueError(f"dataset-merge: source folder names must differ (got {', '.join(names)})")
+    rows: list[dict[str, Any]] = []
+    counts = dict.fromkeys(SPLITS, 0)
+    for src, prefix in zip(sources, names, strict=True):
+        manifest = src / "manifest.csv"
+        if not manifest.is_file():
+            raise ValueError(f"dataset-merge: {src} has no manifest.csv (not a `sitl dataset` folder)")
+        with manifest.open(newline="") as f:
+            src_rows = list(csv.DictReader(f))
+        for row in src_rows:
+            rel = Path(row["image"])  # images/SPLIT/NAME.jpg
+            split, stem = rel.parts[1], rel.stem
+            links = {
+                rel: Path("images") / split / f"{prefix}__{rel.name}",
+                Path("labels") / split / f"{stem}.txt": Path("labels") / split / f"{prefix}__{stem}.txt",
+                Path("depth") / split / f"{stem}.png": Path("depth") / split / f"{prefix}__{stem}.png",
+            }
+            for src_rel, dst_rel in links.items():
+                target = (src / src_rel).resolve()
+                if not target.exists():
+                    continue
+                dst = out_dir / dst_rel
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                if dst.is_symlink() or dst.exists():
+                    dst.unlink()
+                dst.symlink_to(target)
+            rows.append({**row, "image": str(links[rel])})
+            counts[split] = counts.get(split, 0) + 1
+    with (out_dir / "manifest.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=MANIFEST_COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    (out_dir / "intrinsics.json").write_text((sources[0] / "intrinsics.json").read_text())
+    (out_dir / "dataset.yaml").write_text(
+        f"path: {out_dir.resolve()}\ntrain: images/train\nval: images/val\ntest: images/test\n"
+        "names:\n  0: drone\n"
+    )
+    (out_dir / "sources.txt").write_text("".join(f"{src.resolve()}\n" for src in sources))
+    return counts
 
 
 def depth_false_colour(depth_mm: NDArray[np.uint16], max_m: float = 10.0) -> U8:
@@ -313,9 +374,27 @@ def main_dataset(args: argparse.Namespace) -> int:
     if args.count <= 0:
         print("sitl dataset: --count must be positive", file=sys.stderr)
         return 2
-    counts = generate(args.out, args.count, args.seed, getattr(args, "seq_len", 6))
+    counts = generate(
+        args.out,
+        args.count,
+        args.seed,
+        seq_len=getattr(args, "seq_len", 6),
+        profile=getattr(args, "profile", "wide"),
+    )
     per_split = ", ".join(f"{k} {v}" for k, v in counts.items())
     print(f"sitl dataset: wrote {sum(counts.values())} frames to {args.out} ({per_split})")
+    return 0
+
+
+def main_merge(args: argparse.Namespace) -> int:
+    """``sitl dataset-merge``."""
+    try:
+        counts = merge(args.out, list(args.sources))
+    except ValueError as exc:
+        print(f"sitl {exc}", file=sys.stderr)
+        return 2
+    per_split = ", ".join(f"{k} {v}" for k, v in counts.items())
+    print(f"sitl dataset-merge: linked {sum(counts.values())} frames into {args.out} ({per_split})")
     return 0
 
 

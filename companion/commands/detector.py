@@ -40,6 +40,9 @@ def register(sub: Any) -> None:
         "--stop-after", type=int, default=None, help="stop after N epochs of this call (resume later)"
     )
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
+    t.add_argument(
+        "--init", default="", help="start from these weights (.pt weights or a run's checkpoint): fine-tuning"
+    )
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(handler=_train)
 
@@ -90,6 +93,7 @@ def _train(args: argparse.Namespace) -> int:
         device=args.device,
         val_every=args.val_every,
         close_mosaic_epochs=args.close_mosaic,
+        init_weights=args.init,
     )
     try:
         result = train(

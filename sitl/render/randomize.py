@@ -24,6 +24,12 @@ from sitl.render.world import balloon_mesh, bird_mesh, debris_mesh, distractor_v
 
 SPLITS = ("train", "val", "test")
 
+#: ``wide``: every way a small drone shows up in a photo (below, level, above; 1-20 m; anywhere in the
+#: frame). ``formation``: the follower's own view in flight (camera within about 15 deg of level, the leader
+#: 2-15 m away near the middle of the image, usually the f450 the simulator flies), so the detector sees
+#: the case the closed loop lives in (a dark airframe against ground, horizon and tree line) often enough.
+PROFILES = ("wide", "formation")
+
 
 def split_of(seed: int, index: int) -> str:
     """Train, val or test for sequence ``index``: 8/1/1 in every block of ten, shuffled by the seed."""
@@ -158,10 +164,16 @@ def sample_visual(rng: np.random.Generator) -> VisualConfig:
     )
 
 
-def _camera_rotation(rng: np.random.Generator) -> Mat3:
-    """A camera orientation biased to look up or level (sky backgrounds), sometimes down."""
+def _camera_rotation(rng: np.random.Generator, profile: str = "wide") -> Mat3:
+    """A camera orientation biased to look up or level (sky backgrounds), sometimes down.
+
+    For the ``formation`` profile, a follower's: mount tilt plus flight attitude, within 15 deg of level.
+    """
     r = rng.random()
-    pitch = rng.uniform(5, 40) if r < 0.45 else (rng.uniform(-8, 8) if r < 0.8 else rng.uniform(-40, -8))
+    if profile == "formation":
+        pitch = float(np.clip(rng.normal(2.0, 6.0), -15.0, 15.0))
+    else:
+        pitch = rng.uniform(5, 40) if r < 0.45 else (rng.uniform(-8, 8) if r < 0.8 else rng.uniform(-40, -8))
     R_ned_body = R_from_euler(
         math.radians(float(np.clip(rng.normal(0, 5), -15, 15))),
         math.radians(pitch),
@@ -307,15 +319,29 @@ def _occluder_between(
     return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size, yaw_deg=yaw)
 
 
-def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> SequenceSpec:
-    """Sequence ``index`` of a dataset with ``seed``: the same whatever the dataset's size."""
+def sample_sequence(
+    seed: int, index: int, n_frames: int, intr: Intrinsics, profile: str = "wide"
+) -> SequenceSpec:
+    """Sequence ``index`` of a dataset with ``seed``: the same whatever the dataset's size.
+
+    ``profile`` is one of :data:`PROFILES`; both draw light, weather, world, distractors and occluders
+    the same way.
+    """
+    if profile not in PROFILES:
+        raise ValueError(f"unknown dataset profile {profile!r} (one of {', '.join(PROFILES)})")
+    formation = profile == "formation"
     rng = np.random.default_rng([seed, index])
     split = split_of(seed, index)
     visual = sample_visual(rng)
+    if formation and rng.random() < 0.5:
+        visual = visual.model_copy(update={"leader": LeaderLook(rotor_rpm=float(rng.uniform(3000, 9000)))})
     a = rng.random()
-    alt = rng.uniform(1.2, 2.5) if a < 0.25 else (rng.uniform(3, 30) if a < 0.75 else rng.uniform(30, 80))
+    if formation:
+        alt = rng.uniform(2.0, 8.0) if a < 0.6 else rng.uniform(8.0, 30.0)
+    else:
+        alt = rng.uniform(1.2, 2.5) if a < 0.25 else (rng.uniform(3, 30) if a < 0.75 else rng.uniform(30, 80))
     p_cam0 = np.array([rng.uniform(-10, 10), rng.uniform(-10, 10), -alt])
-    R0 = _camera_rotation(rng)
+    R0 = _camera_rotation(rng, profile)
     # The view drifts slowly across the sequence (so the leader stays in it); motion blur comes from a
     # separate, sometimes fast, turn rate during each exposure (a shaking or turning follower).
     drift = rng.normal(0.0, math.radians(4.0), 3)
@@ -336,10 +362,13 @@ def sample_sequence(seed: int, index: int, n_frames: int, intr: Intrinsics) -> S
         p_leader0 = np.zeros(3)
         # 1-20 m, but never so far that the airframe spans fewer than ~8 px (a micro quad: 7 m).
         far_m = min(20.0, max(3.0, intr.fx_px * visual.leader.resolved_span_m / 8.0))
+        near_m = 1.0
+        if formation:  # a follower flies 2-15 m behind; it keeps the leader near the image centre
+            near_m, far_m = 2.0, min(far_m, 15.0)
         for _ in range(20):
-            rng_m = _log_uniform(rng, 1.0, far_m) if rng.random() < 0.5 else rng.uniform(1.0, far_m)
-            edge = rng.random() < 0.12
-            lo, hi = (-0.15, 1.15) if edge else (0.02, 0.98)
+            rng_m = _log_uniform(rng, near_m, far_m) if rng.random() < 0.5 else rng.uniform(near_m, far_m)
+            edge = rng.random() < (0.05 if formation else 0.12)
+            lo, hi = (-0.15, 1.15) if edge else ((0.2, 0.8) if formation else (0.02, 0.98))
             u, v = rng.uniform(lo, hi) * intr.width_px, rng.uniform(lo, hi) * intr.height_px
             d = K_inv @ np.array([u, v, 1.0])
             p_leader0 = cameras[0].p_ned_cam_m + cameras[0].R_ned_cam @ (rng_m * d / np.linalg.norm(d))

@@ -71,6 +71,9 @@ class TrainConfig:
     max_val_images: int = 600
     #: Limit the training images (0: all); for smoke tests.
     max_train_images: int = 0
+    #: Start a new run from these weights (a shipped ``.pt`` or a run's checkpoint; its EMA is taken),
+    #: e.g. to fine-tune on a larger dataset. Empty: random initialisation.
+    init_weights: str = ""
     spec: ModelSpec = field(default_factory=ModelSpec)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
@@ -169,6 +172,25 @@ class ModelEMA:
                 v.mul_(d).add_(msd[k].detach(), alpha=1 - d)
             else:
                 v.copy_(msd[k])
+
+
+def _init_from(model: nn.Module, ema: ModelEMA, path: Path, device: torch.device) -> None:
+    """Load the weights of ``path`` (weights file or checkpoint) into the model and its EMA."""
+    blob = torch.load(path, map_location=device, weights_only=False)
+    if not isinstance(blob, dict):
+        raise ValueError(f"--init: {path} is neither detector weights nor a training checkpoint")
+    if blob.get("format") == CHECKPOINT_FORMAT:
+        state = blob["ema"]
+    elif "state_dict" in blob:
+        state = blob["state_dict"]
+    else:
+        raise ValueError(f"--init: {path} is neither detector weights nor a training checkpoint")
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:
+        raise ValueError(f"--init: {path} does not fit the model spec: {str(exc).splitlines()[0]}") from None
+    ema.ema.load_state_dict(state)
+    log.info("initialised from %s", path)
 
 
 def lr_at(step: int, total_steps: int, warmup_steps: int, cfg: TrainConfig) -> float:
@@ -295,6 +317,8 @@ def train(
         start_epoch, best_map, history = ck["epoch"] + 1, ck["best_map50"], ck["history"]
         log.info("resuming from epoch %d (best val mAP@0.5 %.3f)", start_epoch, best_map)
     else:
+        if cfg.init_weights:
+            _init_from(model, ema, Path(cfg.init_weights), device)
         (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     log.info(
         "training %d params on %s: %d train / %d val images, %d epochs x %d steps",

@@ -73,3 +73,28 @@ def test_resume_refuses_another_spec(tiny_dataset: Path, tmp_path: Path) -> None
 def test_train_and_val_must_not_share_images(tiny_dataset: Path, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="both the train and val"):
         train(_cfg(tiny_dataset, tmp_path / "d", val_split="train"), progress=False)
+
+
+def test_init_starts_a_new_run_from_other_weights(tiny_dataset: Path, tmp_path: Path) -> None:
+    """``--init``: a new run starts from the source's weights (here its shipped ``final.pt``), so after an
+    epoch it is much nearer them than a run from random weights with the same seed is."""
+    train(_cfg(tiny_dataset, tmp_path / "src", epochs=1), progress=False)
+    src = torch.load(tmp_path / "src" / "final.pt", weights_only=True)["state_dict"]
+    init = str(tmp_path / "src" / "final.pt")
+    train(_cfg(tiny_dataset, tmp_path / "ft", epochs=1, seed=6, init_weights=init), progress=False)
+    train(_cfg(tiny_dataset, tmp_path / "fresh", epochs=1, seed=6), progress=False)
+    assert json.loads((tmp_path / "ft" / "config.json").read_text())["init_weights"] == init
+
+    def distance(run: str) -> float:
+        ema = torch.load(tmp_path / run / "last.pt", weights_only=False)["ema"]
+        return sum(float((ema[k] - v).abs().sum()) for k, v in src.items() if v.dtype.is_floating_point)
+
+    d_ft, d_fresh = distance("ft"), distance("fresh")
+    assert 0.0 < d_ft < 0.5 * d_fresh, (d_ft, d_fresh)
+
+
+def test_init_refuses_a_file_that_is_not_weights(tiny_dataset: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "bad.pt"
+    torch.save([1, 2, 3], bad)
+    with pytest.raises(ValueError, match="neither detector weights nor a training checkpoint"):
+        train(_cfg(tiny_dataset, tmp_path / "x", init_weights=str(bad)), progress=False)
