@@ -332,7 +332,7 @@ class FormationLaw:
             max_dv = cfg.max_accel_m_s2 * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
             if n > max_dv:
                 v = self._v_prev + dv * (max_dv / n)
-        v = separation_limit(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, lim)
+        v = separation_limit(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, lim, follower.v_ned_m_s)
         v = geofence_limit(v, follower.p_ned_m, lim)
         v[2] = altitude_limit(float(v[2]), follower.alt_rel_m, lim)
         # Separation wins over max speed: a leader rushing at us may push the command past it.

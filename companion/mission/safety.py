@@ -35,6 +35,9 @@ class SafetyLimits:
     geofence_radius_m: float
     #: Deceleration the barriers count on: half of what the tilt limit allows, for margin, m/s^2.
     brake_m_s2: float
+    #: How long the vehicle keeps its velocity after a new setpoint before it brakes (PX4's velocity loop,
+    #: MPC_XY_VEL_P_ACC = 1.8/s, is a ~0.55 s lag), s: the separation barrier leaves room for it.
+    response_s: float = 0.5
 
     @classmethod
     def from_config(cls, cfg: SafetyConfig, max_accel_m_s2: float) -> SafetyLimits:
@@ -78,12 +81,19 @@ def clamp_speed(v_ned_m_s: Vec3, lim: SafetyLimits) -> Vec3:
 
 
 def separation_limit(
-    v_ned_m_s: Vec3, p_ned_rel_m: Vec3, v_ned_leader_m_s: Vec3 | None, lim: SafetyLimits
+    v_ned_m_s: Vec3,
+    p_ned_rel_m: Vec3,
+    v_ned_leader_m_s: Vec3 | None,
+    lim: SafetyLimits,
+    v_follower_ned_m_s: Vec3 | None = None,
 ) -> Vec3:
     """Remove any closing speed toward the leader beyond what the separation barrier allows.
 
     ``p_ned_rel_m`` is leader minus follower. The closing speed is the follower's velocity toward the leader
-    minus the leader's own velocity along the line of sight (taken as zero when unknown).
+    minus the leader's own velocity along the line of sight (taken as zero when unknown). With the
+    follower's actual velocity, the distance it closes before it answers the setpoint (``response_s``) is
+    taken off the braking distance: a barrier on the setpoint alone let a follower closing at 1.8 m/s come
+    within 1.5 m of the leader (network circle run, after a coast on a wrong prediction).
     """
     d = float(np.linalg.norm(p_ned_rel_m))
     if d < 1e-6:
@@ -92,7 +102,12 @@ def separation_limit(
     v = np.array(v_ned_m_s, dtype=np.float64)
     leader_along = float(np.dot(v_ned_leader_m_s, u)) if v_ned_leader_m_s is not None else 0.0
     closing = float(np.dot(v, u)) - leader_along
-    allowed = barrier_speed_m_s(d - lim.min_separation_m, lim.brake_m_s2)
+    gap_m = d - lim.min_separation_m
+    if v_follower_ned_m_s is not None:
+        closing_now = float(np.dot(v_follower_ned_m_s, u)) - leader_along
+        if closing_now > 0.0:
+            gap_m -= closing_now * lim.response_s
+    allowed = barrier_speed_m_s(gap_m, lim.brake_m_s2)
     if closing > allowed:
         v -= (closing - allowed) * u
     return v

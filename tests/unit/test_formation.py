@@ -191,8 +191,11 @@ def test_velocity_law_never_exceeds_speed_or_closes_inside_the_barrier(
     u = p_rel / d
     v_leader = v_f + v_rel
     closing = float(np.dot(v, u) - np.dot(v_leader, u))
-    assert closing <= barrier_speed_m_s(d - LIM.min_separation_m, LIM.brake_m_s2) + 1e-6
-    if closing < barrier_speed_m_s(d - LIM.min_separation_m, LIM.brake_m_s2) - 1e-6:
+    # The barrier leaves room for the distance closed during the vehicle's response (response_s).
+    closing_now = max(float(np.dot(v_f, u) - np.dot(v_leader, u)), 0.0)
+    allowed = barrier_speed_m_s(d - LIM.min_separation_m - closing_now * LIM.response_s, LIM.brake_m_s2)
+    assert closing <= allowed + 1e-6
+    if closing < allowed - 1e-6:
         # The barrier did not act, so the speed limits hold.
         assert math.hypot(v[0], v[1]) <= LIM.max_speed_m_s + 1e-6
         assert abs(v[2]) <= LIM.max_vertical_speed_m_s + 1e-6
@@ -343,3 +346,24 @@ def test_point_mass_circle_attitude_law() -> None:
     assert rmse < 0.3
     assert worst < 0.6
     assert min_sep > 2.0
+
+
+def _closest_approach(with_actual_velocity: bool) -> float:
+    """A follower with PX4's first-order velocity lag (tau 0.55 s) closing at 1.8 m/s on a leader 3.07 m
+    away that keeps asking to come nearer: the barrier alone has to stop it (the network circle case)."""
+    tau_s, dt_s = 0.55, 0.02
+    p_f, v_f = np.zeros(3), np.array([1.8, 0.0, 0.0])
+    p_l = np.array([3.07, 0.0, 0.0])
+    closest = 10.0
+    for _ in range(400):
+        want = np.array([3.0, 0.0, 0.0])  # a formation law still driving toward the leader
+        v_cmd = separation_limit(want, p_l - p_f, np.zeros(3), LIM, v_f if with_actual_velocity else None)
+        v_f = v_f + (v_cmd - v_f) * (dt_s / tau_s)
+        p_f = p_f + v_f * dt_s
+        closest = min(closest, float(np.linalg.norm(p_l - p_f)))
+    return closest
+
+
+def test_separation_barrier_leaves_room_for_the_vehicles_response() -> None:
+    assert _closest_approach(with_actual_velocity=False) < LIM.min_separation_m - 0.2  # the old barrier
+    assert _closest_approach(with_actual_velocity=True) >= LIM.min_separation_m - 0.05
