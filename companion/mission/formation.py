@@ -451,6 +451,30 @@ class FormationLaw:
         sp = AttitudeSetpoint(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw_sp, thrust_norm=thrust)
         return AttitudeCommand(sp, (float(a[0]), float(a[1]), float(a[2])), v_down_des_m_s, None)
 
+    def coast_velocity(
+        self, v_leader_ned_m_s: Vec3, p_ned_rel_m: Vec3, follower: FollowerState
+    ) -> VelocityBodySetpoint:
+        """Coast with the leader unseen (GPS healthy): its last velocity, level, no closing on its guess.
+
+        The camera is kept on the leader's dead-reckoned bearing. The dead-reckoned leader flies straight
+        on while a real one may turn: closing on it brought a follower from 4.4 m to 1.7 m of a circling
+        leader in 1.5 s (network circle runs). The separation barrier still applies against the
+        dead-reckoned position.
+        """
+        lim = self.limits
+        p = np.asarray(p_ned_rel_m, dtype=np.float64)
+        v_leader = np.asarray(v_leader_ned_m_s, dtype=np.float64)
+        v = clamp_speed(np.array([v_leader[0], v_leader[1], 0.0]), lim)
+        v = separation_limit(v, p, v_leader, lim, follower.v_ned_m_s)
+        v = geofence_limit(v, follower.p_ned_m, lim)
+        v[2] = altitude_limit(float(v[2]), follower.alt_rel_m, lim)
+        v_rel = v_leader - (np.zeros(3) if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s))
+        yaw_rate = self._yaw_rate(slot_error(self.slot, p, v_rel, follower.yaw_rad), follower.yaw_rad)
+        v_body = ned_to_heading(v, follower.yaw_rad)
+        return VelocityBodySetpoint(
+            v_body_m_s=(float(v_body[0]), float(v_body[1]), float(v_body[2])), yaw_rate_rad_s=yaw_rate
+        )
+
     def hover_velocity(self, v_down_m_s: float = 0.0, yaw_rate_rad_s: float = 0.0) -> VelocityBodySetpoint:
         """Stop in place (GPS healthy): zero horizontal velocity, a vertical speed and a yaw rate."""
         return VelocityBodySetpoint(v_body_m_s=(0.0, 0.0, v_down_m_s), yaw_rate_rad_s=yaw_rate_rad_s)

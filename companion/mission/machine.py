@@ -797,13 +797,13 @@ class MissionMachine:
             v_down = self._alt_hold_v_down(veh)
             return self.law.hover_attitude(fol, v_down, self._now_s, yaw_rate_rad_s=scan_rate).setpoint
         if not scanning and self._leader_lost_p_ned_m is not None and self._leader_lost_v_ned_m_s is not None:
-            # Coast: fly the formation on the leader dead-reckoned from its last estimate (GPS is healthy).
+            # Coast: the leader's last velocity, looking where it dead-reckons to (GPS is healthy), without
+            # closing on that guess (see FormationLaw.coast_velocity).
             p_leader = self._leader_lost_p_ned_m + self._leader_lost_v_ned_m_s * t
             p_rel = p_leader - np.array(veh.p_ned_m)
-            v_rel = self._leader_lost_v_ned_m_s - np.array(veh.v_ned_m_s)
-            return self.law.velocity(
-                p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s
-            ).setpoint
+            return self.law.coast_velocity(
+                self._leader_lost_v_ned_m_s, p_rel, self._follower(veh, velocity_valid=True)
+            )
         return self.law.hover_velocity(yaw_rate_rad_s=scan_rate)
 
     def _alt_hold_v_down(self, veh: VehicleState) -> float:

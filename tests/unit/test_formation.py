@@ -367,3 +367,14 @@ def _closest_approach(with_actual_velocity: bool) -> float:
 def test_separation_barrier_leaves_room_for_the_vehicles_response() -> None:
     assert _closest_approach(with_actual_velocity=False) < LIM.min_separation_m - 0.2  # the old barrier
     assert _closest_approach(with_actual_velocity=True) >= LIM.min_separation_m - 0.05
+
+
+def test_coast_keeps_the_leaders_velocity_without_closing_on_its_guess() -> None:
+    """Coasting: the command is the leader's last velocity (levelled), however far the guess says it is."""
+    lw = law()
+    fol = hover(v=(3.0, 0.0, 0.0))
+    far = lw.coast_velocity(np.array([3.0, 0.0, 0.5]), np.array([9.0, 0.0, 0.0]), fol)
+    assert far.v_body_m_s == pytest.approx((3.0, 0.0, 0.0))
+    # Near the bubble and closing, the barrier still brakes.
+    near = lw.coast_velocity(np.array([0.0, 0.0, 0.0]), np.array([2.5, 0.0, 0.0]), hover(v=(1.5, 0.0, 0.0)))
+    assert near.v_body_m_s[0] < 0.5
