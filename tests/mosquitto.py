@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -38,8 +39,12 @@ class Mosquitto:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.conf = self.dir / "mosquitto.conf"
         self.log = self.dir / "mosquitto.log"
+        # Started as root, mosquitto drops to user "mosquitto", which cannot write the persistence database
+        # under root's pytest tmp dir ("Error: Permission denied" at stop): the subscribers' sessions were
+        # then lost across a restart and a flush that beat their reconnect went to nobody (seen in CI).
+        as_root = "user root\n" if hasattr(os, "geteuid") and os.geteuid() == 0 else ""
         self.conf.write_text(
-            f"listener {self.port} 127.0.0.1\n"
+            as_root + f"listener {self.port} 127.0.0.1\n"
             "allow_anonymous true\n"
             "persistence true\n"
             f"persistence_location {self.dir}/\n"
