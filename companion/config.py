@@ -91,6 +91,18 @@ class DetectorConfig(Section):
     conf_threshold: float = Field(0.35, gt=0, lt=1)
     nms_iou: float = Field(0.5, gt=0, lt=1)
     threads: int = Field(2, ge=1, le=64)
+    #: Search a magnified window on the tracked leader first (perception/detector/roi.py): a small leader
+    #: scores far higher at 1.5x than at the whole frame's 0.5x, and the window costs less than the frame.
+    roi_enabled: bool = True
+    #: Window width in box widths (or the box height's equivalent at the frame's aspect ratio).
+    roi_box_multiple: float = Field(3.0, ge=1.5, le=20.0)
+    #: Network input px per window px (capped at ``input_size_px``).
+    roi_magnification: float = Field(1.5, gt=0.1, le=4.0)
+    roi_min_width_px: int = Field(128, ge=64, le=4096)
+    #: A window wider than this fraction of the frame is not worth it: the whole frame is searched.
+    roi_max_frame_fraction: float = Field(0.6, gt=0.0, le=1.0)
+    #: Frames the window survives without a tracked box (missed detections, a short occlusion).
+    roi_hold_frames: int = Field(5, ge=0, le=100)
 
 
 class LeaderConfig(Section):

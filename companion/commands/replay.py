@@ -58,11 +58,11 @@ def _replay(args: argparse.Namespace) -> int:
     from companion.perception.replay import make_detect, run_replay
 
     cfg = load(args)
-    detect = make_detect(
+    stage = make_detect(
         args.detector, cfg, jitter_px=args.box_jitter_px, seed=args.seed, miss_rate=args.miss_rate
     )
     with _open_out(args.out) as out:
-        summary = asyncio.run(run_replay(cfg, args.source, detect, out_csv=out, realtime=args.realtime))
+        summary = asyncio.run(run_replay(cfg, args.source, stage, out_csv=out, realtime=args.realtime))
     for line in summary.lines():
         print(line)
     if args.json:

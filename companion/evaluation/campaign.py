@@ -100,8 +100,9 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
         _require_weights(cfg)
     wall0 = time.perf_counter()
     if spec.harness == "lockstep":
-        detect, description = load_detect(cfg, spec.detector)
-        result = run_lockstep(run_file, spec.seed, cfg, detect, LockstepOptions(progress=progress))
+        stage = load_detect(cfg, spec.detector)
+        description = stage.description
+        result = run_lockstep(run_file, spec.seed, cfg, stage, LockstepOptions(progress=progress))
     else:
         description = "ground-truth boxes (NOT the network)" if spec.detector == "truth" else _describe(cfg)
         result = asyncio.run(
@@ -174,7 +175,12 @@ def _describe(cfg: Any) -> str:
     from companion.perception.detector import choose_runtime  # noqa: PLC0415
 
     runtime, path = choose_runtime(cfg.detector, REPO)
-    return f"{runtime}: {path.relative_to(REPO) if path.is_relative_to(REPO) else path}"
+    roi = (
+        f", {cfg.detector.roi_magnification:g}x window on the tracked leader"
+        if cfg.detector.roi_enabled
+        else ""
+    )
+    return f"{runtime}: {path.relative_to(REPO) if path.is_relative_to(REPO) else path}{roi}"
 
 
 # ---------------------------------------------------------------------- many runs, as child processes

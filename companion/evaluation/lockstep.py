@@ -41,12 +41,11 @@ from companion.mission.machine import MissionMachine
 from companion.mission.runner import MissionRunner
 from companion.mission.types import MissionInputs, StepOutput, Transition
 from companion.perception.pipeline import PerceptionPipeline
-from companion.perception.types import DetectorResult, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 from companion.vehicle.message_link import MessageVehicleLink
 
 log = logging.getLogger(__name__)
 
-DetectFn = Callable[[RgbdFrame], DetectorResult]
 #: Truth samples for crash and landing detection, per sim second.
 TRUTH_RATE_HZ = 50.0
 
@@ -91,17 +90,17 @@ class LockstepRun:
         world: the simulation (``sitl.world.World``) with the scenario loaded; nothing stepped yet.
         renderer: an entered ``sitl.render.renderer.Renderer`` for the follower's camera.
         cfg: the service config the cores are built from (the scenario's overrides applied).
-        detect: the detector on one frame.
+        stage: the detection step (the detector on one frame, and its feedback from the tracker).
         options: harness knobs.
     """
 
     def __init__(
-        self, world: Any, renderer: Any, cfg: Config, detect: DetectFn, options: LockstepOptions
+        self, world: Any, renderer: Any, cfg: Config, stage: DetectStage, options: LockstepOptions
     ) -> None:
         self.world = world
         self.renderer = renderer
         self.cfg = cfg
-        self.detect = detect
+        self.stage = stage
         self.options = options
         sc = world.scenario
         self.scenario = sc
@@ -220,13 +219,14 @@ class LockstepRun:
         leader = None if self.scenario.run.leader_hidden(t_s) else self.world.truth("leader")
         frame = self.renderer.render(follower, leader, t_s)
         c0 = time.perf_counter()
-        result = self.detect(frame)
+        result = self.stage.detect(frame)
         self._in_flight.append(_InFlight(t_s + self.options.perception_latency_s, frame, result, 0.0))
         self._in_flight[-1].compute_ms = (time.perf_counter() - c0) * 1e3
 
     def _deliver(self, item: _InFlight) -> None:
         c0 = time.perf_counter()
         track = self.pipeline.process(item.frame, item.result.detections)
+        self.stage.after_track(track)
         process_ms = (time.perf_counter() - c0) * 1e3
         compute_ms = item.compute_ms + process_ms
         self._compute_ms.append(compute_ms)

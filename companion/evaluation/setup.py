@@ -14,12 +14,12 @@ from pydantic import ValidationError
 
 from companion.config import Config, deep_merge, format_validation_error, read_toml
 from companion.errors import ConfigError
-from companion.evaluation.lockstep import DetectFn, LockstepOptions, LockstepRun, RunResult
+from companion.evaluation.lockstep import LockstepOptions, LockstepRun, RunResult
 from companion.evaluation.log import save_log
 from companion.evaluation.metrics import compute_metrics
 from companion.evaluation.plots import write_plots
 from companion.evaluation.report import build_report, write_report
-from companion.perception.types import RgbdFrame
+from companion.perception.types import DetectStage
 
 log = logging.getLogger(__name__)
 
@@ -67,8 +67,8 @@ def service_config(
         raise ConfigError(f"{base} + scenario [companion]", format_validation_error(exc)) from None
 
 
-def load_detect(cfg: Config, runtime: str) -> tuple[DetectFn, str]:
-    """The per-frame detector and a one-line description; ``runtime`` "truth" uses the simulator's boxes.
+def load_detect(cfg: Config, runtime: str) -> DetectStage:
+    """The per-frame detection; ``runtime`` "truth" uses the simulator's boxes.
 
     "truth" exists to exercise the harness without trained weights: its figures are not vision results,
     and the report says so.
@@ -77,16 +77,10 @@ def load_detect(cfg: Config, runtime: str) -> tuple[DetectFn, str]:
         from companion.perception.evaluate import TruthDetector  # noqa: PLC0415 (only for this mode)
 
         truth = TruthDetector()
-        return truth.detect_frame, "ground-truth boxes (NOT the network)"
-    from companion.perception.detector import load_detector  # noqa: PLC0415 (onnxruntime/torch: heavy)
-    from companion.perception.detector.runtime import describe  # noqa: PLC0415
+        return DetectStage(truth.detect_frame, description="ground-truth boxes (NOT the network)")
+    from companion.perception.detector import detect_stage  # noqa: PLC0415 (onnxruntime/torch: heavy)
 
-    detector = load_detector(cfg.detector, REPO)
-
-    def detect(frame: RgbdFrame) -> Any:
-        return detector.detect(frame.rgb)
-
-    return detect, describe(detector)
+    return detect_stage(cfg.detector, REPO)
 
 
 def sitl_config(cfg: Config, base: Path = SITL_CONFIG) -> Any:
@@ -111,7 +105,7 @@ def run_lockstep(
     path: Path,
     seed: int,
     cfg: Config,
-    detect: DetectFn,
+    stage: DetectStage,
     options: LockstepOptions,
 ) -> RunResult:
     """Fly one scenario file in lockstep (blocking; builds the world and the renderer)."""
@@ -127,7 +121,7 @@ def run_lockstep(
     camera = CameraModel(rate_hz=scenario.run.camera_rate_hz)
     visual = visual_from_mapping(scenario.visual, f"{path} [visual]")
     with Renderer(camera=camera, visual=visual, mount=cfg.camera.mount, seed=seed) as renderer:
-        return asyncio.run(LockstepRun(world, renderer, cfg, detect, options).run())
+        return asyncio.run(LockstepRun(world, renderer, cfg, stage, options).run())
 
 
 def write_run(

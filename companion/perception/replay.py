@@ -17,7 +17,6 @@ import importlib
 import io
 import math
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +36,7 @@ from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.pose import back_project
 from companion.perception.sources import open_source, parse_source
 from companion.perception.transform import AttitudeHistory, CameraGeometry
-from companion.perception.types import DetectorResult, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 
 CSV_FIELDS = [
     "seq",
@@ -78,22 +77,21 @@ CSV_FIELDS = [
 ]
 
 
-Detect = Callable[[RgbdFrame], DetectorResult]
-
-
-def make_detect(kind: str, cfg: Config, *, jitter_px: float, seed: int, miss_rate: float = 0.0) -> Detect:
-    """The detection function for ``--detector``: the configured model, or ground-truth boxes."""
+def make_detect(
+    kind: str, cfg: Config, *, jitter_px: float, seed: int, miss_rate: float = 0.0
+) -> DetectStage:
+    """The detection step for ``--detector``: the configured model, or ground-truth boxes."""
     if kind == "truth":
         oracle = TruthDetector(jitter_px=jitter_px, miss_rate=miss_rate, seed=seed)
-        return oracle.detect_frame
+        return DetectStage(oracle.detect_frame, description="ground-truth boxes")
     try:
         module: Any = importlib.import_module("companion.perception.detector")
     except ModuleNotFoundError as exc:
         if not (exc.name or "").startswith("companion.perception.detector"):
             raise
         raise ModelError("replay: the detector is not in this build; use --detector truth") from None
-    detector = module.load_detector(cfg.detector)
-    return lambda frame: detector.detect(frame.rgb)
+    stage: DetectStage = module.detect_stage(cfg.detector)
+    return stage
 
 
 def _fmt(x: float | None) -> str:
@@ -173,7 +171,7 @@ def evaluate_frame(
 async def run_replay(
     cfg: Config,
     source_spec: str,
-    detect: Detect,
+    stage: DetectStage,
     *,
     out_csv: io.TextIOBase | None = None,
     realtime: bool = False,
@@ -199,12 +197,13 @@ async def run_replay(
             pipeline.attitude.push(stamp_s, q)
         async for frame in src:
             t0 = time.perf_counter()
-            result = detect(frame)
+            result = stage.detect(frame)
             t1 = time.perf_counter()
             measurements = pipeline.measure(frame, result.detections)
             t2 = time.perf_counter()
             state = pipeline.track(frame.stamp_s, measurements)
             t3 = time.perf_counter()
+            stage.after_track(state)
             summary.frames += 1
             summary.add_timing("detector", (t1 - t0) * 1e3)
             summary.add_timing("pose", (t2 - t1) * 1e3)

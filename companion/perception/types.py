@@ -5,10 +5,10 @@ Arrays are not copied when these are built: a frame owns the buffers its source 
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Protocol, Self
+from typing import Any, Protocol, Self
 
 import numpy as np
 from numpy.typing import NDArray
@@ -106,6 +106,24 @@ class DetectorResult:
 
     detections: list[Detection] = field(default_factory=list)
     timing: DetectorTiming | None = None
+
+
+def _no_feedback(_track: Any) -> None:
+    return None
+
+
+@dataclass(frozen=True, slots=True)
+class DetectStage:
+    """The per-frame detection step and its feedback.
+
+    ``detect`` runs on a frame; ``after_track`` gets the tracker's state for that frame (a
+    :class:`companion.estimation.tracker.TrackState`) before the next ``detect``, so a detector can look
+    where the tracked leader is (:mod:`companion.perception.detector.roi`).
+    """
+
+    detect: Callable[[RgbdFrame], DetectorResult]
+    after_track: Callable[[Any], None] = _no_feedback
+    description: str = ""
 
 
 class Detector(Protocol):

@@ -32,7 +32,7 @@ from companion.mission.types import (
     TrackStatus,
     Transition,
 )
-from companion.perception.types import DetectorResult, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 from companion.service.health_checks import CheckResult
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import (
@@ -336,7 +336,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
         if missing:
             raise NotBuiltError("run: not built yet: waiting on " + ", ".join(missing))
         # Cheapest to fail first: the model (exit 2), then the camera (exit 3), then the link.
-        detect = await asyncio.to_thread(load_detect, cfg)  # reads and checks the weights: off the loop
+        stage = await asyncio.to_thread(load_detect, cfg)  # reads and checks the weights: off the loop
         pipeline_mod: Any = importlib.import_module("companion.perception.pipeline")
         sources_mod: Any = importlib.import_module("companion.perception.sources")
         pipeline = pipeline_mod.PerceptionPipeline.from_config(cfg)
@@ -354,13 +354,14 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
         def process(frame: RgbdFrame, result: DetectorResult) -> Any:
             t0_s = time.perf_counter()
             track = pipeline.process(frame, result.detections)
+            stage.after_track(track)
             flight.submit_track(track)
             if on_frame is not None:
                 on_frame(frame, result, track, (time.perf_counter() - t0_s) * 1e3)
             return track
 
         perception: PerceptionLoop[Any] = PerceptionLoop(
-            source, detect, process, clock=ctx.clock, latency=ctx.latency, health=ctx.health
+            source, stage.detect, process, clock=ctx.clock, latency=ctx.latency, health=ctx.health
         )
         return Parts(
             mission=flight,
@@ -376,18 +377,19 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
     return open_parts
 
 
-def load_detect(cfg: Config) -> Callable[[RgbdFrame], DetectorResult]:
-    """The per-frame detection function ``detector.runtime`` selects (blocking: loads the weights)."""
+def load_detect(cfg: Config) -> DetectStage:
+    """The per-frame detection ``detector.runtime`` selects (blocking: loads the weights)."""
     if cfg.detector.runtime == "truth":
         evaluate: Any = importlib.import_module("companion.perception.evaluate")
         truth = evaluate.TruthDetector()
         log.warning(
             "detector: ground-truth boxes from the simulator (detector.runtime = truth), not the network"
         )
-        return truth.detect_frame  # type: ignore[no-any-return]
+        return DetectStage(truth.detect_frame, description="ground-truth boxes")
     detector_mod: Any = importlib.import_module("companion.perception.detector")
-    detector = detector_mod.load_detector(cfg.detector)
-    return lambda frame: detector.detect(frame.rgb)
+    stage: DetectStage = detector_mod.detect_stage(cfg.detector)
+    log.info("detector: %s", stage.description)
+    return stage
 
 
 def autopilot_probe(cfg: Config, timeout_s: float) -> list[CheckResult]:

@@ -13,8 +13,10 @@ from typing import Literal
 
 from companion.config import DetectorConfig
 from companion.errors import ModelError
+from companion.perception.detector.roi import RoiDetector, focus_box
 from companion.perception.detector.runtime import FrameDetector, OnnxEngine
 from companion.perception.detector.weights import verify_model_file
+from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 
 log = logging.getLogger(__name__)
 
@@ -74,3 +76,29 @@ def load_detector(
         engine = TorchEngine(path, cfg.threads, device)
     log.info("detector: %s (%s), input %d px", path.name, chosen, cfg.input_size_px)
     return FrameDetector(engine, cfg.input_size_px, cfg.conf_threshold, cfg.nms_iou)  # type: ignore[arg-type]
+
+
+def detect_stage(
+    cfg: DetectorConfig, root: Path | None = None, runtime: Runtime | None = None, device: str = "cpu"
+) -> DetectStage:
+    """The service's per-frame detection: :func:`load_detector`, and a window on the tracked leader.
+
+    The window (see :mod:`.roi`) is searched first when ``cfg.roi_enabled``.
+    """
+    detector = load_detector(cfg, root, runtime, device)
+    if not cfg.roi_enabled:
+        return DetectStage(lambda frame: detector.detect(frame.rgb), description=_describe(detector, cfg))
+    roi = RoiDetector(detector, cfg)
+
+    def detect(frame: RgbdFrame) -> DetectorResult:
+        return roi.detect(frame.rgb)
+
+    def after_track(track: object) -> None:
+        roi.focus(focus_box(track))
+
+    return DetectStage(detect, after_track, _describe(detector, cfg))
+
+
+def _describe(detector: FrameDetector, cfg: DetectorConfig) -> str:
+    roi = f", {cfg.roi_magnification:g}x window on the tracked leader" if cfg.roi_enabled else ""
+    return f"{detector.runtime} at {detector.input_size_px} px{roi}"

@@ -54,6 +54,10 @@ def nms(boxes: NDArray[np.floating], scores: NDArray[np.floating], iou_threshold
     return order[np.asarray(keep, np.intp)]
 
 
+#: Cell grids cached by :class:`Decoder` (one per input size) before the cache is cleared.
+MAX_GRIDS = 16
+
+
 class Decoder:
     """Decodes raw level maps into boxes in network-input pixels; caches the cell grid per input size."""
 
@@ -61,12 +65,12 @@ class Decoder:
         self.strides = tuple(strides)
         self.reg_max = reg_max
         self._bins = np.arange(reg_max, dtype=np.float32)
-        self._grid_key: tuple[tuple[int, int], ...] = ()
-        self._points: FloatArray = np.empty((0, 2), np.float32)
-        self._stride_col: FloatArray = np.empty((0,), np.float32)
+        # One grid per input size: whole frames and region-of-interest windows alternate (see .roi).
+        self._grids: dict[tuple[tuple[int, int], ...], tuple[FloatArray, FloatArray]] = {}
 
     def _grid(self, shapes: tuple[tuple[int, int], ...]) -> tuple[FloatArray, FloatArray]:
-        if shapes != self._grid_key:
+        grid = self._grids.get(shapes)
+        if grid is None:
             pts, strides = [], []
             for (h, w), s in zip(shapes, self.strides, strict=True):
                 gy, gx = np.meshgrid(
@@ -74,9 +78,10 @@ class Decoder:
                 )
                 pts.append(np.stack(((gx.ravel() + 0.5) * s, (gy.ravel() + 0.5) * s), 1))
                 strides.append(np.full(h * w, s, np.float32))
-            self._points, self._stride_col = np.concatenate(pts), np.concatenate(strides)
-            self._grid_key = shapes
-        return self._points, self._stride_col
+            if len(self._grids) >= MAX_GRIDS:
+                self._grids.clear()
+            grid = self._grids[shapes] = (np.concatenate(pts), np.concatenate(strides))
+        return grid
 
     def __call__(
         self,

@@ -27,6 +27,8 @@ log = logging.getLogger(__name__)
 
 #: ONNX metadata key under which the export stores :class:`ModelInfo` as JSON.
 ONNX_META_KEY = "wingman_detector"
+#: Window letterboxes kept by :meth:`FrameDetector.detect_window` before the cache is cleared.
+MAX_WINDOW_GEOMETRIES = 16
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,6 +118,7 @@ class FrameDetector:
         self.nms_iou = nms_iou
         self.max_det = max_det
         self.letterbox = Letterboxer(input_size_px)
+        self._window_letterbox: dict[tuple[int, int, int], Letterboxer] = {}
         self.decoder = Decoder(engine.info.strides, engine.info.reg_max)
 
     @property
@@ -123,13 +126,36 @@ class FrameDetector:
         return self.engine.name
 
     def detect(self, rgb: RgbImage) -> DetectorResult:
+        return self._run(self.letterbox, rgb, 0, 0)
+
+    def detect_window(
+        self, rgb: RgbImage, window_xywh_px: tuple[int, int, int, int], input_size_px: int
+    ) -> DetectorResult:
+        """Detect in the window ``(x0, y0, w, h)`` (``[x0, x0 + w) x [y0, y0 + h)``) at ``input_size_px``.
+
+        Boxes come back in frame pixels, clipped to the window. One letterbox (and its buffers) per window
+        geometry, so a caller should use few distinct sizes (:mod:`.roi` rounds them).
+        """
+        x0_px, y0_px, w_px, h_px = window_xywh_px
+        key = (w_px, h_px, input_size_px)
+        lb = self._window_letterbox.get(key)
+        if lb is None:
+            if len(self._window_letterbox) >= MAX_WINDOW_GEOMETRIES:
+                self._window_letterbox.clear()
+            lb = self._window_letterbox[key] = Letterboxer(input_size_px)
+        return self._run(lb, rgb[y0_px : y0_px + h_px, x0_px : x0_px + w_px], x0_px, y0_px)
+
+    def _run(self, letterbox: Letterboxer, rgb: RgbImage, dx_px: int, dy_px: int) -> DetectorResult:
         t0 = time.perf_counter()
-        images, geom = self.letterbox(rgb)
+        images, geom = letterbox(rgb)
         t1 = time.perf_counter()
         levels = self.engine(images)
         t2 = time.perf_counter()
         boxes, scores = self.decoder(levels, self.conf_threshold, self.nms_iou, self.max_det)
         boxes_to_source(boxes, geom)
+        if dx_px or dy_px:
+            boxes[:, 0::2] += dx_px
+            boxes[:, 1::2] += dy_px
         dets = [
             Detection((float(b[0]), float(b[1]), float(b[2]), float(b[3])), float(s))
             for b, s in zip(boxes, scores, strict=True)
