@@ -32,6 +32,7 @@ def _bench(args: argparse.Namespace) -> int:
 
     from companion.perception.bench import format_bench, run_bench
     from companion.perception.detector import load_detector
+    from companion.perception.detector.roi import RoiDetector
 
     wanted = [r.strip() for r in args.runtimes.split(",") if r.strip()]
     detectors: dict[str, Any] = {}
@@ -41,6 +42,8 @@ def _bench(args: argparse.Namespace) -> int:
             return 2
         key = "onnxruntime" if name == "onnx" else "torch"
         detectors[f"{key}-cpu"] = load_detector(cfg.detector, runtime=name)
+        if name == "onnx" and cfg.detector.roi_enabled:
+            detectors[f"{key}-cpu+window"] = RoiDetector(detectors[f"{key}-cpu"], cfg.detector)
     if "torch" in wanted and importlib.util.find_spec("torch") is not None:
         import torch
 

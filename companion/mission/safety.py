@@ -35,9 +35,9 @@ class SafetyLimits:
     geofence_radius_m: float
     #: Deceleration the barriers count on: half of what the tilt limit allows, for margin, m/s^2.
     brake_m_s2: float
-    #: How long the vehicle keeps its velocity after a new setpoint before it brakes (PX4's velocity loop,
-    #: MPC_XY_VEL_P_ACC = 1.8/s, is a ~0.55 s lag), s: the separation barrier leaves room for it.
-    response_s: float = 0.5
+    #: How long the vehicle keeps closing after a new setpoint before it brakes, s: the separation barrier
+    #: leaves room for it (``safety.separation_response_s``; see :class:`companion.config.SafetyConfig`).
+    response_s: float = 1.0
 
     @classmethod
     def from_config(cls, cfg: SafetyConfig, max_accel_m_s2: float) -> SafetyLimits:
@@ -52,6 +52,7 @@ class SafetyLimits:
             min_separation_m=cfg.min_separation_m,
             geofence_radius_m=cfg.geofence_radius_m,
             brake_m_s2=brake,
+            response_s=cfg.separation_response_s,
         )
 
     @property

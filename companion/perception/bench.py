@@ -2,11 +2,12 @@
 
 Stages of one frame, each timed separately: decode (PNG -> array; file sources only, a camera delivers
 arrays), preprocess (letterbox + normalise), inference, postprocess (threshold, box decoding, NMS), pose
-(box + depth -> 3D) and filter (tracker step). Every runtime that is available here (torch and ONNX Runtime on
-the CPU; CUDA when present) runs the *same* frames, interleaved frame by frame so that the load of a shared
-machine hits them alike. Figures are p50 / p95 / p99 in ms; ``total`` is the per-frame sum from preprocess to
-filter (the camera path). A stage whose code is not on this branch yet is reported as "not built yet",
-never with a number.
+(box + depth -> 3D) and filter (tracker step). Every runtime that is available here (torch and ONNX Runtime
+on the CPU; CUDA when present) runs the *same* frames, interleaved frame by frame so that the load of a
+shared machine hits them alike. Figures are p50 / p95 / p99 in ms; ``total`` is the per-frame sum from
+preprocess to filter (the camera path). A ``+window`` runtime is the same network searching the window on a
+tracked leader (:mod:`companion.perception.detector.roi`), focused on each frame's leader as the tracker
+would be. A stage whose code is not on this branch yet is reported as "not built yet", never with a number.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.perception.types import Detection, Intrinsics, RgbdFrame
+from companion.perception.types import Detection, GroundTruth, Intrinsics, RgbdFrame
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,13 @@ def synthetic_frames(n: int, seed: int = 0, w_px: int = 640, h_px: int = 480) ->
         depth[max(0, y0) : y1, max(0, x0) : x1] = range_m + rng.normal(
             0, 0.02, (y1 - max(0, y0), x1 - max(0, x0))
         )
-        frames.append(RgbdFrame(img, depth, intr, stamp_s=i / 30.0, seq=i))
+        truth = GroundTruth(
+            (float(max(0, x0)), float(max(0, y0)), float(min(w_px, x1)), float(min(h_px, y1))),
+            1.0,
+            np.array([0.0, 0.0, range_m]),
+            0.0,
+        )
+        frames.append(RgbdFrame(img, depth, intr, stamp_s=i / 30.0, seq=i, truth=truth))
     return frames
 
 
@@ -120,6 +127,9 @@ def run_bench(
             t0 = time.perf_counter()
             decoded = cv2.imdecode(encoded[k], cv2.IMREAD_COLOR)
             t1 = time.perf_counter()
+            if hasattr(det, "focus") and frame.truth is not None:
+                # Tracking mode: the window on the leader, as if the tracker had it in the frame before.
+                det.focus(frame.truth.box_xyxy_px)
             result = det.detect(frame.rgb)
             timing = result.timing
             pose_ms = filt_ms = float("nan")
