@@ -101,8 +101,11 @@ class DetectorConfig(Section):
     roi_min_width_px: int = Field(128, ge=64, le=4096)
     #: A window wider than this fraction of the frame is not worth it: the whole frame is searched.
     roi_max_frame_fraction: float = Field(0.6, gt=0.0, le=1.0)
-    #: Frames the window survives without a tracked box (missed detections, a short occlusion).
-    roi_hold_frames: int = Field(5, ge=0, le=100)
+    #: Confidence threshold inside the window, where the leader is expected (the tracker still gates).
+    roi_conf_threshold: float = Field(0.2, gt=0, lt=1)
+    #: Frames the window survives without a tracked box (missed detections, a short occlusion): about the
+    #: tracker's coast, so a coasting track is looked for where it was.
+    roi_hold_frames: int = Field(15, ge=0, le=100)
 
 
 class LeaderConfig(Section):

@@ -9,7 +9,9 @@ to 0.96-0.98 (window), and the smaller input also costs less (a 128x96 window at
 
 The window follows the box of the measurement that the tracker accepted into a confirmed track, never the
 detector's own best guess, so a false positive cannot steer it. Without such a box, or when the window finds
-nothing usable, the whole frame is searched, in the same call.
+nothing usable, the whole frame is searched, in the same call. Inside the window the confidence threshold is
+lower (``roi_conf_threshold``): the leader is expected there, and the tracker's gate and size prior still
+stand between a box and the estimate.
 """
 
 from __future__ import annotations
@@ -138,7 +140,9 @@ class RoiDetector:
         if win is None:
             return self.inner.detect(rgb)
         self.window_frames += 1
-        first = self.inner.detect_window(rgb, (win.x0_px, win.y0_px, win.w_px, win.h_px), win.input_size_px)
+        first = self.inner.detect_window(
+            rgb, (win.x0_px, win.y0_px, win.w_px, win.h_px), win.input_size_px, self.cfg.roi_conf_threshold
+        )
         kept = [d for d in first.detections if not cut_by_window(d.box_xyxy_px, win, w, h)]
         if kept:
             return DetectorResult(kept, first.timing) if len(kept) < len(first.detections) else first

@@ -126,14 +126,19 @@ class FrameDetector:
         return self.engine.name
 
     def detect(self, rgb: RgbImage) -> DetectorResult:
-        return self._run(self.letterbox, rgb, 0, 0)
+        return self._run(self.letterbox, rgb, 0, 0, self.conf_threshold)
 
     def detect_window(
-        self, rgb: RgbImage, window_xywh_px: tuple[int, int, int, int], input_size_px: int
+        self,
+        rgb: RgbImage,
+        window_xywh_px: tuple[int, int, int, int],
+        input_size_px: int,
+        conf_threshold: float | None = None,
     ) -> DetectorResult:
         """Detect in the window ``(x0, y0, w, h)`` (``[x0, x0 + w) x [y0, y0 + h)``) at ``input_size_px``.
 
-        Boxes come back in frame pixels, clipped to the window. One letterbox (and its buffers) per window
+        Boxes come back in frame pixels, clipped to the window; ``conf_threshold`` (default: the detector's)
+        may be lower where the leader is expected. One letterbox (and its buffers) per window
         geometry, so a caller should use few distinct sizes (:mod:`.roi` rounds them).
         """
         x0_px, y0_px, w_px, h_px = window_xywh_px
@@ -143,15 +148,19 @@ class FrameDetector:
             if len(self._window_letterbox) >= MAX_WINDOW_GEOMETRIES:
                 self._window_letterbox.clear()
             lb = self._window_letterbox[key] = Letterboxer(input_size_px)
-        return self._run(lb, rgb[y0_px : y0_px + h_px, x0_px : x0_px + w_px], x0_px, y0_px)
+        window = rgb[y0_px : y0_px + h_px, x0_px : x0_px + w_px]
+        conf = self.conf_threshold if conf_threshold is None else conf_threshold
+        return self._run(lb, window, x0_px, y0_px, conf)
 
-    def _run(self, letterbox: Letterboxer, rgb: RgbImage, dx_px: int, dy_px: int) -> DetectorResult:
+    def _run(
+        self, letterbox: Letterboxer, rgb: RgbImage, dx_px: int, dy_px: int, conf_threshold: float
+    ) -> DetectorResult:
         t0 = time.perf_counter()
         images, geom = letterbox(rgb)
         t1 = time.perf_counter()
         levels = self.engine(images)
         t2 = time.perf_counter()
-        boxes, scores = self.decoder(levels, self.conf_threshold, self.nms_iou, self.max_det)
+        boxes, scores = self.decoder(levels, conf_threshold, self.nms_iou, self.max_det)
         boxes_to_source(boxes, geom)
         if dx_px or dy_px:
             boxes[:, 0::2] += dx_px

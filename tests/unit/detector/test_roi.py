@@ -76,8 +76,10 @@ class _Inner:
         self.calls.append("whole")
         return DetectorResult(list(self.whole), DetectorTiming(1.0, 8.0, 0.5))
 
-    def detect_window(self, rgb: np.ndarray, xywh: tuple[int, int, int, int], size: int) -> DetectorResult:
-        self.calls.append(f"window {xywh} {size}")
+    def detect_window(
+        self, rgb: np.ndarray, xywh: tuple[int, int, int, int], size: int, conf: float | None = None
+    ) -> DetectorResult:
+        self.calls.append(f"window {xywh} {size} {conf}")
         return DetectorResult(list(self.window), DetectorTiming(0.5, 4.0, 0.5))
 
 
@@ -90,6 +92,7 @@ def test_detector_searches_the_window_holds_it_and_falls_back_to_the_frame() -> 
     roi.focus(leader.box_xyxy_px)
     assert roi.detect(rgb).detections == [leader]
     assert inner.calls[-1].startswith("window")
+    assert inner.calls[-1].endswith(f" {CFG.roi_conf_threshold}")  # the window's own, lower threshold
     for _ in range(CFG.roi_hold_frames):  # misses: the window is held
         roi.focus(None)
     roi.detect(rgb)
