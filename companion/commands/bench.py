@@ -21,8 +21,12 @@ def register(sub: Any) -> None:
         "--runtimes", default="torch,onnx", help="comma list: torch, onnx (CUDA added when present)"
     )
     p.add_argument(
-        "--data", default=None, help="folder of 640x480 images to time on instead of synthetic frames"
+        "--data",
+        default=None,
+        help="folder of 640x480 images to time on instead of synthetic frames; with YOLO labels (a "
+        "dataset folder, --split), the +window runtime is focused on each frame's labelled leader",
     )
+    p.add_argument("--split", default=None, help="dataset split under --data (e.g. test)")
     p.set_defaults(handler=_bench)
 
 
@@ -70,15 +74,22 @@ def _frames(args: argparse.Namespace, cfg: Any) -> list[Any]:
         return synthetic_frames(args.frames)
     import numpy as np
 
-    from companion.perception.detector.dataset import IMAGE_SUFFIXES, read_rgb
-    from companion.perception.types import Intrinsics, RgbdFrame
+    from companion.perception.detector.dataset import find_samples, read_labels, read_rgb
+    from companion.perception.types import GroundTruth, Intrinsics, RgbdFrame
 
-    paths = sorted(p for p in Path(args.data).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)[: args.frames]
-    synth = synthetic_frames(len(paths))
+    samples = find_samples(Path(args.data), args.split)[: args.frames]
+    synth = synthetic_frames(len(samples))
     frames = []
-    for i, (p, s) in enumerate(zip(paths, synth, strict=True)):
-        rgb = read_rgb(p)
+    for i, (sample, s) in enumerate(zip(samples, synth, strict=True)):
+        rgb = read_rgb(sample.image_path)
         h, w = rgb.shape[:2]
         depth = s.depth_m if (h, w) == s.depth_m.shape else np.zeros((h, w), np.float32)
-        frames.append(RgbdFrame(rgb, depth, Intrinsics.from_hfov(w, h, 69.0), stamp_s=i / 30.0, seq=i))
+        boxes = read_labels(sample, w, h)
+        truth = None
+        if len(boxes):
+            b = boxes[0]
+            truth = GroundTruth((float(b[0]), float(b[1]), float(b[2]), float(b[3])), 1.0, np.zeros(3), 0.0)
+        frames.append(
+            RgbdFrame(rgb, depth, Intrinsics.from_hfov(w, h, 69.0), stamp_s=i / 30.0, seq=i, truth=truth)
+        )
     return frames

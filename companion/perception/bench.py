@@ -127,9 +127,12 @@ def run_bench(
             t0 = time.perf_counter()
             decoded = cv2.imdecode(encoded[k], cv2.IMREAD_COLOR)
             t1 = time.perf_counter()
-            if hasattr(det, "focus") and frame.truth is not None:
-                # Tracking mode: the window on the leader, as if the tracker had it in the frame before.
-                det.focus(frame.truth.box_xyxy_px)
+            if hasattr(det, "focus"):
+                # Tracking mode: the window on the leader, as if the tracker had it in the frame before;
+                # a frame without a known leader is searched whole.
+                det.reset()
+                if frame.truth is not None and frame.truth.box_xyxy_px is not None:
+                    det.focus(frame.truth.box_xyxy_px)
             result = det.detect(frame.rgb)
             timing = result.timing
             pose_ms = filt_ms = float("nan")
@@ -180,6 +183,10 @@ def run_bench(
             ]
         )
         stages["detections_per_frame"] = round(r.detections / max(1, len(frames)), 3)
+        det = detectors[name]
+        if hasattr(det, "window_frames"):
+            # Cumulative over warm-up and timed frames: the share of windows that fell back to the frame.
+            stages["window_fallback_fraction"] = round(det.fallback_frames / max(1, det.window_frames), 3)
         out["runtimes"][name] = stages
     return out
 
@@ -222,4 +229,10 @@ def format_bench(result: dict[str, Any]) -> str:
         }.get(s, s)
         lines.append(f"{label:<22}" + "".join(cells))
     lines.append(f"total = {' + '.join(result['total_covers'])}")
+    for n in names:
+        fb = result["runtimes"][n].get("window_fallback_fraction")
+        if fb is not None:
+            lines.append(
+                f"{n}: the window found nothing and the whole frame was searched too on {fb:.0%} of frames"
+            )
     return "\n".join(lines)
