@@ -10,8 +10,8 @@ to 0.96-0.98 (window), and the smaller input also costs less (a 128x96 window at
 The window follows the box of the measurement that the tracker accepted into a confirmed track, never the
 detector's own best guess, so a false positive cannot steer it. Without such a box, or when the window finds
 nothing usable, the whole frame is searched, in the same call. Inside the window the confidence threshold is
-lower (``roi_conf_threshold``): the leader is expected there, and the tracker's gate and size prior still
-stand between a box and the estimate.
+lower (``roi_conf_threshold``) when no box passes the usual one, and then for the best box only: the leader is
+expected there, and the tracker's gate and size prior still stand between a box and the estimate.
 """
 
 from __future__ import annotations
@@ -143,7 +143,11 @@ class RoiDetector:
         first = self.inner.detect_window(
             rgb, (win.x0_px, win.y0_px, win.w_px, win.h_px), win.input_size_px, self.cfg.roi_conf_threshold
         )
-        kept = [d for d in first.detections if not cut_by_window(d.box_xyxy_px, win, w, h)]
+        # The window's lower threshold only speaks when nothing in it passes the usual one, and then for one
+        # box, the best: one leader is expected there, not a crowd of weak boxes.
+        usable = [d for d in first.detections if not cut_by_window(d.box_xyxy_px, win, w, h)]
+        floor = self.inner.conf_threshold
+        kept = [d for d in usable if d.score >= floor] or usable[:1]
         if kept:
             return DetectorResult(kept, first.timing) if len(kept) < len(first.detections) else first
         self.fallback_frames += 1

@@ -67,6 +67,7 @@ class _Inner:
 
     runtime = "fake"
     input_size_px = 320
+    conf_threshold = 0.35
 
     def __init__(self, window: list[Detection], whole: list[Detection]) -> None:
         self.window, self.whole = window, whole
@@ -129,3 +130,15 @@ def test_window_boxes_are_in_frame_pixels(shipped_model: Path) -> None:
     for a, b in zip(alone, inside, strict=True):
         assert b.score == pytest.approx(a.score, abs=1e-6)
         assert np.allclose(np.subtract(b.box_xyxy_px, a.box_xyxy_px), (64, 100, 64, 100), atol=1e-3)
+
+
+def test_the_lower_window_threshold_only_speaks_when_nothing_passes_the_usual_one() -> None:
+    leader = Detection((300.0, 200.0, 351.0, 229.0), 0.25)
+    weak = Detection((260.0, 240.0, 280.0, 250.0), 0.22)
+    strong = Detection((250.0, 170.0, 270.0, 180.0), 0.5)
+    roi = RoiDetector(_Inner([leader, weak], []), CFG)  # type: ignore[arg-type]
+    roi.focus(leader.box_xyxy_px)
+    assert roi.detect(np.zeros((480, 640, 3), np.uint8)).detections == [leader]
+    roi = RoiDetector(_Inner([strong, leader, weak], []), CFG)  # type: ignore[arg-type]
+    roi.focus(leader.box_xyxy_px)
+    assert roi.detect(np.zeros((480, 640, 3), np.uint8)).detections == [strong]
