@@ -101,8 +101,13 @@ class DetectorConfig(Section):
     roi_min_width_px: int = Field(128, ge=64, le=4096)
     #: A window wider than this fraction of the frame is not worth it: the whole frame is searched.
     roi_max_frame_fraction: float = Field(0.6, gt=0.0, le=1.0)
-    #: Confidence threshold inside the window, where the leader is expected (the tracker still gates).
-    roi_conf_threshold: float = Field(0.2, gt=0, lt=1)
+    #: Confidence threshold inside the window when no box passes ``conf_threshold`` (the best box only).
+    #: Default: the same, no lowering. 0.2 raised closed-loop recall by 0.02-0.04, but in a leader-occluded
+    #: run the window kept finding the tree behind the hidden leader, the tracker took it, the window
+    #: followed it, and the follower flew past the leader at 1.23 m.
+    roi_conf_threshold: float = Field(0.35, gt=0, lt=1)
+    #: ...and only within this many missed frames of the last tracked box (longer: an occlusion).
+    roi_low_conf_misses: int = Field(3, ge=0, le=100)
     #: Frames the window survives without a tracked box (missed detections, a short occlusion): about the
     #: tracker's coast, so a coasting track is looked for where it was.
     roi_hold_frames: int = Field(15, ge=0, le=100)

@@ -8,10 +8,13 @@ to 0.96-0.98 (window), and the smaller input also costs less (a 128x96 window at
 ~9.3 ms).
 
 The window follows the box of the measurement that the tracker accepted into a confirmed track, never the
-detector's own best guess, so a false positive cannot steer it. Without such a box, or when the window finds
-nothing usable, the whole frame is searched, in the same call. Inside the window the confidence threshold is
-lower (``roi_conf_threshold``) when no box passes the usual one, and then for the best box only: the leader is
-expected there, and the tracker's gate and size prior still stand between a box and the estimate.
+detector's own best guess, so a false positive steers it only if the tracker takes it. Without such a box,
+or when the window finds nothing usable, the whole frame is searched, in the same call. A lower threshold
+inside the window (``roi_conf_threshold``, for the best box, only when none passes the usual one and within
+``roi_low_conf_misses`` frames of the last tracked box) is available but off by default: at 0.2 it raised
+closed-loop recall by 0.02-0.04, but in a network leader-occluded run the window kept finding the tree
+behind the hidden leader, the tracker took it, the window followed it, and the follower flew past the leader
+at 1.23 m.
 """
 
 from __future__ import annotations
@@ -140,8 +143,12 @@ class RoiDetector:
         if win is None:
             return self.inner.detect(rgb)
         self.window_frames += 1
+        # The lower threshold only just after the tracker placed the leader here: once it has missed a few
+        # frames (an occlusion, say), whatever the window holds is no likelier the leader than anything else.
+        fresh = self._misses <= self.cfg.roi_low_conf_misses
+        conf = self.cfg.roi_conf_threshold if fresh else None
         first = self.inner.detect_window(
-            rgb, (win.x0_px, win.y0_px, win.w_px, win.h_px), win.input_size_px, self.cfg.roi_conf_threshold
+            rgb, (win.x0_px, win.y0_px, win.w_px, win.h_px), win.input_size_px, conf
         )
         # The window's lower threshold only speaks when nothing in it passes the usual one, and then for one
         # box, the best: one leader is expected there, not a crowd of weak boxes.

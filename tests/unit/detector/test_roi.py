@@ -12,7 +12,7 @@ from companion.perception.detector import load_detector
 from companion.perception.detector.roi import RoiDetector, RoiWindow, cut_by_window, focus_box, roi_window
 from companion.perception.types import Detection, DetectorResult, DetectorTiming
 
-CFG = DetectorConfig()
+CFG = DetectorConfig(roi_conf_threshold=0.2)  # the lower window threshold on (off by default)
 
 
 def test_window_is_three_box_widths_at_the_frame_aspect_magnified() -> None:
@@ -94,10 +94,15 @@ def test_detector_searches_the_window_holds_it_and_falls_back_to_the_frame() -> 
     assert roi.detect(rgb).detections == [leader]
     assert inner.calls[-1].startswith("window")
     assert inner.calls[-1].endswith(f" {CFG.roi_conf_threshold}")  # the window's own, lower threshold
-    for _ in range(CFG.roi_hold_frames):  # misses: the window is held
+    for _ in range(CFG.roi_low_conf_misses):  # a few misses: the window keeps its lower threshold
+        roi.focus(None)
+    roi.detect(rgb)
+    assert inner.calls[-1].endswith(f" {CFG.roi_conf_threshold}")
+    for _ in range(CFG.roi_hold_frames - CFG.roi_low_conf_misses):  # more: held, at the usual threshold
         roi.focus(None)
     roi.detect(rgb)
     assert inner.calls[-1].startswith("window")
+    assert inner.calls[-1].endswith(" None")
     roi.focus(None)  # one miss too many: whole frames again
     roi.detect(rgb)
     assert inner.calls[-1] == "whole"
