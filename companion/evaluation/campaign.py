@@ -172,15 +172,11 @@ def _require_weights(cfg: Any) -> None:
 
 def _describe(cfg: Any) -> str:
     from companion.evaluation.setup import REPO  # noqa: PLC0415
-    from companion.perception.detector import choose_runtime  # noqa: PLC0415
+    from companion.perception.detector import choose_runtime, window_note  # noqa: PLC0415
 
     runtime, path = choose_runtime(cfg.detector, REPO)
-    roi = (
-        f", {cfg.detector.roi_magnification:g}x window on the tracked leader"
-        if cfg.detector.roi_enabled
-        else ""
-    )
-    return f"{runtime}: {path.relative_to(REPO) if path.is_relative_to(REPO) else path}{roi}"
+    where = path.relative_to(REPO) if path.is_relative_to(REPO) else path
+    return f"{runtime}: {where}{window_note(cfg.detector)}"
 
 
 # ---------------------------------------------------------------------- many runs, as child processes

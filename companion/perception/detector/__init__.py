@@ -14,6 +14,7 @@ from typing import Literal
 from companion.config import DetectorConfig
 from companion.errors import ModelError
 from companion.perception.detector.roi import RoiDetector, focus_box
+from companion.perception.detector.roi import window_note as window_note
 from companion.perception.detector.runtime import FrameDetector, OnnxEngine
 from companion.perception.detector.weights import verify_model_file
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
@@ -100,5 +101,4 @@ def detect_stage(
 
 
 def _describe(detector: FrameDetector, cfg: DetectorConfig) -> str:
-    roi = f", {cfg.roi_magnification:g}x window on the tracked leader" if cfg.roi_enabled else ""
-    return f"{detector.runtime} at {detector.input_size_px} px{roi}"
+    return f"{detector.runtime} at {detector.input_size_px} px{window_note(cfg)}"

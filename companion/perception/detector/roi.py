@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from companion.config import DetectorConfig
+from companion.perception.detector.letterbox import STRIDE
 from companion.perception.detector.runtime import FrameDetector
 from companion.perception.types import DetectorResult, DetectorTiming, RgbImage
 
@@ -68,8 +69,13 @@ def roi_window(
     cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
     wx = int(min(max(round(cx - w / 2.0), 0), frame_w_px - w))
     wy = int(min(max(round(cy - h / 2.0), 0), frame_h_px - h))
-    size = min(cfg.input_size_px, math.ceil(cfg.roi_magnification * w / 32) * 32)
+    size = min(cfg.input_size_px, math.ceil(cfg.roi_magnification * w / STRIDE) * STRIDE)
     return RoiWindow(wx, wy, w, h, size)
+
+
+def window_note(cfg: DetectorConfig) -> str:
+    """What a run's detector description adds for the window ("" when it is off)."""
+    return f", {cfg.roi_magnification:g}x window on the tracked leader" if cfg.roi_enabled else ""
 
 
 def cut_by_window(box_xyxy_px: Box, win: RoiWindow, frame_w_px: int, frame_h_px: int) -> bool:

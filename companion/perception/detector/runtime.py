@@ -13,7 +13,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -177,8 +177,3 @@ class FrameDetector:
         images, geom = self.letterbox(rgb)
         boxes, scores = self.decoder(self.engine(images), conf_threshold, self.nms_iou, self.max_det)
         return boxes_to_source(boxes, geom), scores
-
-
-def describe(detector: Any) -> str:
-    """One line naming the runtime and the input size, for logs."""
-    return f"{getattr(detector, 'runtime', '?')} at {getattr(detector, 'input_size_px', '?')} px"
