@@ -59,13 +59,7 @@ from companion.perception.transform import CameraGeometry, rotate_cov
 
 Mat6 = NDArray[np.float64]
 
-_H = np.hstack([np.eye(3), np.zeros((3, 3))])
-_EYE6 = np.eye(6)
 _EYE3 = np.eye(3)
-_F_DT = np.kron(np.array([[0.0, 1.0], [0.0, 0.0]]), np.eye(3))
-_Q_PP = np.kron(np.array([[1.0, 0.0], [0.0, 0.0]]), np.eye(3))
-_Q_PV = np.kron(np.array([[0.0, 1.0], [1.0, 0.0]]), np.eye(3))
-_Q_VV = np.kron(np.array([[0.0, 0.0], [0.0, 1.0]]), np.eye(3))
 #: Range error (relative) a size-ranged track may carry, added to the gate when depth comes back.
 _SIZE_RANGE_GATE_REL = 0.15
 #: Scores below this are clamped before the log in the selection cost.
@@ -112,6 +106,8 @@ class RelativeEstimate:
     #: The follower's attitude at the estimate's stamp, and the camera mount.
     R_ned_body: Mat3
     camera: CameraGeometry
+    #: The leader's own acceleration, NED m/s^2 (motion model "ca"; None with "cv").
+    a_ned_leader_m_s2: Vec3 | None = None
 
     @property
     def cov_ned_m2(self) -> Mat3:
@@ -222,6 +218,8 @@ class TargetTracker:
         self._size_ranged = False
         #: The follower's velocity at the filter's current time (ego-motion), NED m/s; None if unknown.
         self._v_follower: Vec3 | None = None
+        #: State size: position and velocity (model "cv"), plus the leader's acceleration ("ca").
+        self._n = 9 if cfg.motion_model == "ca" else 6
 
     @property
     def has_track(self) -> bool:
@@ -245,10 +243,10 @@ class TargetTracker:
         if kf is None or not self._confirmed or stamp_s - self._last_meas_s > self.cfg.coast_timeout_s:
             return None
         dt = max(0.0, stamp_s - self._stamp_s)
-        F = _EYE6 + dt * _F_DT
+        F = self._F(dt)
         x = F @ kf.x[:, 0] + self._ego_shift(dt, v_ned_follower_m_s)
         P = F @ kf.P @ F.T + self._Q(dt, x[:3])
-        est = RelativeEstimate(x[:3], x[3:], P, R_ned_body, self.camera)
+        est = RelativeEstimate(x[:3], x[3:6], P[:6, :6], R_ned_body, self.camera)
         return est.p_cam_leader_m, est.cov_cam_m2
 
     def step(
@@ -339,13 +337,16 @@ class TargetTracker:
         return best
 
     def _start(self, stamp_s: float, c: _Candidate) -> None:
-        kf = KalmanFilter(dim_x=6, dim_z=3)
-        kf.x = np.concatenate([c.p_ned_m, np.zeros(3)]).reshape(6, 1)
-        P = np.zeros((6, 6))
+        n = self._n
+        kf = KalmanFilter(dim_x=n, dim_z=3)
+        kf.x = np.concatenate([c.p_ned_m, np.zeros(n - 3)]).reshape(n, 1)
+        P = np.zeros((n, n))
         P[:3, :3] = c.R_ned_m2
-        P[3:, 3:] = np.eye(3) * self.cfg.init_velocity_std_m_s**2
+        P[3:6, 3:6] = _EYE3 * self.cfg.init_velocity_std_m_s**2
+        if n == 9:
+            P[6:, 6:] = _EYE3 * self.cfg.init_accel_std_m_s2**2
         kf.P = P
-        kf.H = _H.copy()
+        kf.H = np.hstack([_EYE3, np.zeros((3, n - 3))])
         self._kf = kf
         self._track_id += 1
         self._stamp_s = self._start_s = self._last_meas_s = stamp_s
@@ -359,37 +360,71 @@ class TargetTracker:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
-        kf.predict(F=_EYE6 + dt * _F_DT, Q=self._Q(dt, kf.x[:3, 0]))
+        kf.predict(F=self._F(dt), Q=self._Q(dt, kf.x[:3, 0]))
         kf.x[:, 0] += self._ego_shift(dt, v_follower)
         self._v_follower = None if v_follower is None else np.asarray(v_follower, dtype=np.float64)
         self._stamp_s = stamp_s
 
     def _ego_shift(self, dt: float, v_follower: Vec3 | None) -> NDArray[np.float64]:
-        """The state change the follower's own velocity change causes over ``dt`` (linear in between)."""
-        shift = np.zeros(6)
+        """The state change the follower's own velocity change causes over ``dt`` (linear in between).
+
+        The acceleration state (model "ca") is the leader's own and is not shifted.
+        """
+        shift = np.zeros(self._n)
         if v_follower is not None and self._v_follower is not None:
             dv = np.asarray(v_follower, dtype=np.float64) - self._v_follower
             shift[:3] = -0.5 * dt * dv
-            shift[3:] = -dv
+            shift[3:6] = -dv
         return shift
 
-    def _Q(self, dt: float, p_ned_m: Vec3) -> Mat6:
-        """Discrete white-noise acceleration, per axis ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q``.
+    def _F(self, dt: float) -> NDArray[np.float64]:
+        """State transition over ``dt`` s: constant velocity, or (model "ca") a Singer acceleration.
 
-        While the track is ranged by box size (beyond the stereo range), the acceleration along the
-        line of sight ``p_ned_m`` has the smaller ``size_range_accel_std_m_s2``: range then comes from
-        ~10 % per-frame measurements and only a smoother radial motion model averages enough of them;
-        across the line of sight the bearing stays precise and ``process_accel_std_m_s2`` applies.
+        Singer: the leader's acceleration decays towards zero with ``accel_tau_s`` between measurements,
+        so a coasting track does not extrapolate a manoeuvre for seconds.
         """
-        q = self.cfg.process_accel_std_m_s2**2
-        Q: Mat6 = (q * dt * dt) * (_Q_PP * (dt * dt / 4.0) + _Q_PV * (dt / 2.0) + _Q_VV)
+        if self._n == 6:
+            return np.kron(np.array([[1.0, dt], [0.0, 1.0]]), _EYE3)
+        tau = self.cfg.accel_tau_s
+        e = math.exp(-dt / tau)
+        per_axis = np.array(
+            [[1.0, dt, tau * tau * (dt / tau - 1.0 + e)], [0.0, 1.0, tau * (1.0 - e)], [0.0, 0.0, e]]
+        )
+        return np.kron(per_axis, _EYE3)
+
+    def _Q(self, dt: float, p_ned_m: Vec3) -> Mat6:
+        """Process noise over ``dt`` s, per axis.
+
+        Model "cv": discrete white-noise acceleration ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q`` with
+        ``q = process_accel_std_m_s2^2``. Model "ca": white-noise jerk, ``jerk_std_m_s3^2`` times
+        ``[[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``.
+
+        While the track is ranged by box size (beyond the stereo range), the noise along the line of
+        sight ``p_ned_m`` is scaled by ``(size_range_accel_std_m_s2 / process_accel_std_m_s2)^2``: range
+        then comes from ~10 % per-frame measurements and only a smoother radial motion model averages
+        enough of them; across the line of sight the bearing stays precise.
+        """
+        cfg = self.cfg
+        if self._n == 6:
+            T = (cfg.process_accel_std_m_s2**2 * dt * dt) * np.array(
+                [[dt * dt / 4.0, dt / 2.0], [dt / 2.0, 1.0]]
+            )
+        else:
+            d2, d3 = dt * dt, dt * dt * dt
+            T = (cfg.jerk_std_m_s3**2) * np.array(
+                [
+                    [d3 * d2 / 20.0, d2 * d2 / 8.0, d3 / 6.0],
+                    [d2 * d2 / 8.0, d3 / 3.0, d2 / 2.0],
+                    [d3 / 6.0, d2 / 2.0, dt],
+                ]
+            )
         r2 = p_ned_m @ p_ned_m
         if not self._size_ranged or r2 <= 0.0:
+            Q: Mat6 = np.kron(T, _EYE3).astype(np.float64)
             return Q
         # Spatial shape I - (1 - k) u u^T with k = (q_los / q)^2: the radial variance scaled down.
-        k = (self.cfg.size_range_accel_std_m_s2 / self.cfg.process_accel_std_m_s2) ** 2
+        k = (cfg.size_range_accel_std_m_s2 / cfg.process_accel_std_m_s2) ** 2
         shape = _EYE3 - ((1.0 - k) / r2) * np.outer(p_ned_m, p_ned_m)
-        T = (q * dt * dt) * np.array([[dt * dt / 4.0, dt / 2.0], [dt / 2.0, 1.0]])
         Qs: Mat6 = np.kron(T, shape).astype(np.float64)
         return Qs
 
@@ -445,4 +480,5 @@ class TargetTracker:
 
     def _estimate(self, kf: KalmanFilter, R_ned_body: Mat3) -> RelativeEstimate:
         x = kf.x[:, 0]
-        return RelativeEstimate(x[:3].copy(), x[3:].copy(), kf.P.copy(), R_ned_body, self.camera)
+        a = x[6:9].copy() if self._n == 9 else None
+        return RelativeEstimate(x[:3].copy(), x[3:6].copy(), kf.P[:6, :6].copy(), R_ned_body, self.camera, a)

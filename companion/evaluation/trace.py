@@ -25,7 +25,7 @@ def leader_estimate(track: TrackState) -> LeaderEstimate | None:
     est = track.estimate
     if est is None or track.last_measurement_s is None:
         return None
-    p, v, cov = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2
+    p, v, cov, a = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2, est.a_ned_leader_m_s2
     return LeaderEstimate(
         stamp_s=float(track.stamp_s),
         status=TrackStatus(track.status.value),
@@ -33,6 +33,7 @@ def leader_estimate(track: TrackState) -> LeaderEstimate | None:
         v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
         last_measurement_s=float(track.last_measurement_s),
         var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
+        a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
     )
 
 

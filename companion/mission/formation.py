@@ -254,8 +254,19 @@ class FormationLaw:
         self._v_leader_prev = None
         self._a_leader = np.zeros(3)
 
-    def _leader_accel(self, v_leader: Vec3 | None, dt: float) -> Vec3:
-        """Low-passed derivative of the leader's estimated velocity, bounded by the law's acceleration cap."""
+    def _leader_accel(self, v_leader: Vec3 | None, dt: float, a_track: Vec3T | None = None) -> Vec3:
+        """The leader's acceleration, bounded by the law's acceleration cap.
+
+        The tracker's estimate ``a_track`` where it has one (motion model "ca"), else the low-passed
+        derivative of the leader's estimated velocity.
+        """
+        limit = self.cfg.max_accel_m_s2
+        if a_track is not None:
+            a = np.array(a_track, dtype=np.float64)
+            n = float(np.linalg.norm(a))
+            self._a_leader = a * (limit / n) if n > limit else a
+            self._v_leader_prev = None if v_leader is None else np.array(v_leader, dtype=np.float64)
+            return self._a_leader
         if v_leader is None:
             self._v_leader_prev = None
             self._a_leader = np.zeros(3)
@@ -265,7 +276,6 @@ class FormationLaw:
             k = dt / (self.cfg.leader_accel_tau_s + dt)
             a = self._a_leader + k * (a_raw - self._a_leader)
             n = float(np.linalg.norm(a))
-            limit = self.cfg.max_accel_m_s2
             self._a_leader = a * (limit / n) if n > limit else a
         self._v_leader_prev = np.array(v_leader, dtype=np.float64)
         return self._a_leader
@@ -307,14 +317,19 @@ class FormationLaw:
         v_ned_rel_m_s: Vec3,
         follower: FollowerState,
         now_s: float,
+        a_leader_ned_m_s2: Vec3T | None = None,
     ) -> VelocityCommand:
-        """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc)."""
+        """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
+
+        ``a_leader_ned_m_s2``: the tracker's estimate of the leader's acceleration (NED, m/s^2), if it
+        makes one; otherwise the law differentiates the leader's velocity.
+        """
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
         err = slot_error(self.slot, p_ned_rel_m, v_ned_rel_m_s, follower.yaw_rad)
         v_rel = np.asarray(v_ned_rel_m_s, dtype=np.float64)
         v_leader = None if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s) + v_rel
-        a_leader = self._leader_accel(v_leader, dt)
+        a_leader = self._leader_accel(v_leader, dt, a_leader_ned_m_s2)
         ff = (
             np.zeros(3)
             if v_leader is None

@@ -660,17 +660,20 @@ class MissionMachine:
         if est is None:
             return None, None, None
         p_rel, v_rel = self._relative_now(est)
-        cmd = self.law.velocity(p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s)
+        cmd = self.law.velocity(
+            p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s, est.a_ned_leader_m_s2
+        )
         return cmd.setpoint, None, cmd.error.error_ned_m
 
     def _relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
         """The estimate brought from its frame's capture instant to now (see :mod:`companion.mission.ego`)."""
+        a_leader = (
+            self.law.leader_accel_ned_m_s2
+            if est.a_ned_leader_m_s2 is None
+            else np.array(est.a_ned_leader_m_s2)
+        )
         rel = self._ego.predict(
-            est.stamp_s,
-            np.array(est.p_ned_rel_m),
-            np.array(est.v_ned_rel_m_s),
-            self._now_s,
-            self.law.leader_accel_ned_m_s2,
+            est.stamp_s, np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s), self._now_s, a_leader
         )
         return rel.p_ned_rel_m, rel.v_ned_rel_m_s
 
@@ -717,7 +720,9 @@ class MissionMachine:
                 self.law.reset()
                 self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
             else:
-                vcmd = self.law.velocity(p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s)
+                vcmd = self.law.velocity(
+                    p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s, est.a_ned_leader_m_s2
+                )
                 return vcmd.setpoint, ext, vcmd.error.error_ned_m
         elif ext is not None and not self._ext_gave_up:
             # Attitude mode while PX4 digests the external fix; switch once it has been valid a while.
@@ -734,7 +739,11 @@ class MissionMachine:
                         MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, "external position accepted"
                     )
                     vcmd = self.law.velocity(
-                        p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s
+                        p_rel,
+                        v_rel,
+                        self._follower(veh, velocity_valid=True),
+                        self._now_s,
+                        est.a_ned_leader_m_s2,
                     )
                     return vcmd.setpoint, ext, vcmd.error.error_ned_m
             else:

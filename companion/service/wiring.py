@@ -108,6 +108,7 @@ def leader_estimate(track: Any) -> LeaderEstimate | None:
     p = est.p_ned_rel_m
     v = est.v_ned_rel_m_s
     cov = est.cov_ned_m2
+    a = est.a_ned_leader_m_s2
     return LeaderEstimate(
         stamp_s=float(track.stamp_s),
         status=TrackStatus(track.status.value),
@@ -115,6 +116,7 @@ def leader_estimate(track: Any) -> LeaderEstimate | None:
         v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
         last_measurement_s=float(track.last_measurement_s),
         var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
+        a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
     )
 
 

@@ -115,6 +115,17 @@ def test_velocity_law_feeds_the_leader_velocity_forward() -> None:
     assert cmd.yaw_rate_rad_s == pytest.approx(0.0)
 
 
+def test_velocity_law_takes_the_trackers_leader_acceleration_bounded() -> None:
+    """With the tracker's acceleration (motion model "ca") the lead is ``leader_accel_ff_s * a``, capped."""
+    lw = law(leader_accel_ff_s=0.5, max_accel_m_s2=3.0)
+    cmd = lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=(2.0, 0.0, 0.0)), 0.0, (1.0, 0.0, 0.0))
+    assert cmd.v_ned_m_s == pytest.approx((2.5, 0.0, 0.0))
+    assert lw.leader_accel_ned_m_s2 == pytest.approx((1.0, 0.0, 0.0))
+    lw.reset()
+    lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=(2.0, 0.0, 0.0)), 0.0, (0.0, 9.0, 0.0))
+    assert lw.leader_accel_ned_m_s2 == pytest.approx((0.0, 3.0, 0.0))
+
+
 def test_velocity_law_yaws_toward_the_leader_with_bearing_rate_feed_forward() -> None:
     lw = law()
     cmd = lw.velocity(np.array([5.0, 0.5, 0.0]), np.array([0.0, 1.0, 0.0]), hover(), 0.0)

@@ -223,3 +223,60 @@ def test_size_ranged_track_has_a_smoother_radial_model_and_takes_depth_back() ->
     assert back.status == TrackStatus.CONFIRMED
     assert back.measurement is not None
     assert back.measurement.range_source == "depth"
+
+
+def _accelerating_leader(t_s: float) -> np.ndarray:
+    """6 m ahead, speeding up north at 1.2 m/s^2 from rest (the leader-start ramp)."""
+    return np.array([6.0 + 0.6 * t_s * t_s, 0.5, 0.0])
+
+
+def _run_ramp(cfg: TrackerConfig, seconds: float = 2.2) -> list[tuple[float, object]]:
+    tracker = TargetTracker(cfg, CAM)
+    rng = np.random.default_rng(7)
+    out = []
+    for k in range(int(seconds / DT)):
+        t = k * DT
+        st_ = tracker.step(t, [meas(noisy_cam(_accelerating_leader(t), LEVEL, rng), t)], LEVEL)
+        out.append((t, st_.estimate))
+    return out
+
+
+def test_constant_velocity_model_reports_no_acceleration() -> None:
+    (_, est), *_ = reversed(_run_ramp(TrackerConfig()))
+    assert est is not None
+    assert est.a_ned_leader_m_s2 is None
+
+
+def test_acceleration_model_follows_a_speeding_leader_with_less_velocity_lag() -> None:
+    """Model "ca" estimates the leader's acceleration; its velocity does not trail the ramp as CV's does."""
+    cv = _run_ramp(TrackerConfig())
+    ca = _run_ramp(TrackerConfig(motion_model="ca", jerk_std_m_s3=1.0))
+
+    def v_err(run: list[tuple[float, object]]) -> float:
+        errs = [abs(est.v_ned_rel_m_s[0] - 1.2 * t) for t, est in run if t > 1.0]  # type: ignore[attr-defined]
+        return float(np.mean(errs))
+
+    a_late = np.array([est.a_ned_leader_m_s2 for t, est in ca if t > 1.0])  # type: ignore[attr-defined]
+    assert abs(a_late[:, 0].mean() - 1.2) < 0.3  # the Singer decay biases it a little low
+    assert abs(a_late[:, 1].mean()) < 0.2
+    assert ca[-1][1].cov_ned.shape == (6, 6)  # type: ignore[attr-defined]
+    assert v_err(ca) < 0.5 * v_err(cv)
+
+
+def test_acceleration_model_decays_the_acceleration_while_coasting() -> None:
+    """Singer decay: a leader unseen for accel_tau_s keeps about 1/e of its last acceleration, not all."""
+    cfg = TrackerConfig(motion_model="ca", jerk_std_m_s3=1.0, accel_tau_s=1.0, coast_timeout_s=2.0)
+    tracker = TargetTracker(cfg, CAM)
+    rng = np.random.default_rng(3)
+    t = 0.0
+    for k in range(int(2.5 / DT)):
+        t = k * DT
+        st_ = tracker.step(t, [meas(noisy_cam(_accelerating_leader(t), LEVEL, rng), t)], LEVEL)
+    assert st_.estimate is not None
+    assert st_.estimate.a_ned_leader_m_s2 is not None
+    a0 = float(st_.estimate.a_ned_leader_m_s2[0])
+    st_ = tracker.step(t + 1.0, [], LEVEL)
+    assert st_.status is TrackStatus.COASTING
+    assert st_.estimate is not None
+    assert st_.estimate.a_ned_leader_m_s2 is not None
+    assert float(st_.estimate.a_ned_leader_m_s2[0]) == pytest.approx(a0 * math.exp(-1.0), rel=1e-6)
