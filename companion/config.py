@@ -169,10 +169,11 @@ class TrackerConfig(Section):
     #: averages enough of them (6-12 m band on the rendered sequences, RMS over 4 box-noise seeds:
     #: 0.24-0.35 m at 1.0, 0.23-0.47 m at 2.0; 0.5 lags a leader turning back).
     size_range_accel_std_m_s2: float = Field(1.0, gt=0)
-    #: "cv": constant velocity (the paper's). "ca": the leader's acceleration is a state too (Singer
-    #: model), so a leader speeding up is followed without the lag of differentiating its velocity.
-    motion_model: Literal["cv", "ca"] = "cv"
-    #: Model "ca": white-noise jerk, m/s^3; the time constant the acceleration decays with between
+    #: A constant-acceleration (Singer) filter beside the track, fed the measurements the track accepts,
+    #: estimates the leader's acceleration for the formation law's lead (instead of the law
+    #: differentiating the leader's velocity). The track, its gate and its estimate stay constant-velocity.
+    leader_accel_filter: bool = False
+    #: That filter's white-noise jerk, m/s^3; the time constant its acceleration decays with between
     #: measurements, s; a new track's acceleration uncertainty, m/s^2.
     jerk_std_m_s3: float = Field(3.0, gt=0)
     accel_tau_s: float = Field(2.0, gt=0)

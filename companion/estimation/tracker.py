@@ -18,6 +18,11 @@ Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurem
    (a size-ranged track gates returning depth with a 15 % range error added);
 4. updates, or coasts: no update, so the covariance grows with the prediction.
 
+Opt-in (``leader_accel_filter``): a constant-acceleration (Singer) filter runs beside the track on the
+measurements the track accepts, with the same ego-motion; the estimate's position, velocity and the
+leader's acceleration then come from it (less lag behind a leader speeding up), while association, gating,
+confirmation and coasting stay the constant-velocity track's. Off by default: see docs/evaluation.md.
+
 :meth:`TargetTracker.predict_cam` gives the predicted camera-frame position at a new frame's stamp
 without changing the track (the pose stage uses it to pick the leader's depth behind an occluder).
 
@@ -106,7 +111,7 @@ class RelativeEstimate:
     #: The follower's attitude at the estimate's stamp, and the camera mount.
     R_ned_body: Mat3
     camera: CameraGeometry
-    #: The leader's own acceleration, NED m/s^2 (motion model "ca"; None with "cv").
+    #: The leader's own acceleration, NED m/s^2 (``leader_accel_filter``; else None).
     a_ned_leader_m_s2: Vec3 | None = None
 
     @property
@@ -218,8 +223,8 @@ class TargetTracker:
         self._size_ranged = False
         #: The follower's velocity at the filter's current time (ego-motion), NED m/s; None if unknown.
         self._v_follower: Vec3 | None = None
-        #: State size: position and velocity (model "cv"), plus the leader's acceleration ("ca").
-        self._n = 9 if cfg.motion_model == "ca" else 6
+        #: The constant-acceleration filter beside the track (``leader_accel_filter``), or None.
+        self._kf_acc: KalmanFilter | None = None
 
     @property
     def has_track(self) -> bool:
@@ -228,6 +233,7 @@ class TargetTracker:
     def reset(self) -> None:
         """Forget the current track (e.g. when the mission starts a new acquisition)."""
         self._kf = None
+        self._kf_acc = None
         self._confirmed = False
         self._window.clear()
         self._hits = 0
@@ -243,10 +249,10 @@ class TargetTracker:
         if kf is None or not self._confirmed or stamp_s - self._last_meas_s > self.cfg.coast_timeout_s:
             return None
         dt = max(0.0, stamp_s - self._stamp_s)
-        F = self._F(dt)
-        x = F @ kf.x[:, 0] + self._ego_shift(dt, v_ned_follower_m_s)
-        P = F @ kf.P @ F.T + self._Q(dt, x[:3])
-        est = RelativeEstimate(x[:3], x[3:6], P[:6, :6], R_ned_body, self.camera)
+        F = self._F(dt, 6)
+        x = F @ kf.x[:, 0] + self._ego_shift(dt, v_ned_follower_m_s, 6)
+        P = F @ kf.P @ F.T + self._Q(dt, x[:3], 6)
+        est = RelativeEstimate(x[:3], x[3:], P, R_ned_body, self.camera)
         return est.p_cam_leader_m, est.cov_cam_m2
 
     def step(
@@ -336,8 +342,8 @@ class TargetTracker:
                 best, best_cost = c, cost
         return best
 
-    def _start(self, stamp_s: float, c: _Candidate) -> None:
-        n = self._n
+    def _new_filter(self, c: _Candidate, n: int) -> KalmanFilter:
+        """A filter of ``n`` states (6: p, v; 9: p, v, a) started at measurement ``c``, at rest."""
         kf = KalmanFilter(dim_x=n, dim_z=3)
         kf.x = np.concatenate([c.p_ned_m, np.zeros(n - 3)]).reshape(n, 1)
         P = np.zeros((n, n))
@@ -347,7 +353,11 @@ class TargetTracker:
             P[6:, 6:] = _EYE3 * self.cfg.init_accel_std_m_s2**2
         kf.P = P
         kf.H = np.hstack([_EYE3, np.zeros((3, n - 3))])
-        self._kf = kf
+        return kf
+
+    def _start(self, stamp_s: float, c: _Candidate) -> None:
+        self._kf = self._new_filter(c, 6)
+        self._kf_acc = self._new_filter(c, 9) if self.cfg.leader_accel_filter else None
         self._track_id += 1
         self._stamp_s = self._start_s = self._last_meas_s = stamp_s
         self._confirmed = False
@@ -360,30 +370,33 @@ class TargetTracker:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
-        kf.predict(F=self._F(dt), Q=self._Q(dt, kf.x[:3, 0]))
-        kf.x[:, 0] += self._ego_shift(dt, v_follower)
+        for f in (kf, self._kf_acc):
+            if f is not None:
+                n = f.dim_x
+                f.predict(F=self._F(dt, n), Q=self._Q(dt, f.x[:3, 0], n))
+                f.x[:, 0] += self._ego_shift(dt, v_follower, n)
         self._v_follower = None if v_follower is None else np.asarray(v_follower, dtype=np.float64)
         self._stamp_s = stamp_s
 
-    def _ego_shift(self, dt: float, v_follower: Vec3 | None) -> NDArray[np.float64]:
+    def _ego_shift(self, dt: float, v_follower: Vec3 | None, n: int) -> NDArray[np.float64]:
         """The state change the follower's own velocity change causes over ``dt`` (linear in between).
 
-        The acceleration state (model "ca") is the leader's own and is not shifted.
+        The acceleration state (``n`` = 9) is the leader's own and is not shifted.
         """
-        shift = np.zeros(self._n)
+        shift = np.zeros(n)
         if v_follower is not None and self._v_follower is not None:
             dv = np.asarray(v_follower, dtype=np.float64) - self._v_follower
             shift[:3] = -0.5 * dt * dv
             shift[3:6] = -dv
         return shift
 
-    def _F(self, dt: float) -> NDArray[np.float64]:
-        """State transition over ``dt`` s: constant velocity, or (model "ca") a Singer acceleration.
+    def _F(self, dt: float, n: int) -> NDArray[np.float64]:
+        """State transition over ``dt`` s: constant velocity (``n`` = 6), or a Singer acceleration (9).
 
         Singer: the leader's acceleration decays towards zero with ``accel_tau_s`` between measurements,
-        so a coasting track does not extrapolate a manoeuvre for seconds.
+        so a filter without measurements does not extrapolate a manoeuvre for seconds.
         """
-        if self._n == 6:
+        if n == 6:
             return np.kron(np.array([[1.0, dt], [0.0, 1.0]]), _EYE3)
         tau = self.cfg.accel_tau_s
         e = math.exp(-dt / tau)
@@ -392,11 +405,12 @@ class TargetTracker:
         )
         return np.kron(per_axis, _EYE3)
 
-    def _Q(self, dt: float, p_ned_m: Vec3) -> Mat6:
+    def _Q(self, dt: float, p_ned_m: Vec3, n: int) -> Mat6:
         """Process noise over ``dt`` s, per axis.
 
-        Model "cv": discrete white-noise acceleration ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q`` with
-        ``q = process_accel_std_m_s2^2``. Model "ca": white-noise jerk, ``jerk_std_m_s3^2`` times
+        Constant velocity (``n`` = 6): discrete white-noise acceleration,
+        ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q`` with ``q = process_accel_std_m_s2^2``. Singer (9):
+        white-noise jerk, ``jerk_std_m_s3^2`` times
         ``[[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``.
 
         While the track is ranged by box size (beyond the stereo range), the noise along the line of
@@ -405,7 +419,7 @@ class TargetTracker:
         enough of them; across the line of sight the bearing stays precise.
         """
         cfg = self.cfg
-        if self._n == 6:
+        if n == 6:
             T = (cfg.process_accel_std_m_s2**2 * dt * dt) * np.array(
                 [[dt * dt / 4.0, dt / 2.0], [dt / 2.0, 1.0]]
             )
@@ -429,9 +443,11 @@ class TargetTracker:
         return Qs
 
     def _update(self, kf: KalmanFilter, c: _Candidate) -> None:
-        kf.update(c.p_ned_m.reshape(3, 1), R=c.R_ned_m2)
+        for f in (kf, self._kf_acc):
+            if f is not None:
+                f.update(c.p_ned_m.reshape(3, 1), R=c.R_ned_m2)
+                f.P = 0.5 * (f.P + f.P.T)
         self._size_ranged = c.meas.range_source == "size"
-        kf.P = 0.5 * (kf.P + kf.P.T)
         self._last_meas_s = self._stamp_s
         self._hits += 1
 
@@ -480,5 +496,10 @@ class TargetTracker:
 
     def _estimate(self, kf: KalmanFilter, R_ned_body: Mat3) -> RelativeEstimate:
         x = kf.x[:, 0]
-        a = x[6:9].copy() if self._n == 9 else None
-        return RelativeEstimate(x[:3].copy(), x[3:6].copy(), kf.P[:6, :6].copy(), R_ned_body, self.camera, a)
+        acc = self._kf_acc
+        if acc is None:
+            return RelativeEstimate(x[:3].copy(), x[3:].copy(), kf.P.copy(), R_ned_body, self.camera)
+        xa = acc.x[:, 0]
+        return RelativeEstimate(
+            xa[:3].copy(), xa[3:6].copy(), acc.P[:6, :6].copy(), R_ned_body, self.camera, xa[6:9].copy()
+        )

@@ -257,8 +257,8 @@ class FormationLaw:
     def _leader_accel(self, v_leader: Vec3 | None, dt: float, a_track: Vec3T | None = None) -> Vec3:
         """The leader's acceleration, bounded by the law's acceleration cap.
 
-        The tracker's estimate ``a_track`` where it has one (motion model "ca"), else the low-passed
-        derivative of the leader's estimated velocity.
+        The tracker's estimate ``a_track`` where it has one (``tracker.leader_accel_filter``), else the
+        low-passed derivative of the leader's estimated velocity.
         """
         limit = self.cfg.max_accel_m_s2
         if a_track is not None:

@@ -37,7 +37,8 @@ class LeaderEstimate:
     last_measurement_s: float
     #: Position covariance diagonal in NED, m^2 (for the external-position fix and logging).
     var_ned_rel_m2: Vec3T = (0.25, 0.25, 0.25)
-    #: The leader's own acceleration, NED m/s^2, when the tracker estimates it (motion model "ca").
+    #: The leader's own acceleration, NED m/s^2, when the tracker estimates it
+    #: (``tracker.leader_accel_filter``).
     a_ned_leader_m_s2: Vec3T | None = None
 
     @property

@@ -248,9 +248,9 @@ def test_constant_velocity_model_reports_no_acceleration() -> None:
 
 
 def test_acceleration_model_follows_a_speeding_leader_with_less_velocity_lag() -> None:
-    """Model "ca" estimates the leader's acceleration; its velocity does not trail the ramp as CV's does."""
+    """The acceleration filter estimates the leader's acceleration; its velocity trails the ramp less."""
     cv = _run_ramp(TrackerConfig())
-    ca = _run_ramp(TrackerConfig(motion_model="ca", jerk_std_m_s3=1.0))
+    ca = _run_ramp(TrackerConfig(leader_accel_filter=True, jerk_std_m_s3=1.0))
 
     def v_err(run: list[tuple[float, object]]) -> float:
         errs = [abs(est.v_ned_rel_m_s[0] - 1.2 * t) for t, est in run if t > 1.0]  # type: ignore[attr-defined]
@@ -265,7 +265,7 @@ def test_acceleration_model_follows_a_speeding_leader_with_less_velocity_lag() -
 
 def test_acceleration_model_decays_the_acceleration_while_coasting() -> None:
     """Singer decay: a leader unseen for accel_tau_s keeps about 1/e of its last acceleration, not all."""
-    cfg = TrackerConfig(motion_model="ca", jerk_std_m_s3=1.0, accel_tau_s=1.0, coast_timeout_s=2.0)
+    cfg = TrackerConfig(leader_accel_filter=True, jerk_std_m_s3=1.0, accel_tau_s=1.0, coast_timeout_s=2.0)
     tracker = TargetTracker(cfg, CAM)
     rng = np.random.default_rng(3)
     t = 0.0
