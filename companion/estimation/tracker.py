@@ -59,6 +59,8 @@ from numpy.typing import NDArray
 
 from companion.config import TrackerConfig
 from companion.frames import Mat3, Vec3
+from companion.mission.types import LeaderEstimate
+from companion.mission.types import TrackStatus as MissionTrackStatus
 from companion.perception.pose import LeaderMeasurement, bearing
 from companion.perception.transform import CameraGeometry, rotate_cov
 
@@ -196,6 +198,22 @@ class TrackState:
     def since_measurement_s(self) -> float:
         """Time since the last accepted measurement, s (inf without a track)."""
         return math.inf if self.last_measurement_s is None else self.stamp_s - self.last_measurement_s
+
+    def leader_estimate(self) -> LeaderEstimate | None:
+        """This state as the mission's input (None without a track): NED, m and m/s, service clock."""
+        est = self.estimate
+        if est is None or self.last_measurement_s is None:
+            return None
+        p, v, cov, a = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2, est.a_ned_leader_m_s2
+        return LeaderEstimate(
+            stamp_s=float(self.stamp_s),
+            status=MissionTrackStatus(self.status.value),
+            p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
+            v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
+            last_measurement_s=float(self.last_measurement_s),
+            var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
+            a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -35,7 +35,7 @@ from companion.config import Config
 from companion.evaluation.log import FlightLog
 from companion.evaluation.plots import Snapshot
 from companion.evaluation.scoring import RunScorer, snapshot_times
-from companion.evaluation.trace import RunObserver, leader_estimate
+from companion.evaluation.trace import RunObserver
 from companion.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.runner import MissionRunner
@@ -231,7 +231,7 @@ class LockstepRun:
         compute_ms = item.compute_ms + process_ms
         self._compute_ms.append(compute_ms)
         self.observer.on_frame(item.frame, item.result, track, process_ms)
-        est = leader_estimate(track)
+        est = track.leader_estimate()
         if est is not None:
             self.runner.submit_leader(est)
         stamp_s = item.frame.stamp_s

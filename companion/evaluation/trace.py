@@ -15,26 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from companion.estimation.tracker import TrackState
-from companion.mission.types import LeaderEstimate, MissionInputs, StepOutput, TrackStatus
+from companion.mission.types import MissionInputs, StepOutput
 from companion.perception.types import Detection, DetectorResult, GroundTruth, RgbdFrame
-
-
-def leader_estimate(track: TrackState) -> LeaderEstimate | None:
-    """The tracker's state as the mission's input (None without a track)."""
-    est = track.estimate
-    if est is None or track.last_measurement_s is None:
-        return None
-    p, v, cov, a = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2, est.a_ned_leader_m_s2
-    return LeaderEstimate(
-        stamp_s=float(track.stamp_s),
-        status=TrackStatus(track.status.value),
-        p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
-        v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
-        last_measurement_s=float(track.last_measurement_s),
-        var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
-        a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
-    )
 
 
 @dataclass(slots=True)
@@ -116,7 +98,7 @@ class RunObserver:
                 f.write(json.dumps(row) + "\n")
 
     def on_frame(self, frame: RgbdFrame, result: DetectorResult, track: Any, process_ms: float) -> None:
-        est = leader_estimate(track)
+        est = track.leader_estimate()
         timing = result.timing
         detector_ms = (
             0.0 if timing is None else timing.preprocess_ms + timing.inference_ms + timing.postprocess_ms

@@ -25,11 +25,9 @@ from companion.mission.formation import Slot
 from companion.mission.machine import MissionMachine
 from companion.mission.runner import MissionRunner
 from companion.mission.types import (
-    LeaderEstimate,
     MissionInputs,
     SharedLeaderPosition,
     StepOutput,
-    TrackStatus,
     Transition,
 )
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
@@ -97,26 +95,6 @@ def vehicle_summary(v: VehicleState, now_s: float) -> VehicleSummary:
         lat_deg=_finite(v.lat_deg) if has_global else None,
         lon_deg=_finite(v.lon_deg) if has_global else None,
         alt_amsl_m=_finite(v.alt_amsl_m) if has_global else None,
-    )
-
-
-def leader_estimate(track: Any) -> LeaderEstimate | None:
-    """Perception's ``TrackState`` as the mission's ``LeaderEstimate`` (None when there is no track)."""
-    est = track.estimate
-    if est is None or track.last_measurement_s is None:
-        return None
-    p = est.p_ned_rel_m
-    v = est.v_ned_rel_m_s
-    cov = est.cov_ned_m2
-    a = est.a_ned_leader_m_s2
-    return LeaderEstimate(
-        stamp_s=float(track.stamp_s),
-        status=TrackStatus(track.status.value),
-        p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
-        v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
-        last_measurement_s=float(track.last_measurement_s),
-        var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
-        a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
     )
 
 
@@ -225,7 +203,7 @@ class FlightAdapter:
     def submit_track(self, track: Any) -> None:
         """Every tracker output: kept for the status, and handed to the mission when there is an estimate."""
         self._track = track
-        est = leader_estimate(track)
+        est = track.leader_estimate()
         if est is not None:
             self.runner.submit_leader(est)
 

@@ -24,7 +24,7 @@ from companion.mission.types import CommandKind
 from companion.perception.transform import CameraGeometry
 from companion.service.status import query_status
 from companion.service.systemd import NotifyConfig, SystemdNotifier
-from companion.service.wiring import FlightAdapter, LinkGcs, leader_estimate, vehicle_summary
+from companion.service.wiring import FlightAdapter, LinkGcs, vehicle_summary
 from companion.telemetry.leader import GeoOrigin
 from companion.telemetry.payloads import LeaderPositionMsg
 from companion.vehicle.types import NEVER_S, FlightMode, LandedState, VehicleState
@@ -56,13 +56,13 @@ def test_track_state_becomes_a_leader_estimate() -> None:
         CameraGeometry.from_mount(MountConfig()),
     )
     track = TrackState(12.0, TrackStatus.COASTING, 1, est, 3.0, 11.8, 9, None)
-    le = leader_estimate(track)
+    le = track.leader_estimate()
     assert le is not None
     assert le.status.value == "coasting"
     assert le.p_ned_rel_m == (5.0, 1.0, -0.5)
     assert le.var_ned_rel_m2 == (0.1, 0.2, 0.3)
     assert le.last_measurement_s == 11.8
-    assert leader_estimate(TrackState(12.0, TrackStatus.LOST, 0, None, 0.0, None, 0, None)) is None
+    assert TrackState(12.0, TrackStatus.LOST, 0, None, 0.0, None, 0, None).leader_estimate() is None
 
 
 class LandingAutopilot(FakeAutopilot):
