@@ -253,6 +253,14 @@ class SafetyConfig(Section):
     #: cornering at 2 m/s (leader-occluded, lockstep, network); 1.0 s kept 2.37 m, formation unchanged.
     separation_response_s: float = Field(1.0, ge=0.0, le=5.0)
     geofence_radius_m: float = Field(200.0, gt=0)
+    #: The depth guard (companion/perception/obstacle.py): the separation barrier also holds against the
+    #: nearest thing in the depth image's central window that is not the tracked leader, taken as static.
+    depth_guard: bool = True
+    #: Only what is nearer than this counts, m; the window's width and height as image fractions; how
+    #: many sampled depth pixels (every 4th) an object needs.
+    depth_guard_range_m: float = Field(4.0, gt=0.5, le=20.0)
+    depth_guard_window_frac: tuple[float, float] = (0.6, 0.3)
+    depth_guard_min_px: int = Field(8, ge=1)
 
 
 class MqttConfig(Section):

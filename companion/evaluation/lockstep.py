@@ -234,6 +234,7 @@ class LockstepRun:
         est = track.leader_estimate()
         if est is not None:
             self.runner.submit_leader(est)
+        self.runner.submit_obstacle(self.pipeline.obstacle(item.frame, track))
         stamp_s = item.frame.stamp_s
         self.scorer.frame(
             stamp_s,

@@ -317,12 +317,15 @@ class FormationLaw:
         v_ned_rel_m_s: Vec3,
         follower: FollowerState,
         now_s: float,
+        *,
         a_leader_ned_m_s2: Vec3T | None = None,
+        obstacle_ned_m: Vec3 | None = None,
     ) -> VelocityCommand:
         """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
 
         ``a_leader_ned_m_s2``: the tracker's estimate of the leader's acceleration (NED, m/s^2), if it
-        makes one; otherwise the law differentiates the leader's velocity.
+        makes one; otherwise the law differentiates the leader's velocity. ``obstacle_ned_m``: the depth
+        guard's nearest thing ahead (relative NED, m), held off like the leader but taken as static.
         """
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
@@ -347,7 +350,7 @@ class FormationLaw:
             max_dv = cfg.max_accel_m_s2 * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
             if n > max_dv:
                 v = self._v_prev + dv * (max_dv / n)
-        v = self._bound(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, follower)
+        v = self._bound(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, follower, obstacle_ned_m)
         # Separation wins over max speed: a leader rushing at us may push the command past it.
         self._v_prev = v
 
@@ -464,16 +467,33 @@ class FormationLaw:
         sp = AttitudeSetpoint(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw_sp, thrust_norm=thrust)
         return AttitudeCommand(sp, (float(a[0]), float(a[1]), float(a[2])), v_down_des_m_s, None)
 
-    def _bound(self, v: Vec3, p_ned_rel_m: Vec3, v_leader: Vec3 | None, follower: FollowerState) -> Vec3:
-        """The velocity laws' last limits, in precedence order: separation, geofence, altitude band."""
+    def _bound(
+        self,
+        v: Vec3,
+        p_ned_rel_m: Vec3,
+        v_leader: Vec3 | None,
+        follower: FollowerState,
+        obstacle_ned_m: Vec3 | None = None,
+    ) -> Vec3:
+        """The velocity laws' last limits, in precedence order: separation, geofence, altitude band.
+
+        Separation holds against the leader (with its velocity) and against the depth guard's obstacle
+        (static: nothing is known of its motion).
+        """
         lim = self.limits
         v = separation_limit(v, p_ned_rel_m, v_leader, lim, follower.v_ned_m_s)
+        if obstacle_ned_m is not None:
+            v = separation_limit(v, obstacle_ned_m, None, lim, follower.v_ned_m_s)
         v = geofence_limit(v, follower.p_ned_m, lim)
         v[2] = altitude_limit(float(v[2]), follower.alt_rel_m, lim)
         return v
 
     def coast_velocity(
-        self, v_leader_ned_m_s: Vec3, p_ned_rel_m: Vec3, follower: FollowerState
+        self,
+        v_leader_ned_m_s: Vec3,
+        p_ned_rel_m: Vec3,
+        follower: FollowerState,
+        obstacle_ned_m: Vec3 | None = None,
     ) -> VelocityBodySetpoint:
         """Coast with the leader unseen (GPS healthy): its last velocity, level, no closing on its guess.
 
@@ -485,7 +505,9 @@ class FormationLaw:
         lim = self.limits
         p = np.asarray(p_ned_rel_m, dtype=np.float64)
         v_leader = np.asarray(v_leader_ned_m_s, dtype=np.float64)
-        v = self._bound(clamp_speed(np.array([v_leader[0], v_leader[1], 0.0]), lim), p, v_leader, follower)
+        v = self._bound(
+            clamp_speed(np.array([v_leader[0], v_leader[1], 0.0]), lim), p, v_leader, follower, obstacle_ned_m
+        )
         v_rel = v_leader - (np.zeros(3) if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s))
         yaw_rate = self._yaw_rate(slot_error(self.slot, p, v_rel, follower.yaw_rad), follower.yaw_rad)
         v_body = ned_to_heading(v, follower.yaw_rad)

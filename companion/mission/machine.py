@@ -93,6 +93,8 @@ DISARM_RETRY_S = 2.0
 GPS_STALE_S = 2.0
 #: Attitude telemetry older than this makes the attitude law unavailable, s.
 ATTITUDE_STALE_S = 0.5
+#: A depth-guard reading older than this is dropped (the camera runs at 15-30 Hz), s.
+OBSTACLE_STALE_S = 0.5
 #: PX4 must report a valid estimate this long before velocity setpoints ride on an external fix, s.
 EXTERNAL_PROBATION_S = 1.0
 #: A shared leader position older than this is not used, s.
@@ -661,9 +663,23 @@ class MissionMachine:
             return None, None, None
         p_rel, v_rel = self._relative_now(est)
         cmd = self.law.velocity(
-            p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s, est.a_ned_leader_m_s2
+            p_rel,
+            v_rel,
+            self._follower(veh, velocity_valid=True),
+            self._now_s,
+            a_leader_ned_m_s2=est.a_ned_leader_m_s2,
+            obstacle_ned_m=self._obstacle_now(inp),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
+
+    def _obstacle_now(self, inp: MissionInputs) -> Vec3 | None:
+        """The depth guard's obstacle relative to the follower now (static: shifted by our own motion)."""
+        ob = inp.obstacle
+        if ob is None or not 0.0 <= self._now_s - ob.stamp_s <= OBSTACLE_STALE_S:
+            return None
+        p = np.array(ob.p_ned_rel_m)
+        disp = self._ego.displacement(ob.stamp_s, self._now_s)
+        return p if disp is None else p - disp
 
     def _relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
         """The estimate brought from its frame's capture instant to now (see :mod:`companion.mission.ego`)."""
@@ -721,7 +737,12 @@ class MissionMachine:
                 self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
             else:
                 vcmd = self.law.velocity(
-                    p_rel, v_rel, self._follower(veh, velocity_valid=True), self._now_s, est.a_ned_leader_m_s2
+                    p_rel,
+                    v_rel,
+                    self._follower(veh, velocity_valid=True),
+                    self._now_s,
+                    a_leader_ned_m_s2=est.a_ned_leader_m_s2,
+                    obstacle_ned_m=self._obstacle_now(inp),
                 )
                 return vcmd.setpoint, ext, vcmd.error.error_ned_m
         elif ext is not None and not self._ext_gave_up:
@@ -743,7 +764,8 @@ class MissionMachine:
                         v_rel,
                         self._follower(veh, velocity_valid=True),
                         self._now_s,
-                        est.a_ned_leader_m_s2,
+                        a_leader_ned_m_s2=est.a_ned_leader_m_s2,
+                        obstacle_ned_m=self._obstacle_now(inp),
                     )
                     return vcmd.setpoint, ext, vcmd.error.error_ned_m
             else:
@@ -811,7 +833,10 @@ class MissionMachine:
             p_leader = self._leader_lost_p_ned_m + self._leader_lost_v_ned_m_s * t
             p_rel = p_leader - np.array(veh.p_ned_m)
             return self.law.coast_velocity(
-                self._leader_lost_v_ned_m_s, p_rel, self._follower(veh, velocity_valid=True)
+                self._leader_lost_v_ned_m_s,
+                p_rel,
+                self._follower(veh, velocity_valid=True),
+                self._obstacle_now(inp),
             )
         return self.law.hover_velocity(yaw_rate_rad_s=scan_rate)
 

@@ -24,6 +24,7 @@ from companion.mission.types import (
     LeaderEstimate,
     MissionInputs,
     MissionState,
+    ObstacleAhead,
     OperatorCommand,
     SharedLeaderPosition,
     StepOutput,
@@ -78,6 +79,7 @@ class MissionRunner:
         self.last_output: StepOutput | None = None
         self._leader: LeaderEstimate | None = None
         self._shared: SharedLeaderPosition | None = None
+        self._obstacle: ObstacleAhead | None = None
         self._start = False
         self._shutdown = False
         self._commands: asyncio.Queue[Command] = asyncio.Queue()
@@ -94,6 +96,10 @@ class MissionRunner:
 
     def submit_leader_shared(self, position: SharedLeaderPosition) -> None:
         self._shared = position
+
+    def submit_obstacle(self, obstacle: ObstacleAhead | None) -> None:
+        """The depth guard's reading for the latest frame (None: nothing near); latest value wins."""
+        self._obstacle = obstacle
 
     def request_start(self) -> None:
         self._start = True
@@ -161,6 +167,7 @@ class MissionRunner:
             vehicle=self.link.snapshot(),
             leader=self._leader,
             leader_shared=self._shared,
+            obstacle=self._obstacle,
             start_requested=self._start,
             shutdown_requested=self._shutdown,
             command_results=results,

@@ -48,6 +48,18 @@ class LeaderEstimate:
 
 
 @dataclass(frozen=True, slots=True)
+class ObstacleAhead:
+    """The nearest thing the depth camera sees ahead that is not the tracked leader (the depth guard).
+
+    ``p_ned_rel_m``: its position minus the follower's, NED axes, m, at ``stamp_s`` (service clock).
+    Taken as static by the separation barrier.
+    """
+
+    stamp_s: float
+    p_ned_rel_m: Vec3T
+
+
+@dataclass(frozen=True, slots=True)
 class SharedLeaderPosition:
     """The leader's own position, shared over MAVLink or MQTT, in the follower's local NED frame, m."""
 
@@ -106,6 +118,8 @@ class MissionInputs:
     vehicle: VehicleState
     leader: LeaderEstimate | None = None
     leader_shared: SharedLeaderPosition | None = None
+    #: The depth guard's latest reading (None: nothing near, or the guard is off).
+    obstacle: ObstacleAhead | None = None
     start_requested: bool = False
     shutdown_requested: bool = False
     command_results: tuple[CommandResult, ...] = ()

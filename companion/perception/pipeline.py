@@ -20,9 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.config import Config, LeaderConfig, PoseConfig, TrackerConfig
+from companion.config import Config, LeaderConfig, PoseConfig, SafetyConfig, TrackerConfig
 from companion.estimation.tracker import TargetTracker, TrackState, TrackStatus
 from companion.frames import Mat3
+from companion.mission.types import ObstacleAhead
+from companion.perception.obstacle import MIN_RANGE_M, nearest_ahead
 from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
 from companion.perception.transform import AttitudeHistory, CameraGeometry, VelocityHistory
 from companion.perception.types import Detection, RgbdFrame
@@ -46,8 +48,12 @@ class PerceptionPipeline:
         tracker: TrackerConfig,
         camera: CameraGeometry,
         attitude: AttitudeHistory | None = None,
+        *,
+        safety: SafetyConfig | None = None,
     ) -> None:
         self.leader = leader
+        #: The depth guard's settings; None or ``depth_guard`` off: :meth:`obstacle` returns None.
+        self.safety = safety
         self.pose_cfg = pose
         self.camera = camera
         self.tracker = TargetTracker(tracker, camera)
@@ -68,7 +74,9 @@ class PerceptionPipeline:
 
     @classmethod
     def from_config(cls, cfg: Config) -> PerceptionPipeline:
-        return cls(cfg.leader, cfg.pose, cfg.tracker, CameraGeometry.from_mount(cfg.camera.mount))
+        return cls(
+            cfg.leader, cfg.pose, cfg.tracker, CameraGeometry.from_mount(cfg.camera.mount), safety=cfg.safety
+        )
 
     def measure(self, frame: RgbdFrame, detections: Sequence[Detection]) -> list[LeaderMeasurement]:
         """Pose stage: the leader's camera-frame position for every detection with a usable range."""
@@ -121,3 +129,41 @@ class PerceptionPipeline:
     def process(self, frame: RgbdFrame, detections: Sequence[Detection]) -> TrackState:
         """Both stages for one frame."""
         return self.track(frame.stamp_s, self.measure(frame, detections))
+
+    def obstacle(self, frame: RgbdFrame, track: TrackState) -> ObstacleAhead | None:
+        """The depth guard after the track stage: the nearest thing ahead that is not the tracked leader.
+
+        The tracked leader is left out where the track puts it (its box, grown by two sigma) and at the range
+        it puts it (plus or minus a span and two sigma): a track on a phantom leaves the real leader in.
+        """
+        g = self.safety
+        if g is None or not g.depth_guard:
+            return None
+        k = frame.intrinsics
+        exclude_xyxy = exclude_range = None
+        est = track.estimate
+        if est is not None:
+            p = est.p_cam_leader_m
+            z = float(p[2])
+            if z > MIN_RANGE_M:
+                cov = est.cov_cam_m2
+                half_m = 0.75 * self.leader.span_m + 2.0 * math.sqrt(max(float(cov[0, 0]), float(cov[1, 1])))
+                u, v = k.fx_px * float(p[0]) / z + k.cx_px, k.fy_px * float(p[1]) / z + k.cy_px
+                hu, hv = k.fx_px * half_m / z, k.fy_px * half_m / z
+                exclude_xyxy = (u - hu, v - hv, u + hu, v + hv)
+                dz = self.leader.span_m + 2.0 * math.sqrt(float(cov[2, 2]))
+                exclude_range = (z - dz, z + dz)
+        p_cam = nearest_ahead(
+            frame.depth_m,
+            k,
+            max_range_m=g.depth_guard_range_m,
+            window_frac=g.depth_guard_window_frac,
+            min_px=g.depth_guard_min_px,
+            exclude_xyxy=exclude_xyxy,
+            exclude_range_m=exclude_range,
+        )
+        if p_cam is None:
+            return None
+        R = self._attitude_at(frame.stamp_s)
+        p_ned = (R if R is not None else self._last_R_ned_body) @ self.camera.cam_to_body(p_cam)
+        return ObstacleAhead(frame.stamp_s, (float(p_ned[0]), float(p_ned[1]), float(p_ned[2])))

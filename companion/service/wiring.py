@@ -336,6 +336,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             track = pipeline.process(frame, result.detections)
             stage.after_track(track)
             flight.submit_track(track)
+            flight.runner.submit_obstacle(pipeline.obstacle(frame, track))
             if on_frame is not None:
                 on_frame(frame, result, track, (time.perf_counter() - t0_s) * 1e3)
             return track

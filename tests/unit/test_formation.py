@@ -116,13 +116,25 @@ def test_velocity_law_feeds_the_leader_velocity_forward() -> None:
 
 
 def test_velocity_law_takes_the_trackers_leader_acceleration_bounded() -> None:
-    """With the tracker's acceleration (motion model "ca") the lead is ``leader_accel_ff_s * a``, capped."""
+    """With the tracker's acceleration the lead is ``leader_accel_ff_s * a``, capped."""
     lw = law(leader_accel_ff_s=0.5, max_accel_m_s2=3.0)
-    cmd = lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=(2.0, 0.0, 0.0)), 0.0, (1.0, 0.0, 0.0))
+    cmd = lw.velocity(
+        np.array([5.0, 0.0, 0.0]),
+        np.zeros(3),
+        hover(v=(2.0, 0.0, 0.0)),
+        0.0,
+        a_leader_ned_m_s2=(1.0, 0.0, 0.0),
+    )
     assert cmd.v_ned_m_s == pytest.approx((2.5, 0.0, 0.0))
     assert lw.leader_accel_ned_m_s2 == pytest.approx((1.0, 0.0, 0.0))
     lw.reset()
-    lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=(2.0, 0.0, 0.0)), 0.0, (0.0, 9.0, 0.0))
+    lw.velocity(
+        np.array([5.0, 0.0, 0.0]),
+        np.zeros(3),
+        hover(v=(2.0, 0.0, 0.0)),
+        0.0,
+        a_leader_ned_m_s2=(0.0, 9.0, 0.0),
+    )
     assert lw.leader_accel_ned_m_s2 == pytest.approx((0.0, 3.0, 0.0))
 
 
@@ -389,3 +401,22 @@ def test_coast_keeps_the_leaders_velocity_without_closing_on_its_guess() -> None
     # Near the bubble and closing, the barrier still brakes.
     near = lw.coast_velocity(np.array([0.0, 0.0, 0.0]), np.array([2.5, 0.0, 0.0]), hover(v=(1.5, 0.0, 0.0)))
     assert near.v_body_m_s[0] < 0.5
+
+
+def test_the_depth_guards_obstacle_is_held_off_as_a_static_object() -> None:
+    """An obstacle 2.5 m ahead: the law may not close on it faster than the barrier allows, leader or not."""
+    lw = law()
+    fol = hover(v=(2.0, 0.0, 0.0))
+    free = lw.velocity(np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0)
+    lw.reset()
+    held = lw.velocity(
+        np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0, obstacle_ned_m=np.array([2.5, 0.0, 0.0])
+    )
+    assert free.v_ned_m_s[0] > 2.0
+    assert held.v_ned_m_s[0] < 0.5 * free.v_ned_m_s[0]
+    # An obstacle behind does not hold the follower back.
+    lw.reset()
+    behind = lw.velocity(
+        np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0, obstacle_ned_m=np.array([-2.5, 0.0, 0.0])
+    )
+    assert behind.v_ned_m_s[0] == pytest.approx(free.v_ned_m_s[0])

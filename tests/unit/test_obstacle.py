@@ -1,0 +1,52 @@
+"""The depth guard's search (pure): what counts as an obstacle ahead, and what is the tracked leader."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.perception.obstacle import nearest_ahead
+from companion.perception.types import Intrinsics
+
+K = Intrinsics.from_hfov(640, 480, 69.0)
+ARGS = {"max_range_m": 4.0, "window_frac": (0.6, 0.3), "min_px": 8}
+
+
+def depth_with(*patches: tuple[int, int, int, int, float], background_m: float = 0.0) -> np.ndarray:
+    """A depth image (m) with rectangles ``(x0, y0, x1, y1, depth)``; the rest ``background_m``."""
+    d = np.full((480, 640), background_m, dtype=np.float32)
+    for x0, y0, x1, y1, z in patches:
+        d[y0:y1, x0:x1] = z
+    return d
+
+
+def test_nothing_near_gives_none() -> None:
+    assert nearest_ahead(depth_with(background_m=0.0), K, **ARGS) is None  # no depth at all
+    assert nearest_ahead(depth_with(background_m=9.0), K, **ARGS) is None  # all beyond the range
+
+
+def test_an_object_ahead_right_is_found_at_its_range_and_bearing() -> None:
+    p = nearest_ahead(depth_with((360, 220, 420, 260, 2.5), background_m=8.0), K, **ARGS)
+    assert p is not None
+    assert p[2] == pytest.approx(2.5)
+    # Somewhere on the patch (the nearest samples of a flat patch are any of its pixels): right of the axis.
+    assert (360 - K.cx_px) / K.fx_px * 2.5 <= p[0] <= (420 - K.cx_px) / K.fx_px * 2.5
+
+
+def test_a_few_stray_pixels_are_not_an_object() -> None:
+    assert nearest_ahead(depth_with((320, 240, 324, 244, 1.0), background_m=8.0), K, **ARGS) is None
+
+
+def test_the_ground_below_the_window_is_not_an_object() -> None:
+    assert nearest_ahead(depth_with((0, 400, 640, 480, 2.0), background_m=8.0), K, **ARGS) is None
+
+
+def test_the_tracked_leader_is_left_out_but_something_nearer_in_its_box_is_not() -> None:
+    box = (300.0, 220.0, 340.0, 260.0)
+    leader = depth_with((305, 225, 335, 255, 3.0), background_m=8.0)
+    assert nearest_ahead(leader, K, exclude_xyxy=box, exclude_range_m=(2.5, 3.5), **ARGS) is None
+    # The track is on a phantom at 3 m, and the real leader shows up in the same direction at 1.5 m.
+    real = depth_with((305, 225, 335, 255, 1.5), background_m=8.0)
+    p = nearest_ahead(real, K, exclude_xyxy=box, exclude_range_m=(2.5, 3.5), **ARGS)
+    assert p is not None
+    assert p[2] == pytest.approx(1.5)
