@@ -255,7 +255,7 @@ class SafetyConfig(Section):
     geofence_radius_m: float = Field(200.0, gt=0)
     #: The depth guard (companion/perception/obstacle.py): the separation barrier also holds against the
     #: nearest thing in the depth image's central window that is not the tracked leader, taken as static.
-    depth_guard: bool = True
+    depth_guard: bool = False
     #: Only what is nearer than this counts, m; the window's width and height as image fractions; how
     #: many sampled depth pixels (every 4th) an object needs.
     depth_guard_range_m: float = Field(4.0, gt=0.5, le=20.0)
