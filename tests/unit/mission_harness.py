@@ -20,6 +20,7 @@ from companion.mission.types import (
     LeaderEstimate,
     MissionInputs,
     MissionState,
+    ObstacleAhead,
     OperatorCommand,
     Reason,
     SharedLeaderPosition,
@@ -155,6 +156,9 @@ class Harness:
         self.leader_p = (5.0, 0.0, 0.0)
         self.leader_v = (0.0, 0.0, 0.0)
         self.shared: tuple[float, float, float] | None = None
+        #: The depth guard's reading offered each step (relative NED, m) and how old it is, s.
+        self.obstacle: tuple[float, float, float] | None = None
+        self.obstacle_age_s = 0.0
         #: One-shot operator command for the next step.
         self.operator: OperatorCommand | None = None
         self._frozen: LeaderEstimate | None = None
@@ -185,6 +189,9 @@ class Harness:
             vehicle=self.ap.state(self.now_s),
             leader=self._leader(),
             leader_shared=shared,
+            obstacle=None
+            if self.obstacle is None
+            else ObstacleAhead(stamp_s=self.now_s - self.obstacle_age_s, p_ned_rel_m=self.obstacle),
             start_requested=self.start,
             shutdown_requested=self.shutdown,
             command_results=tuple(self.results),

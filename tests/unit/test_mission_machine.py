@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import Config, MissionConfig
+from companion.mission.safety import SafetyLimits, barrier_speed_m_s
 from companion.mission.types import (
     CommandKind,
     MissionState,
@@ -869,3 +870,28 @@ def _reasons_of(fn: object, *args: object) -> set[Reason]:
     finally:
         mission_harness.Harness.step = original  # type: ignore[method-assign]
     return collected
+
+
+def test_a_fresh_depth_guard_obstacle_holds_the_follower_back_and_a_stale_one_does_not() -> None:
+    """The leader far ahead pulls the follower forward; an obstacle 2.3 m ahead stops that, unless stale."""
+    cfg = Config()  # the machine uses whatever reading it is given; safety.depth_guard gates the pipeline
+    h = Harness(cfg)
+    h.to_follow()
+    h.leader_p = (9.0, 0.0, 0.0)
+    h.run(1.0)
+    free = h.step().setpoint
+    assert isinstance(free, VelocityBodySetpoint)
+    assert free.v_body_m_s[0] > 1.0
+    h.obstacle = (2.3, 0.0, 0.0)
+    h.run(1.0)
+    held = h.step().setpoint
+    assert isinstance(held, VelocityBodySetpoint)
+    lim = SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2)
+    # The fake vehicle does not move: what is left is the barrier's speed for the 0.3 m beyond min separation.
+    assert held.v_body_m_s[0] <= barrier_speed_m_s(2.3 - lim.min_separation_m, lim.brake_m_s2) + 1e-9
+    assert held.v_body_m_s[0] < 0.7 * free.v_body_m_s[0]
+    h.obstacle_age_s = 1.0  # older than OBSTACLE_STALE_S: dropped
+    h.run(1.0)
+    stale = h.step().setpoint
+    assert isinstance(stale, VelocityBodySetpoint)
+    assert stale.v_body_m_s[0] > 1.0
