@@ -255,12 +255,16 @@ class SafetyConfig(Section):
     geofence_radius_m: float = Field(200.0, gt=0)
     #: The depth guard (companion/perception/obstacle.py): the separation barrier also holds against the
     #: nearest thing in the depth image's central window that is not the tracked leader, taken as static.
-    depth_guard: bool = False
+    depth_guard: bool = True
     #: Only what is nearer than this counts, m; the window's width and height as image fractions; how
     #: many sampled depth pixels (every 4th) an object needs.
     depth_guard_range_m: float = Field(4.0, gt=0.5, le=20.0)
     depth_guard_window_frac: tuple[float, float] = (0.6, 0.3)
     depth_guard_min_px: int = Field(8, ge=1)
+    #: Only what lies within this of the straight path ahead (commanded or flown) is held off, m: a pole
+    #: passed 0.7 m to the side is not an obstacle, a leader 0.2 m off the path is (half a 450-class
+    #: quad's span with its propellers, plus margin).
+    depth_guard_corridor_m: float = Field(0.6, gt=0)
 
 
 class MqttConfig(Section):

@@ -482,7 +482,13 @@ class FormationLaw:
         """
         lim = self.limits
         v = separation_limit(v, p_ned_rel_m, v_leader, lim, follower.v_ned_m_s)
-        if obstacle_ned_m is not None:
+        if obstacle_ned_m is not None and (
+            on_course(obstacle_ned_m, v, lim.corridor_m)
+            or (
+                follower.v_ned_m_s is not None
+                and on_course(obstacle_ned_m, follower.v_ned_m_s, lim.corridor_m)
+            )
+        ):
             v = separation_limit(v, obstacle_ned_m, None, lim, follower.v_ned_m_s)
         v = geofence_limit(v, follower.p_ned_m, lim)
         v[2] = altitude_limit(float(v[2]), follower.alt_rel_m, lim)
@@ -518,6 +524,23 @@ class FormationLaw:
     def hover_velocity(self, v_down_m_s: float = 0.0, yaw_rate_rad_s: float = 0.0) -> VelocityBodySetpoint:
         """Stop in place (GPS healthy): zero horizontal velocity, a vertical speed and a yaw rate."""
         return VelocityBodySetpoint(v_body_m_s=(0.0, 0.0, v_down_m_s), yaw_rate_rad_s=yaw_rate_rad_s)
+
+
+def on_course(p_ned_m: Vec3, v_ned_m_s: Vec3, corridor_m: float) -> bool:
+    """Whether a static point ``p_ned_m`` (relative, m) lies ahead, within ``corridor_m`` of the path.
+
+    The path is the straight line along ``v_ned_m_s``: what the follower would hit, not what it passes beside.
+    """
+    v = np.asarray(v_ned_m_s, dtype=np.float64)
+    speed = float(np.linalg.norm(v))
+    if speed < 1e-3:
+        return False
+    p = np.asarray(p_ned_m, dtype=np.float64)
+    along = float(np.dot(p, v)) / speed
+    if along <= 0.0:
+        return False
+    perp_sq = float(np.dot(p, p)) - along * along
+    return perp_sq < corridor_m * corridor_m
 
 
 def velocity_ned_setpoint(v_ned_m_s: Vec3T, yaw_rad: float) -> VelocityNedSetpoint:

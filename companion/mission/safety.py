@@ -38,6 +38,9 @@ class SafetyLimits:
     #: How long the vehicle keeps closing after a new setpoint before it brakes, s: the separation barrier
     #: leaves room for it (``safety.separation_response_s``; see :class:`companion.config.SafetyConfig`).
     response_s: float = 1.0
+    #: The depth guard holds off only what lies within this of the path ahead, m
+    #: (``safety.depth_guard_corridor_m``).
+    corridor_m: float = 0.6
 
     @classmethod
     def from_config(cls, cfg: SafetyConfig, max_accel_m_s2: float) -> SafetyLimits:
@@ -53,6 +56,7 @@ class SafetyLimits:
             geofence_radius_m=cfg.geofence_radius_m,
             brake_m_s2=brake,
             response_s=cfg.separation_response_s,
+            corridor_m=cfg.depth_guard_corridor_m,
         )
 
     @property

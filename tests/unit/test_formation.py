@@ -16,6 +16,7 @@ from companion.mission.formation import (
     Slot,
     heading_to_ned,
     ned_to_heading,
+    on_course,
     slot_error,
     tilt_from_accel,
 )
@@ -420,3 +421,11 @@ def test_the_depth_guards_obstacle_is_held_off_as_a_static_object() -> None:
         np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0, obstacle_ned_m=np.array([-2.5, 0.0, 0.0])
     )
     assert behind.v_ned_m_s[0] == pytest.approx(free.v_ned_m_s[0])
+
+
+def test_on_course_is_the_corridor_ahead_along_the_velocity() -> None:
+    v = np.array([2.0, 0.0, 0.0])
+    assert on_course(np.array([3.0, 0.2, 0.0]), v, 0.6)  # a leader just off the path
+    assert not on_course(np.array([3.0, 0.9, 0.0]), v, 0.6)  # a pole passed 0.9 m to the side
+    assert not on_course(np.array([-3.0, 0.0, 0.0]), v, 0.6)  # behind
+    assert not on_course(np.array([3.0, 0.0, 0.0]), np.zeros(3), 0.6)  # not moving: nothing to hit
