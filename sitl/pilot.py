@@ -23,8 +23,11 @@ log = logging.getLogger(__name__)
 
 COMP_ONBOARD = 191
 SETPOINT_PERIOD_S = 0.05  # 20 Hz, like MAVSDK's offboard plugin
-# type_mask: position + velocity + yaw (ignore acceleration, force, yaw rate).
-_MASK_POS_VEL_YAW = 64 | 128 | 256 | 512 | 2048
+#: Cap on the path's acceleration sent as feed-forward (m/s^2, PX4's MPC_ACC_HOR): a waypoint corner is a
+#: velocity step whose finite difference would otherwise ask for tens of m/s^2.
+ACCEL_FF_MAX_M_S2 = 3.0
+# type_mask: position + velocity + acceleration + yaw (ignore yaw rate; the force bit clear: accelerations).
+_MASK_POS_VEL_ACC_YAW = 2048
 
 
 class PilotPhase(Enum):
@@ -42,7 +45,9 @@ class TrajectoryPilot:
     """Flies a scenario's leader path through the vehicle's autopilot.
 
     Arms, takes off to ``spec.altitude_m``, holds until ``spec.start_s``, then flies the path in
-    offboard position+velocity control; holds again after ``spec.end_s``.
+    offboard position+velocity+acceleration control, as PX4's own trajectory follower (FlightTaskAuto)
+    feeds its position controller; holds again after ``spec.end_s``. Without the path's acceleration the
+    velocity loop's integrator wound up on each speed ramp and the leader overshot its 2 m/s to 2.49 m/s.
     """
 
     def __init__(self, autopilot: Autopilot, spec: LeaderSpec, trajectory: Trajectory) -> None:
@@ -102,18 +107,33 @@ class TrajectoryPilot:
             log.warning("%s pilot: vehicle disarmed during %s; stopping", self.ap.name, self.phase.value)
             self.phase = PilotPhase.DONE
 
+    def _accel_ff(self, tau_s: float) -> tuple[float, float]:
+        """The path's horizontal acceleration at ``tau_s``, NED m/s^2.
+
+        A central difference over one setpoint period, so every path shape gets it without an analytic
+        second derivative.
+        """
+        h = 0.5 * SETPOINT_PERIOD_S
+        _, _, vn0, ve0, _ = self.trajectory.sample(tau_s - h)
+        _, _, vn1, ve1, _ = self.trajectory.sample(tau_s + h)
+        a_n, a_e = (vn1 - vn0) / (2 * h), (ve1 - ve0) / (2 * h)
+        k = min(1.0, ACCEL_FF_MAX_M_S2 / max(math.hypot(a_n, a_e), 1e-9))
+        return a_n * k, a_e * k
+
     def _stream(self, t_s: float, nav: NavState) -> None:
         if t_s < self._next_sp_s:
             return
         self._next_sp_s = t_s + SETPOINT_PERIOD_S - 1e-9
         if self._anchor is None:
             return
-        n, e, vn, ve, heading = self.trajectory.sample(t_s - self.spec.start_s)
+        tau_s = t_s - self.spec.start_s
+        n, e, vn, ve, heading = self.trajectory.sample(tau_s)
+        an_ff, ae_ff = self._accel_ff(tau_s)
         an, ae, ad = self._anchor
         yaw = heading if self.spec.yaw == "path" else math.radians(self.spec.heading_deg)
         msg = mavlink.MAVLink_set_position_target_local_ned_message(
-            self.ap.time_boot_ms(), self.ap.sysid, 1, mavlink.MAV_FRAME_LOCAL_NED, _MASK_POS_VEL_YAW,
-            an + n, ae + e, ad, vn, ve, 0.0, 0.0, 0.0, 0.0, yaw, 0.0,
+            self.ap.time_boot_ms(), self.ap.sysid, 1, mavlink.MAV_FRAME_LOCAL_NED, _MASK_POS_VEL_ACC_YAW,
+            an + n, ae + e, ad, vn, ve, 0.0, an_ff, ae_ff, 0.0, yaw, 0.0,
         )  # fmt: skip
         self.ap.handle_message(msg, None, self.ap.sysid, COMP_ONBOARD)
         if self._stream_since_s is None:

@@ -347,7 +347,7 @@ class FormationLaw:
         if self._v_prev is not None:
             dv = v - self._v_prev
             n = float(np.linalg.norm(dv))
-            max_dv = cfg.max_accel_m_s2 * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
+            max_dv = cfg.command_slew_m_s2 * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
             if n > max_dv:
                 v = self._v_prev + dv * (max_dv / n)
         v = self._bound(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, follower, obstacle_ned_m)

@@ -158,7 +158,7 @@ def test_acceleration_slew_limits_command_changes() -> None:
     lw.seed_velocity(np.zeros(3))
     lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(), 0.0)
     cmd = lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=(4.0, 0.0, 0.0)), 0.05)
-    assert np.linalg.norm(cmd.v_ned_m_s) <= 3.0 * 0.05 + 1e-9
+    assert np.linalg.norm(cmd.v_ned_m_s) <= FormationConfig().command_slew_m_s2 * 0.05 + 1e-9
 
 
 def test_first_command_after_a_seed_is_slewed() -> None:
@@ -168,7 +168,7 @@ def test_first_command_after_a_seed_is_slewed() -> None:
     lw.seed_velocity(np.array([0.0, 0.0, -1.5]))
     cmd = lw.velocity(np.array([8.0, 0.0, 0.0]), np.zeros(3), hover(v=(0.0, 0.0, -1.5)), 20.0)
     dv = np.asarray(cmd.v_ned_m_s) - np.array([0.0, 0.0, -1.5])
-    assert np.linalg.norm(dv) == pytest.approx(3.0 * 0.05)
+    assert np.linalg.norm(dv) == pytest.approx(FormationConfig().command_slew_m_s2 * 0.05)
 
 
 def test_integrators_are_bounded_and_reset() -> None:
@@ -184,7 +184,7 @@ def test_integrators_are_bounded_and_reset() -> None:
 
 
 def test_integrator_does_not_wind_up_while_saturated() -> None:
-    lw = law(kp_xy=10.0, ki_xy=1.0, i_limit_xy_m_s=2.0, leader_velocity_ff=0.0, max_accel_m_s2=100.0)
+    lw = law(kp_xy=10.0, ki_xy=1.0, i_limit_xy_m_s=2.0, leader_velocity_ff=0.0, command_slew_m_s2=100.0)
     for k in range(100):
         lw.velocity(np.array([30.0, 0.0, 0.0]), np.zeros(3), hover(), k * 0.05)  # saturated at max speed
     assert lw._i_range_m_s == pytest.approx(0.0)
