@@ -47,7 +47,7 @@ class TrajectoryPilot:
     Arms, takes off to ``spec.altitude_m``, holds until ``spec.start_s``, then flies the path in
     offboard position+velocity+acceleration control, as PX4's own trajectory follower (FlightTaskAuto)
     feeds its position controller; holds again after ``spec.end_s``. Without the path's acceleration the
-    velocity loop's integrator wound up on each speed ramp and the leader overshot its 2 m/s to 2.49 m/s.
+    velocity loop's integrator wound up on each speed ramp and the leader overshot its 2 m/s to 2.5 m/s.
     """
 
     def __init__(self, autopilot: Autopilot, spec: LeaderSpec, trajectory: Trajectory) -> None:
