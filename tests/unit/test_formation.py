@@ -171,6 +171,13 @@ def test_first_command_after_a_seed_is_slewed() -> None:
     assert np.linalg.norm(dv) == pytest.approx(FormationConfig().command_slew_m_s2 * 0.05)
 
 
+def test_command_slew_is_its_own_knob_not_the_acceleration_cap() -> None:
+    lw = law(command_slew_m_s2=6.0, max_accel_m_s2=3.0)
+    lw.seed_velocity(np.zeros(3))
+    cmd = lw.velocity(np.array([8.0, 0.0, 0.0]), np.zeros(3), hover(), 20.0)
+    assert np.linalg.norm(cmd.v_ned_m_s) == pytest.approx(6.0 * 0.05)
+
+
 def test_integrators_are_bounded_and_reset() -> None:
     lw = law(kp_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, ki_xy=1.0, i_limit_xy_m_s=0.3)
     out = None
