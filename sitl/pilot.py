@@ -16,6 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.autopilot import Autopilot
 from sitl.modes import MAIN_OFFBOARD, NavState
+from sitl.offboard import MASK_YAW_RATE
 from sitl.scenario import LeaderSpec
 from sitl.trajectory import Trajectory
 
@@ -26,8 +27,8 @@ SETPOINT_PERIOD_S = 0.05  # 20 Hz, like MAVSDK's offboard plugin
 #: Cap on the path's acceleration sent as feed-forward (m/s^2, PX4's MPC_ACC_HOR): a waypoint corner is a
 #: velocity step whose finite difference would otherwise ask for tens of m/s^2.
 ACCEL_FF_MAX_M_S2 = 3.0
-# type_mask: position + velocity + acceleration + yaw (ignore yaw rate; the force bit clear: accelerations).
-_MASK_POS_VEL_ACC_YAW = 2048
+# type_mask: position, velocity, acceleration (force bit clear) and yaw; only the yaw rate ignored.
+_MASK_POS_VEL_ACC_YAW = MASK_YAW_RATE
 
 
 class PilotPhase(Enum):
