@@ -150,6 +150,11 @@ class PoseConfig(Section):
     #: Without depth (beyond the stereo range, a hole), range the leader from its box size, learnt
     #: online from depth measurements at closer range.
     size_fallback: bool = True
+    #: ...but not nearer than this fraction of ``depth_max_m``: a leader that near returns stereo depth
+    #: (the D435i noise model's holes are single pixels), so a box with none there is something beyond
+    #: the cut-off seen past the leader (the tree behind it), not the leader. Judged by the track's
+    #: predicted range when there is a track, else by the box's own size range. 0 turns it off.
+    size_fallback_min_frac: float = Field(0.0, ge=0.0, lt=1.0)
 
 
 class TrackerConfig(Section):

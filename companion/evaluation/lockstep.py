@@ -34,7 +34,7 @@ from companion.clock import ManualClock
 from companion.config import Config
 from companion.evaluation.log import FlightLog
 from companion.evaluation.plots import Snapshot
-from companion.evaluation.scoring import RunScorer, snapshot_times
+from companion.evaluation.scoring import RunScorer
 from companion.evaluation.trace import RunObserver
 from companion.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
@@ -118,12 +118,7 @@ class LockstepRun:
             on_step=self._on_step,
         )
         self.pipeline = PerceptionPipeline.from_config(cfg)
-        window = (sc.run.formation_start_s, sc.run.formation_start_s + sc.run.formation_duration_s)
-        outages = [
-            (o.at_s, None if o.duration_s is None else o.at_s + o.duration_s)
-            for o in sc.faults("follower").gps.outages
-        ]
-        self.scorer = RunScorer(window, outages, snapshot_times(window, options.snapshots))
+        self.scorer = RunScorer.for_scenario(sc, options.snapshots)
         self._in_flight: deque[_InFlight] = deque()
         self._compute_ms: list[float] = []
         self._attitude_stamp_s = -math.inf

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from companion.evaluation.obstacles import Envelopes
+
 #: The quad's centre of gravity rests this far above the ground (``sitl`` model, world NED z = -0.094 m).
 REST_HEIGHT_M = 0.094
 
@@ -28,6 +30,9 @@ class TruthMonitor:
     crash_touchdown_m_s: float = 2.0
     crash_tilt_deg: float = 60.0
     collision_m: float = 0.6
+    #: The scene's structures (None: open ground only) and the follower's radius against them, m.
+    obstacles: Envelopes | None = None
+    body_radius_m: float = 0.3
     ground_band_m: float = 0.08
     still_m_s: float = 0.3
     airborne_m: float = 0.5
@@ -39,6 +44,8 @@ class TruthMonitor:
     touchdowns: list[tuple[float, float]] = field(default_factory=list)
     max_height_m: float = 0.0
     min_separation_m: float = math.inf
+    #: Closest the follower's centre came to a structure's envelope, m (inf without structures).
+    min_obstacle_clearance_m: float = math.inf
     _descent_m_s: float = 0.0
 
     def update(
@@ -72,6 +79,11 @@ class TruthMonitor:
         tilt_deg = math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
         if not contact and tilt_deg > self.crash_tilt_deg:
             self._crash(t_s, f"tilted {tilt_deg:.0f} deg in the air")
+        if self.obstacles is not None and len(self.obstacles):
+            clear_m, kind = self.obstacles.clearance(p)
+            self.min_obstacle_clearance_m = min(self.min_obstacle_clearance_m, clear_m)
+            if clear_m < self.body_radius_m:
+                self._crash(t_s, f"hit a {kind} (centre {clear_m:.2f} m from its envelope)")
         if p_ned_leader_m is not None:
             sep = float(np.linalg.norm(np.asarray(p_ned_leader_m, dtype=np.float64) - p))
             self.min_separation_m = min(self.min_separation_m, sep)

@@ -309,11 +309,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     truth = TruthTrack.read(truth_path)
     if len(truth) < 2:
         raise SimRunError(f"the simulator recorded no truth; its log:\n{sim.tail()}")
-    outages = [
-        (o.at_s, None if o.duration_s is None else o.at_s + o.duration_s)
-        for o in scenario.faults("follower").gps.outages
-    ]
-    scorer = RunScorer(window, outages, [])
+    scorer = RunScorer.for_scenario(scenario)
     score(observer, truth, scorer, end_s)
     scorer.snapshots = [_snapshot(fr) for fr in observer.frames if fr.rgb is not None]
     extra = scorer.extra()

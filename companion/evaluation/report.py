@@ -117,6 +117,7 @@ def report_markdown(report: Mapping[str, Any]) -> str:
         ("formation_rmse_m", "formation RMSE (m)", 3),
         ("formation_max_deviation_m", "formation max deviation (m)", 3),
         ("min_separation_m", "minimum separation (m)", 2),
+        ("min_obstacle_clearance_m", "closest to a tree or building (m, centre to its envelope)", 2),
         ("detection_recall", "detection recall", 3),
         ("false_positive_rate", "false positives per frame", 4),
     ):
@@ -129,6 +130,8 @@ def report_markdown(report: Mapping[str, Any]) -> str:
         f"| perception latency p50/p95/p99 (ms) | {_fmt(lat['p50'], 1)} / {_fmt(lat['p95'], 1)} / "
         f"{_fmt(lat['p99'], 1)} | 38 (mean, RTX 3060) | |"
     )
+    if report.get("crash_reason"):
+        lines += ["", f"Crash: {report['crash_reason']}."]
     if report.get("gps_loss_s") is not None:
         lines += ["", f"Follower GPS lost at t = {report['gps_loss_s']:.1f} s."]
     if report["transitions"]:

@@ -20,12 +20,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from companion.evaluation.log import FlightLog, FlightRecorder, Vec3T
 from companion.evaluation.metrics import FORMATION_STATES
+from companion.evaluation.obstacles import Envelopes
 from companion.evaluation.outcome import TruthMonitor
 from companion.evaluation.plots import Snapshot
 from companion.perception.types import Detection, GroundTruth, RgbImage
@@ -94,6 +96,26 @@ class RunScorer:
     state: str = "WAIT_LINK"
     frames_seen: int = 0
     _next_snapshot: int = 0
+
+    @classmethod
+    def for_scenario(cls, scenario: Any, snapshots: int = 0) -> RunScorer:
+        """The scorer of a ``sitl.scenario.Scenario``.
+
+        Its formation window, the follower's GPS outages, ``snapshots`` evenly spaced camera frames, and
+        its scene's structures for the crash check.
+        """
+        from sitl.render.config import visual_from_mapping  # noqa: PLC0415 (pydantic only; sitl at eval)
+        from sitl.render.world import solid_structures  # noqa: PLC0415
+
+        run = scenario.run
+        window = (run.formation_start_s, run.formation_start_s + run.formation_duration_s)
+        outages = [
+            (o.at_s, None if o.duration_s is None else o.at_s + o.duration_s)
+            for o in scenario.faults("follower").gps.outages
+        ]
+        visual = visual_from_mapping(scenario.visual, f"scenario {scenario.name} [visual]")
+        monitor = TruthMonitor(obstacles=Envelopes.from_specs(solid_structures(visual)))
+        return cls(window, outages, snapshot_times(window, snapshots) if snapshots else [], monitor=monitor)
 
     def in_window(self, t_s: float) -> bool:
         return self.window_s[0] <= t_s <= self.window_s[1]
@@ -212,6 +234,9 @@ class RunScorer:
             "touchdown_m_s": m.touchdown_m_s,
             "crash_reason": m.crash_reason or None,
             "max_height_m": round(m.max_height_m, 3),
+            "min_obstacle_clearance_m": (
+                round(m.min_obstacle_clearance_m, 3) if math.isfinite(m.min_obstacle_clearance_m) else None
+            ),
         }
 
 

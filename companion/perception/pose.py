@@ -470,6 +470,10 @@ def measure_leader(
         if ranged is None:
             return None
         z, rel_var = ranged
+        near_m = cfg.size_fallback_min_frac * cfg.depth_max_m
+        expect_depth = z < near_m if z_hint_m is None else z_hint_m + 2.0 * z_hint_std_m < near_m
+        if expect_depth:
+            return None
         # The error is relative to range; scale it by the predicted range when there is one, never by
         # this noisy range (short readings would weigh more and drag the track in).
         z_ref = z if z_hint_m is None else z_hint_m

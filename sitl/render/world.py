@@ -406,6 +406,16 @@ def random_structures(visual: VisualConfig, rng: np.random.Generator) -> list[Oc
     return out
 
 
+def solid_structures(visual: VisualConfig) -> tuple[OccluderSpec, ...]:
+    """Every structure :func:`build_world` stands in the scene: the random ones and the occluders.
+
+    The random ones are the first draws of the world's generator, so this repeats them exactly without
+    building any geometry (the evaluation's collision check needs them, not the meshes).
+    """
+    rng = np.random.default_rng(visual.seed)
+    return (*random_structures(visual, rng), *visual.occluders)
+
+
 def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
     """Geometry and shading of a visual configuration (deterministic in ``visual.seed``).
 
@@ -431,6 +441,7 @@ def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
     if ground.nrm[0, 2] > 0:  # must face up (-z in NED)
         ground = Mesh(ground.pos[[0, 2, 1, 3, 5, 4]], -ground.nrm, ground.uv[[0, 2, 1, 3, 5, 4]])
     b.add(ground, (1.0, 1.0, 1.0), Kind.GROUND)
+    # The first draws of rng: solid_structures() repeats them for the evaluation.
     for spec in (*random_structures(visual, rng), *visual.occluders):
         add_structure(b, spec, rng)
     if visual.tree_line:

@@ -204,6 +204,31 @@ def test_size_fallback_ranges_beyond_the_stereo_range_after_learning_the_size() 
     assert abs(err_z) < 3.0 * math.sqrt(m.cov_cam_m2[2, 2])
 
 
+def test_a_box_without_depth_is_not_size_ranged_where_the_leader_would_have_depth() -> None:
+    """A box with no stereo return where the track puts the leader at 5 m is something beyond the
+    cut-off (a tree seen past the leader): it is dropped, not size-ranged and pulled to the track."""
+    rng = np.random.default_rng(3)
+    cfg = PoseConfig(depth_max_m=10.0, size_fallback_min_frac=0.8)
+    prior = SizePrior(0.55, 0.1, 1.0, 0.30, 0.05, 1.0)
+    far = render((0.2, 0.0, 12.0), rng=rng, depth_max_m=10.0)  # no depth in its box
+    det = Detection(far.box_xyxy_px, 0.9)
+    kw = {"leader": LEADER, "size_prior": prior}
+    on = measure_leader(far.depth_m, D435_COLOR, det, 0.0, cfg=cfg, z_hint_m=5.0, z_hint_std_m=0.2, **kw)
+    assert on is None
+    off = PoseConfig(depth_max_m=10.0)
+    m = measure_leader(far.depth_m, D435_COLOR, det, 0.0, cfg=off, z_hint_m=5.0, z_hint_std_m=0.2, **kw)
+    assert m is not None
+    assert m.range_source == "size"
+    # Beyond the cut-off, where the track expects it, size ranging still works...
+    m = measure_leader(far.depth_m, D435_COLOR, det, 0.0, cfg=cfg, z_hint_m=11.5, z_hint_std_m=0.5, **kw)
+    assert m is not None
+    assert m.range_source == "size"
+    # ...and without a track the box's own size decides.
+    m = measure_leader(far.depth_m, D435_COLOR, det, 0.0, cfg=cfg, **kw)
+    assert m is not None
+    assert m.p_cam_leader_m[2] > 8.0
+
+
 def test_tracker_prediction_picks_the_leader_behind_a_nearer_occluder() -> None:
     # A branch 3 m nearer covers the left 60 % of the leader's box: the nearest dense cluster is the
     # branch; the tracker's predicted depth picks the leader's cluster instead.
