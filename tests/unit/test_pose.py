@@ -215,7 +215,7 @@ def test_a_box_without_depth_is_not_size_ranged_where_the_leader_would_have_dept
     kw = {"leader": LEADER, "size_prior": prior}
     on = measure_leader(far.depth_m, D435_COLOR, det, 0.0, cfg=cfg, z_hint_m=5.0, z_hint_std_m=0.2, **kw)
     assert on is None
-    off = PoseConfig(depth_max_m=10.0)
+    off = PoseConfig(depth_max_m=10.0, size_fallback_min_frac=0.0)
     m = measure_leader(far.depth_m, D435_COLOR, det, 0.0, cfg=off, z_hint_m=5.0, z_hint_std_m=0.2, **kw)
     assert m is not None
     assert m.range_source == "size"
