@@ -308,6 +308,7 @@ _SEED_KEYS = (
     "formation_rmse_m",
     "formation_max_deviation_m",
     "min_separation_m",
+    "min_obstacle_clearance_m",
     "touchdown_m_s",
 )
 
@@ -377,20 +378,22 @@ def monte_carlo_markdown(summary: dict[str, Any]) -> str:
         "|---|---|",
     ]
     lines += [f"| {k} | {v} |" for k, v in summary["outcomes"].items()]
-    lines += ["", "| metric | p5 | p50 | p95 | max |", "|---|---|---|---|---|"]
+    lines += ["", "| metric | min | p5 | p50 | p95 | max |", "|---|---|---|---|---|---|"]
     for key in (
         "relative_position_rmse_m",
         "relative_yaw_rmse_deg",
         "formation_rmse_m",
         "formation_max_deviation_m",
         "min_separation_m",
+        "min_obstacle_clearance_m",
         "detection_recall",
     ):
         v = summary.get(key)
         if v is None:
-            lines.append(f"| {key} | n/a | n/a | n/a | n/a |")
+            lines.append(f"| {key} | n/a | n/a | n/a | n/a | n/a |")
         else:
-            lines.append(f"| {key} | {v['p5']:.3f} | {v['p50']:.3f} | {v['p95']:.3f} | {v['max']:.3f} |")
+            cells = " | ".join(f"{v[q]:.3f}" if q in v else "n/a" for q in ("min", "p5", "p50", "p95", "max"))
+            lines.append(f"| {key} | {cells} |")
     if summary.get("failed"):
         lines += ["", "Runs without a report: " + ", ".join(summary["failed"])]
     lines += ["", f"Wall time: {summary['wall_s']:.0f} s."]

@@ -187,7 +187,7 @@ def compute_metrics(log: FlightLog, offset_cam_m: Sequence[float]) -> FlightMetr
 
 
 def monte_carlo_summary(reports: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
-    """Percentiles (p5/p50/p95/max) of each numeric metric over runs, and the count of each outcome."""
+    """Min, p5, p50, p95 and max of each numeric metric over runs, and the count of each outcome."""
     runs = list(reports)
     keys = (
         "relative_position_rmse_m",
@@ -195,6 +195,7 @@ def monte_carlo_summary(reports: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         "formation_rmse_m",
         "formation_max_deviation_m",
         "min_separation_m",
+        "min_obstacle_clearance_m",
         "detection_recall",
     )
     out: dict[str, Any] = {"runs": len(runs), "outcomes": {o: 0 for o in OUTCOMES}}
@@ -204,7 +205,13 @@ def monte_carlo_summary(reports: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         vals = np.array([r[key] for r in runs if r.get(key) is not None], dtype=np.float64)
         if vals.size:
             p5, p50, p95 = np.percentile(vals, [5, 50, 95])
-            out[key] = {"p5": float(p5), "p50": float(p50), "p95": float(p95), "max": float(vals.max())}
+            out[key] = {
+                "min": float(vals.min()),
+                "p5": float(p5),
+                "p50": float(p50),
+                "p95": float(p95),
+                "max": float(vals.max()),
+            }
         else:
             out[key] = None
     return out

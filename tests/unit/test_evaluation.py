@@ -142,4 +142,5 @@ def test_monte_carlo_summary() -> None:
     assert s["runs"] == 101
     assert s["outcomes"]["crashed"] == 1
     assert s["relative_position_rmse_m"]["p50"] == pytest.approx(50.5)
+    assert s["relative_position_rmse_m"]["min"] == pytest.approx(1.0)
     assert s["relative_yaw_rmse_deg"] is None

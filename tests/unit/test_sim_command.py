@@ -66,7 +66,7 @@ def test_child_args_round_trip_the_spec(tmp_path: object) -> None:
 
 
 def test_monte_carlo_page_has_outcomes_and_percentiles() -> None:
-    stats = {"p5": 0.1, "p50": 0.2, "p95": 0.3, "max": 0.4}
+    stats = {"min": 0.05, "p5": 0.1, "p50": 0.2, "p95": 0.3, "max": 0.4}
     md = monte_carlo_markdown(
         {
             "scenario": "gps-loss",
@@ -79,7 +79,7 @@ def test_monte_carlo_page_has_outcomes_and_percentiles() -> None:
         }
     )
     assert "| completed | 2 |" in md
-    assert "| relative_position_rmse_m | 0.100 | 0.200 | 0.300 | 0.400 |" in md
+    assert "| relative_position_rmse_m | 0.050 | 0.100 | 0.200 | 0.300 | 0.400 |" in md
     assert "| formation_rmse_m | n/a |" in md
 
 
