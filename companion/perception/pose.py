@@ -429,7 +429,8 @@ def measure_leader(
     """The leader's centre in the camera frame from one detection, or None without a usable range.
 
     Range comes from the box's depth cluster; without one (beyond the stereo range, a depth hole) and
-    with a ``size_prior``, from the box size, with the size's uncertainty. The box centre's point is
+    with a ``size_prior``, from the box size, with the size's uncertainty, unless the leader would have
+    had depth there (``cfg.size_fallback_min_frac``): then there is no measurement. The box centre's point is
     moved up by ``leader.box_centre_below_m`` along ``down_cam`` (gravity in the camera frame at the
     frame's attitude; the camera's own y axis when None) to reach the leader's centre. ``z_hint_m``
     (the tracker's prediction) picks the leader's depth cluster when several share the box.
