@@ -108,9 +108,12 @@ class DetectorConfig(Section):
     roi_conf_threshold: float = Field(0.35, gt=0, lt=1)
     #: ...and only within this many missed frames of the last tracked box (longer: an occlusion).
     roi_low_conf_misses: int = Field(3, ge=0, le=100)
-    #: Frames the window survives without a tracked box (missed detections, a short occlusion): about the
-    #: tracker's coast, so a coasting track is looked for where it was.
-    roi_hold_frames: int = Field(15, ge=0, le=100)
+    #: Frames the window survives without a tracked box (missed detections, an occlusion), so a lost
+    #: leader is looked for, magnified, where it was; the whole frame is still searched whenever the window
+    #: finds nothing. 60 (4 s at 15 Hz, past leader-occluded's 3-s blind spell): seeds 1-8 7 completed + 1
+    #: landed, min separation 2.44 m; 15 (the tracker's coast): 6 + 2 and 1.63 m (a phantom re-acquired
+    #: from the whole frame); straight, circle, gps-loss, visibility (seeds 1-2) identical.
+    roi_hold_frames: int = Field(60, ge=0, le=100)
 
 
 class LeaderConfig(Section):
