@@ -172,6 +172,9 @@ class TrackerConfig(Section):
     confirm_window: int = Field(5, ge=1)
     coast_timeout_s: float = Field(1.5, gt=0)
     lost_timeout_s: float = Field(3.0, gt=0)
+    #: Frames over which a track's recent hit ratio is counted (15: 1 s at 15 Hz); the mission reads it
+    #: before it takes a new track after a loss as the leader (``mission.reacquire_min_hit_ratio``).
+    quality_window_frames: int = Field(15, ge=1, le=300)
     size_ratio_tolerance: float = Field(2.5, gt=1.0)
     #: Velocity uncertainty of a new track (the leader's relative speed is unknown at first sight), m/s.
     init_velocity_std_m_s: float = Field(3.0, gt=0)
@@ -231,6 +234,14 @@ class MissionConfig(Section):
     leader_lost_action: Literal["hold", "land", "rtl"] = "land"
     reacquire_coast_s: float = Field(2.0, ge=0)
     reacquire_scan_s: float = Field(10.0, ge=0)
+    #: A new track found after the leader was lost is taken as the leader only once it is this old (s)
+    #: and was seen in at least this share of its recent frames (``tracker.quality_window_frames``).
+    #: Why: while the leader was hidden, sporadic false detections of a tree behind it (2-5 of every 8
+    #: frames) made a confirmed track 3.5 m beyond the leader; the follower re-acquired it, flew through
+    #: the reappearing leader at 0.78 m and chased the phantom to the geofence (leader-occluded seed 7,
+    #: ``command_slew_m_s2`` 8). The real leader, seen again, is detected in 0.8-1.0 of frames.
+    reacquire_min_track_s: float = Field(0.8, ge=0.0)
+    reacquire_min_hit_ratio: float = Field(0.6, ge=0.0, le=1.0)
     scan_yaw_rate_deg_s: float = Field(30.0, gt=0)
     #: An estimate older than this (since its frame's capture) is stale: HOVER, never resent. Younger
     #: ones are flown brought to the control instant with the follower's own motion (mission/ego.py),

@@ -188,6 +188,9 @@ class TrackState:
     #: Measurements offered this step, and how many the size prior rejected.
     n_candidates: int = 0
     n_size_rejected: int = 0
+    #: Share of this track's last ``quality_window_frames`` frames that had a detection in its gate
+    #: (0 without a track): a phantom built of sporadic false detections stays low.
+    recent_hit_ratio: float = 0.0
 
     @property
     def usable(self) -> bool:
@@ -211,6 +214,8 @@ class TrackState:
             p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
             v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
             last_measurement_s=float(self.last_measurement_s),
+            track_age_s=float(self.age_s),
+            recent_hit_ratio=float(self.recent_hit_ratio),
             var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
             a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
         )
@@ -235,6 +240,8 @@ class TargetTracker:
         self._last_meas_s = 0.0
         self._confirmed = False
         self._window: deque[bool] = deque(maxlen=cfg.confirm_window)
+        #: Hit (True) or miss per frame over the last ``quality_window_frames`` of this track.
+        self._recent: deque[bool] = deque(maxlen=cfg.quality_window_frames)
         self._hits = 0
         self._track_id = 0
         #: The last accepted measurement was ranged from box size (no stereo depth).
@@ -254,6 +261,7 @@ class TargetTracker:
         self._kf_acc = None
         self._confirmed = False
         self._window.clear()
+        self._recent.clear()
         self._hits = 0
 
     def predict_cam(
@@ -303,6 +311,7 @@ class TargetTracker:
         accepted: _Candidate | None = None
         if self._kf is not None:
             accepted = self._select_gated(self._kf, candidates)
+            self._recent.append(accepted is not None)
             if accepted is not None:
                 self._update(self._kf, accepted)
             elif candidates and self._confirmed and self._stamp_s - self._last_meas_s > cfg.coast_timeout_s:
@@ -381,6 +390,8 @@ class TargetTracker:
         self._confirmed = False
         self._window.clear()
         self._window.append(True)
+        self._recent.clear()
+        self._recent.append(True)
         self._hits = 1
         self._size_ranged = c.meas.range_source == "size"
 
@@ -510,6 +521,7 @@ class TargetTracker:
             measurement=None if accepted is None else accepted.meas,
             n_candidates=n_candidates,
             n_size_rejected=n_rejected,
+            recent_hit_ratio=sum(self._recent) / len(self._recent) if self._recent else 0.0,
         )
 
     def _estimate(self, kf: KalmanFilter, R_ned_body: Mat3) -> RelativeEstimate:

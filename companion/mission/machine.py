@@ -299,6 +299,14 @@ class MissionMachine:
             return est.status == TrackStatus.CONFIRMED
         return est.usable
 
+    def _steady(self, est: LeaderEstimate | None) -> bool:
+        """Whether a track is old enough and seen often enough to be the leader found again after a loss."""
+        return (
+            est is not None
+            and est.track_age_s >= self.m.reacquire_min_track_s
+            and est.recent_hit_ratio >= self.m.reacquire_min_hit_ratio
+        )
+
     def _follower(self, veh: VehicleState, *, velocity_valid: bool) -> FollowerState:
         return FollowerState(
             yaw_rad=veh.yaw_rad,
@@ -811,7 +819,7 @@ class MissionMachine:
 
     def _reacquire(self, inp: MissionInputs) -> Setpoint | None:
         veh = inp.vehicle
-        if self._tracked(inp, confirmed_only=True):
+        if self._tracked(inp, confirmed_only=True) and self._steady(inp.leader):
             self._enter_follow(inp, Reason.LEADER_REACQUIRED)
             return None
         if not self._attitude_kind and not self._gps_ok:

@@ -6,6 +6,7 @@ depend on their modules.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -35,6 +36,11 @@ class LeaderEstimate:
     p_ned_rel_m: Vec3T
     v_ned_rel_m_s: Vec3T
     last_measurement_s: float
+    #: How long the track has existed, s, and the share of its recent frames (about 1 s) with a detection
+    #: in its gate. Defaults for producers that do not know (a shared or scripted estimate): taken as
+    #: long-lived and always seen.
+    track_age_s: float = math.inf
+    recent_hit_ratio: float = 1.0
     #: Position covariance diagonal in NED, m^2 (for the external-position fix and logging).
     var_ned_rel_m2: Vec3T = (0.25, 0.25, 0.25)
     #: The leader's own acceleration, NED m/s^2, when the tracker estimates it

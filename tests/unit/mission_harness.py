@@ -130,9 +130,18 @@ def leader(
     status: TrackStatus = TrackStatus.CONFIRMED,
     p: tuple[float, float, float] = (5.0, 0.0, 0.0),
     v: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    *,
+    track_age_s: float = math.inf,
+    hit_ratio: float = 1.0,
 ) -> LeaderEstimate:
     return LeaderEstimate(
-        stamp_s=now_s, status=status, p_ned_rel_m=p, v_ned_rel_m_s=v, last_measurement_s=now_s
+        stamp_s=now_s,
+        status=status,
+        p_ned_rel_m=p,
+        v_ned_rel_m_s=v,
+        last_measurement_s=now_s,
+        track_age_s=track_age_s,
+        recent_hit_ratio=hit_ratio,
     )
 
 
@@ -155,6 +164,9 @@ class Harness:
         self.leader_status = TrackStatus.CONFIRMED
         self.leader_p = (5.0, 0.0, 0.0)
         self.leader_v = (0.0, 0.0, 0.0)
+        #: The track's age and recent hit ratio offered with a fresh estimate (the tracker's quality).
+        self.leader_track_age_s = math.inf
+        self.leader_hit_ratio = 1.0
         self.shared: tuple[float, float, float] | None = None
         #: The depth guard's reading offered each step (relative NED, m) and how old it is, s.
         self.obstacle: tuple[float, float, float] | None = None
@@ -173,7 +185,14 @@ class Harness:
 
     def _leader(self) -> LeaderEstimate | None:
         if self.leader_mode == "fresh":
-            self._frozen = leader(self.now_s, self.leader_status, self.leader_p, self.leader_v)
+            self._frozen = leader(
+                self.now_s,
+                self.leader_status,
+                self.leader_p,
+                self.leader_v,
+                track_age_s=self.leader_track_age_s,
+                hit_ratio=self.leader_hit_ratio,
+            )
             return self._frozen
         if self.leader_mode == "frozen":
             return self._frozen

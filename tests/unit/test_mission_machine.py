@@ -365,6 +365,27 @@ def test_leader_lost_then_reacquired() -> None:
     assert h.last_transition().reason == R.LEADER_REACQUIRED
 
 
+def test_reacquire_waits_for_a_steady_track() -> None:
+    """A new track after a loss must be old and seen often enough (a phantom of sporadic hits is not)."""
+    h = Harness(cfg=cfg_with(reacquire_min_track_s=0.8, reacquire_min_hit_ratio=0.6))
+    h.to_follow()
+    h.leader_status = TrackStatus.LOST
+    h.step()
+    assert h.state == S.REACQUIRE
+    h.run(0.5)
+    h.leader_status = TrackStatus.CONFIRMED
+    h.leader_track_age_s, h.leader_hit_ratio = 0.4, 1.0  # just confirmed: too young
+    h.run(0.5)
+    assert h.state == S.REACQUIRE
+    h.leader_track_age_s, h.leader_hit_ratio = 2.0, 0.4  # old, but seen in 2 of 5 frames
+    h.run(0.5)
+    assert h.state == S.REACQUIRE
+    h.leader_track_age_s, h.leader_hit_ratio = 0.8, 0.6  # both at their bounds
+    h.step()
+    assert h.state == S.FOLLOW
+    assert h.last_transition().reason == R.LEADER_REACQUIRED
+
+
 def test_reacquire_coasts_then_scans_toward_the_last_bearing_then_aborts() -> None:
     cfg = cfg_with(reacquire_coast_s=2.0, reacquire_scan_s=4.0, leader_lost_action="land")
     h = Harness(cfg=cfg)

@@ -178,6 +178,30 @@ def test_reacquires_somewhere_else_after_losing_the_track() -> None:
     assert st_.status == TrackStatus.CONFIRMED
 
 
+def test_recent_hit_ratio_tells_a_steady_track_from_sporadic_hits() -> None:
+    """The ratio counts this track's last ``quality_window_frames`` frames; the estimate carries it."""
+    cfg = TrackerConfig(quality_window_frames=10, confirm_hits=2, confirm_window=5)
+    steady, sporadic = TargetTracker(cfg, CAM), TargetTracker(cfg, CAM)
+    p = np.array([0.0, 0.0, 6.0])
+    for k in range(30):
+        t = k * DT
+        s1 = steady.step(t, [meas(p, t)] if k % 10 != 9 else [], LEVEL)  # 9 of every 10
+        s2 = sporadic.step(t, [meas(p, t)] if k % 5 in (0, 2) else [], LEVEL)  # 2 of every 5
+    assert s1.recent_hit_ratio == pytest.approx(0.9)
+    assert s2.status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)  # confirmed, as the phantom was
+    assert s2.recent_hit_ratio == pytest.approx(0.4)
+    est = s2.leader_estimate()
+    assert est is not None
+    assert est.recent_hit_ratio == pytest.approx(0.4)
+    assert est.track_age_s == pytest.approx(29 * DT)
+    # A new track starts its count again.
+    t = 31 * DT + 4.0
+    s3 = sporadic.step(t, [meas(np.array([5.0, 0.0, 6.0]), t)], LEVEL)
+    assert s3.track_id == 2
+    assert s3.recent_hit_ratio == 1.0
+    assert TargetTracker(cfg, CAM).step(0.0, [], LEVEL).recent_hit_ratio == 0.0
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     st.lists(st.tuples(st.floats(0.001, 0.5), st.booleans(), st.floats(2.0, 15.0)), min_size=1, max_size=40)
