@@ -320,12 +320,14 @@ class FormationLaw:
         *,
         a_leader_ned_m_s2: Vec3T | None = None,
         obstacle_ned_m: Vec3 | None = None,
+        slew_m_s2: float | None = None,
     ) -> VelocityCommand:
         """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
 
         ``a_leader_ned_m_s2``: the tracker's estimate of the leader's acceleration (NED, m/s^2), if it
         makes one; otherwise the law differentiates the leader's velocity. ``obstacle_ned_m``: the depth
         guard's nearest thing ahead (relative NED, m), held off like the leader but taken as static.
+        ``slew_m_s2``: how fast the command may change (default ``command_slew_m_s2``).
         """
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
@@ -347,7 +349,8 @@ class FormationLaw:
         if self._v_prev is not None:
             dv = v - self._v_prev
             n = float(np.linalg.norm(dv))
-            max_dv = cfg.command_slew_m_s2 * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
+            slew = cfg.command_slew_m_s2 if slew_m_s2 is None else slew_m_s2
+            max_dv = slew * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
             if n > max_dv:
                 v = self._v_prev + dv * (max_dv / n)
         v = self._bound(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, follower, obstacle_ned_m)

@@ -677,8 +677,15 @@ class MissionMachine:
             self._now_s,
             a_leader_ned_m_s2=est.a_ned_leader_m_s2,
             obstacle_ned_m=self._obstacle_now(inp),
+            slew_m_s2=self._slew(est),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
+
+    def _slew(self, est: LeaderEstimate) -> float:
+        """The command slew, m/s^2: the faster one only while the leader is seen steadily."""
+        f = self.cfg.formation
+        steady = est.status == TrackStatus.CONFIRMED and est.recent_hit_ratio >= f.steady_hit_ratio
+        return f.command_slew_steady_m_s2 if steady else f.command_slew_m_s2
 
     def _obstacle_now(self, inp: MissionInputs) -> Vec3 | None:
         """The depth guard's obstacle relative to the follower now (static: shifted by our own motion)."""

@@ -50,6 +50,7 @@ from mavsdk.plugins.server_utility import ServerUtility, StatusTextType
 from companion.clock import Clock
 from companion.config import LinkConfig
 from companion.errors import CommandRejectedError, LinkLostError
+from companion.vehicle.boottime import BootClockMap
 from companion.vehicle.types import (
     AttitudeSetpoint,
     ExternalPosition,
@@ -120,6 +121,8 @@ class MavsdkVehicleLink:
         self.cfg = cfg
         self.clock = clock
         self._sdk: Mavsdk | None = None
+        #: Attitude is stamped when the autopilot sampled it (see vehicle/boottime.py).
+        self._boot_clock = BootClockMap()
         self._system: Any = None
         self._telemetry: Any = None
         self._action: Any = None
@@ -264,7 +267,8 @@ class MavsdkVehicleLink:
             roll_rad=math.radians(e.roll_deg),
             pitch_rad=math.radians(e.pitch_deg),
             yaw_rad=math.radians(e.yaw_deg),
-            attitude_stamp_s=self.clock.now_s(),
+            # MAVSDK passes ATTITUDE's time_boot_ms on as timestamp_us: stamp when it was sampled.
+            attitude_stamp_s=self._boot_clock.stamp(int(e.timestamp_us) // 1000, self.clock.now_s()),
         )
 
     def _on_velocity(self, v: Any) -> None:

@@ -35,6 +35,7 @@ from companion.clock import Clock
 from companion.config import LinkConfig
 from companion.errors import CommandRejectedError, LinkLostError
 from companion.frames import quat_from_euler
+from companion.vehicle.boottime import BootClockMap
 from companion.vehicle.types import (
     AttitudeSetpoint,
     ExternalPosition,
@@ -194,6 +195,8 @@ class MessageVehicleLink:
         self._last_home_request_s = -math.inf
         self._hover_requested = False
         self.counters = LinkCounters()
+        #: Attitude is stamped when the autopilot sampled it (see vehicle/boottime.py).
+        self._boot_clock = BootClockMap()
 
     # ------------------------------------------------------------------ the owner's side
     def pump(self) -> None:
@@ -291,7 +294,8 @@ class MessageVehicleLink:
                 flight_mode=flight_mode_of(int(msg.base_mode), int(msg.custom_mode)),
             )
         elif kind == "ATTITUDE":
-            self._update(roll_rad=msg.roll, pitch_rad=msg.pitch, yaw_rad=msg.yaw, attitude_stamp_s=now_s)
+            sampled_s = self._boot_clock.stamp(int(msg.time_boot_ms), now_s)
+            self._update(roll_rad=msg.roll, pitch_rad=msg.pitch, yaw_rad=msg.yaw, attitude_stamp_s=sampled_s)
         elif kind == "GLOBAL_POSITION_INT":
             self._update(
                 v_ned_m_s=(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0),

@@ -178,6 +178,14 @@ def test_command_slew_is_its_own_knob_not_the_acceleration_cap() -> None:
     assert np.linalg.norm(cmd.v_ned_m_s) == pytest.approx(6.0 * 0.05)
 
 
+def test_a_per_call_slew_overrides_the_configured_one() -> None:
+    """The mission passes the steady-track slew (``command_slew_steady_m_s2``) this way."""
+    lw = law(command_slew_m_s2=3.0)
+    lw.seed_velocity(np.zeros(3))
+    cmd = lw.velocity(np.array([8.0, 0.0, 0.0]), np.zeros(3), hover(), 20.0, slew_m_s2=8.0)
+    assert np.linalg.norm(cmd.v_ned_m_s) == pytest.approx(8.0 * 0.05)
+
+
 def test_integrators_are_bounded_and_reset() -> None:
     lw = law(kp_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, ki_xy=1.0, i_limit_xy_m_s=0.3)
     out = None
