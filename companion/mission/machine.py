@@ -838,15 +838,21 @@ class MissionMachine:
             return None
         scanning = t > self.m.reacquire_coast_s
         scan_rate = self._scan_sign * math.radians(self.m.scan_yaw_rate_deg_s) if scanning else 0.0
+        candidate = self._candidate_rel(inp)
+        if candidate is not None and scanning:
+            # Look at what the tracker has found, not yet steady, so it stays in view while it proves
+            # itself; never fly toward it (a phantom must not pull the follower).
+            scan_rate = self._look_rate(candidate, veh.yaw_rad)
         if self._attitude_kind:
             fol = self._follower(veh, velocity_valid=False)
             v_down = self._alt_hold_v_down(veh)
             return self.law.hover_attitude(fol, v_down, self._now_s, yaw_rate_rad_s=scan_rate).setpoint
         if not scanning and self._leader_lost_p_ned_m is not None and self._leader_lost_v_ned_m_s is not None:
             # Coast: the leader's last velocity, looking where it dead-reckons to (GPS is healthy), without
-            # closing on that guess (see FormationLaw.coast_velocity).
+            # closing on that guess (see FormationLaw.coast_velocity); looking at a candidate instead
+            # when there is one, which the separation barrier then also holds off.
             p_leader = self._leader_lost_p_ned_m + self._leader_lost_v_ned_m_s * t
-            p_rel = p_leader - np.array(veh.p_ned_m)
+            p_rel = p_leader - np.array(veh.p_ned_m) if candidate is None else candidate
             return self.law.coast_velocity(
                 self._leader_lost_v_ned_m_s,
                 p_rel,
@@ -854,6 +860,19 @@ class MissionMachine:
                 self._obstacle_now(inp),
             )
         return self.law.hover_velocity(yaw_rate_rad_s=scan_rate)
+
+    def _candidate_rel(self, inp: MissionInputs) -> Vec3 | None:
+        """Where a fresh track the mission has not taken (yet) puts the leader, relative NED, m."""
+        est = inp.leader
+        if est is None or not self._fresh(est) or est.status == TrackStatus.LOST:
+            return None
+        return np.array(est.p_ned_rel_m, dtype=np.float64)
+
+    def _look_rate(self, p_rel_ned_m: Vec3, yaw_rad: float) -> float:
+        """A yaw rate that turns the camera onto a relative position, bounded by the scan rate, rad/s."""
+        bearing = math.atan2(p_rel_ned_m[1], p_rel_ned_m[0])
+        max_rate = math.radians(self.m.scan_yaw_rate_deg_s)
+        return float(np.clip(self.cfg.formation.kp_yaw * wrap_pi(bearing - yaw_rad), -max_rate, max_rate))
 
     def _alt_hold_v_down(self, veh: VehicleState) -> float:
         if not math.isfinite(self._alt_hold_m):

@@ -386,6 +386,27 @@ def test_reacquire_waits_for_a_steady_track() -> None:
     assert h.last_transition().reason == R.LEADER_REACQUIRED
 
 
+def test_reacquire_looks_at_a_candidate_but_does_not_fly_to_it() -> None:
+    """While scanning, an unsteady track turns the camera onto it (so it stays in view), nothing more."""
+    cfg = cfg_with(reacquire_coast_s=0.5, reacquire_scan_s=10.0)
+    h = Harness(cfg=cfg)
+    h.to_follow()
+    h.leader_p = (4.0, 3.0, 0.0)  # last seen to the right: the scan would turn right
+    h.run(0.2)
+    h.leader_status = TrackStatus.LOST
+    h.step()
+    h.run(1.0)
+    h.leader_status = TrackStatus.TENTATIVE
+    h.leader_p = (3.0, -4.0, 0.0)  # something found to the left, not steady
+    h.leader_track_age_s, h.leader_hit_ratio = 0.2, 0.5
+    outs = h.run(0.5)
+    assert all(o.state == S.REACQUIRE for o in outs)
+    sps = [o.setpoint for o in outs if isinstance(o.setpoint, VelocityBodySetpoint)]
+    assert sps
+    assert all(sp.yaw_rate_rad_s < 0.0 for sp in sps)  # toward it, against the scan's direction
+    assert all(sp.v_body_m_s[:2] == (0.0, 0.0) for sp in sps)
+
+
 def test_reacquire_coasts_then_scans_toward_the_last_bearing_then_aborts() -> None:
     cfg = cfg_with(reacquire_coast_s=2.0, reacquire_scan_s=4.0, leader_lost_action="land")
     h = Harness(cfg=cfg)
