@@ -228,9 +228,10 @@ class FormationConfig(Section):
     #: recent frames (``tracker.quality_window_frames``), m/s^2. Equal to ``command_slew_m_s2``: off (the
     #: default). 8.0 (lockstep, seeds 1-4, mean max deviation): straight 0.435 -> 0.315, circle 0.432 ->
     #: 0.329, gps-loss 0.435 -> 0.315, visibility 0.623 -> 0.352, figure8 0.461 -> 0.355, wind 0.433 ->
-    #: 0.308 m; but leader-occluded seeds 1-8 6 -> 1 completed (the rest landed safely: the leader
-    #: reappears in front of a tree the detector misses it against), and link-loss (seeds 1-4) 0.559 ->
-    #: 1.017 m, height swings of 1-1.4 m under 40 ms of latency. docs/evaluation.md.
+    #: 0.308 m; but leader-occluded seeds 1-8 6 -> 1 completed, 4 with the re-acquire look (the rest
+    #: landed safely: the leader reappears in front of a tree the detector misses it against), and
+    #: link-loss (seeds 1-4) 0.559 -> 1.017 m, height swings of 1-1.4 m under 40 ms of latency.
+    #: docs/evaluation.md.
     command_slew_steady_m_s2: float = Field(3.0, gt=0)
     steady_hit_ratio: float = Field(0.8, ge=0.0, le=1.0)
 
