@@ -51,6 +51,9 @@ async def test_link_arm_takeoff_velocity_attitude_guard_land(tmp_path: Path) -> 
         )
         s = link.snapshot()
         assert s.connected
+        # Attitude is stamped when PX4 sampled it (time_boot_ms mapped onto our clock): recent, never ahead.
+        age_s = link.clock.now_s() - s.attitude_stamp_s
+        assert 0.0 <= age_s < 0.5, age_s
         assert s.gps_fix_type >= 3
         assert s.hover_thrust_norm is not None
         await link.send_status_text("WM link test", Severity.INFO)
