@@ -1,7 +1,7 @@
-"""The autopilot's boot clock mapped onto ours, so telemetry is stamped when it was sampled, not received.
+"""The autopilot's boot clock mapped onto ours, so attitude is stamped when it was sampled, not received.
 
-Why: the camera frames are stamped at capture and looked up against the follower's attitude and velocity.
-Stamped on arrival, every attitude sample is late by the link's latency, and the camera's rotation comes
+Why: the camera frames are stamped at capture and looked up against the follower's attitude. Stamped on
+arrival, every attitude sample is late by the link's latency, and the camera's rotation comes
 out of step with its images: with 40 ms of it (link-loss's bursts, lockstep) the leader's height
 estimate erred by 0.035 m (median) and, with a brisker velocity command, up to 1 m.
 
