@@ -460,6 +460,7 @@ class FollowerService:
                 "armed": v.armed,
                 "in_air": v.in_air,
                 "flight_mode": v.flight_mode,
+                "offboard_loss_failsafe": v.offboard_loss_failsafe,
             },
             "gps": {
                 "fix_type": v.gps_fix_type,

@@ -40,6 +40,10 @@ class LinkConfig(Section):
     setpoint_timeout_s: float = Field(0.5, gt=0)
     #: No telemetry for this long counts as a lost link.
     telemetry_timeout_s: float = Field(1.5, gt=0)
+    #: What PX4 does when our setpoints stop for COM_OF_LOSS_T (a crashed service, a cut cable): the link
+    #: sets COM_OBL_RC_ACT to it on connect (vehicle/failsafe.py). PX4's own default without RC is Return,
+    #: which first climbs to RTL_RETURN_ALT (60 m) out of the formation; ``autopilot`` leaves PX4's setting.
+    offboard_loss_action: Literal["hold", "land", "return", "autopilot"] = "hold"
     #: MAVSDK's own log lines go to the ``companion.vehicle.mavsdk`` logger at or above this level.
     mavsdk_log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "WARNING"
 

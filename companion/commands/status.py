@@ -91,7 +91,8 @@ def render_status(s: dict[str, Any]) -> str:
             f"{'up' if link.get('connected') else 'DOWN'}, "
             f"heartbeat {_fmt(link.get('heartbeat_age_s'))} s ago, "
             f"{link.get('flight_mode')}, {'armed' if link.get('armed') else 'disarmed'}, "
-            f"{'in air' if link.get('in_air') else 'on ground'}",
+            f"{'in air' if link.get('in_air') else 'on ground'}, "
+            f"offboard loss: {link.get('offboard_loss_failsafe') or 'unknown'}",
         )
     )
     rows.append(

@@ -24,6 +24,8 @@ class VehicleSummary:
     armed: bool = False
     in_air: bool = False
     flight_mode: str = "unknown"
+    #: What PX4 does if our setpoints stop (COM_OBL_RC_ACT in words); None until read.
+    offboard_loss_failsafe: str | None = None
     gps_fix_type: int = 0
     gps_satellites: int = 0
     position_valid: bool | None = None

@@ -43,6 +43,7 @@ from companion.service.ports import (
 from companion.service.stamps import ServiceClockSource
 from companion.telemetry.leader import OriginTracker
 from companion.telemetry.payloads import LeaderPositionMsg
+from companion.vehicle import failsafe
 from companion.vehicle.link import VehicleLink
 from companion.vehicle.types import NEVER_S, Severity, VehicleState
 
@@ -86,6 +87,9 @@ def vehicle_summary(v: VehicleState, now_s: float) -> VehicleSummary:
         armed=v.armed,
         in_air=v.in_air,
         flight_mode=v.flight_mode.value,
+        offboard_loss_failsafe=None
+        if v.offboard_loss_param is None
+        else failsafe.describe(v.offboard_loss_param),
         gps_fix_type=v.gps_fix_type,
         gps_satellites=v.gps_satellites,
         position_valid=v.position_valid,
@@ -382,14 +386,17 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
     from companion.vehicle.mavsdk_link import MavsdkVehicleLink  # noqa: PLC0415 (mavsdk: heavy)
 
     clock = MonotonicClock()
+    # A health check reads PX4's offboard-loss action and never changes it.
+    link_cfg = cfg.link.model_copy(update={"offboard_loss_action": "autopilot"})
     try:
-        async with MavsdkVehicleLink(cfg.link, clock) as link, asyncio.TaskGroup() as tg:
+        async with MavsdkVehicleLink(link_cfg, clock) as link, asyncio.TaskGroup() as tg:
             task = tg.create_task(link.run(), name="companion.health.link")
             try:
                 async with asyncio.timeout(timeout_s):
                     await link.wait_ready()
                     for _ in range(30):  # GPS_RAW_INT comes at 1-5 Hz: give it up to 3 s
-                        if link.snapshot().gps_stamp_s > NEVER_S:
+                        s = link.snapshot()
+                        if s.gps_stamp_s > NEVER_S and s.offboard_loss_param is not None:
                             break
                         await asyncio.sleep(0.1)
             except TimeoutError:
@@ -408,7 +415,12 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
             CheckResult("gps", False, "unknown (no autopilot)"),
         ]
     return [
-        CheckResult("autopilot", True, f"heartbeat on {cfg.link.url}, {v.flight_mode.value}"),
+        CheckResult(
+            "autopilot",
+            True,
+            f"heartbeat on {cfg.link.url}, {v.flight_mode.value}, offboard loss: "
+            + ("unknown" if v.offboard_loss_param is None else failsafe.describe(v.offboard_loss_param)),
+        ),
         CheckResult(
             "gps",
             v.gps_fix_type >= 3,

@@ -50,6 +50,7 @@ from mavsdk.plugins.server_utility import ServerUtility, StatusTextType
 from companion.clock import Clock
 from companion.config import LinkConfig
 from companion.errors import CommandRejectedError, LinkLostError
+from companion.vehicle import failsafe
 from companion.vehicle.boottime import BootClockMap
 from companion.vehicle.types import (
     AttitudeSetpoint,
@@ -213,6 +214,7 @@ class MavsdkVehicleLink:
                 tg.create_task(factory(), name=f"companion.vehicle.{name}")
             tg.create_task(self._setpoint_guard(), name="companion.vehicle.setpoint_guard")
             tg.create_task(self._read_hover_thrust(), name="companion.vehicle.hover_thrust")
+            tg.create_task(self._configure_failsafe(), name="companion.vehicle.failsafe")
 
     async def wait_ready(self) -> None:
         """Until the autopilot has been found (use with a timeout)."""
@@ -333,6 +335,26 @@ class MavsdkVehicleLink:
         if 0.05 < value < 0.95:
             self._update(hover_thrust_norm=value)
             log.info("vehicle link: hover thrust %.3f from MPC_THR_HOVER", value)
+
+    async def _configure_failsafe(self) -> None:
+        """Set PX4's offboard-loss action (``link.offboard_loss_action``) and read back what it is.
+
+        A refusal is one warning line, never an error: the flight goes on with PX4's own setting.
+        """
+        wanted = failsafe.wanted_value(self.cfg.offboard_loss_action)
+        try:
+            async with asyncio.timeout(self.cfg.command_timeout_s * 2):
+                if wanted is not None:
+                    await self._param.set_param_int(failsafe.PARAM, wanted)
+                value = int(await self._param.get_param_int(failsafe.PARAM))
+        except (MavsdkError, TimeoutError) as exc:
+            log.warning(
+                "vehicle link: %s", failsafe.not_applied(self.cfg.offboard_loss_action, str(exc) or "timeout")
+            )
+            return
+        self._update(offboard_loss_param=value)
+        ok, line = failsafe.applied(self.cfg.offboard_loss_action, value)
+        (log.info if ok else log.warning)("vehicle link: %s", line)
 
     def snapshot(self) -> VehicleState:
         """The latest telemetry; ``connected`` also requires a heartbeat within the telemetry timeout."""

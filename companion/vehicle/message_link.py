@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import struct
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -35,6 +36,7 @@ from companion.clock import Clock
 from companion.config import LinkConfig
 from companion.errors import CommandRejectedError, LinkLostError
 from companion.frames import quat_from_euler
+from companion.vehicle import failsafe
 from companion.vehicle.boottime import BootClockMap
 from companion.vehicle.types import (
     AttitudeSetpoint,
@@ -128,6 +130,13 @@ class MessageTransport(Protocol):
     def receive(self) -> list[Any]: ...
 
 
+def _param_int(value: float, param_type: int) -> int:
+    """An integer PARAM_VALUE: PX4 sends INT32 bytewise in the float field; others send the number."""
+    if param_type == mavlink.MAV_PARAM_TYPE_INT32:
+        return int(struct.unpack("<i", struct.pack("<f", value))[0])
+    return round(value)
+
+
 def flight_mode_of(base_mode: int, custom_mode: int) -> FlightMode:
     """PX4's custom mode as MAVSDK names it (UNKNOWN without the custom-mode flag or for other modes)."""
     if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
@@ -194,6 +203,9 @@ class MessageVehicleLink:
         self._last_heartbeat_out_s = -math.inf
         self._last_home_request_s = -math.inf
         self._hover_requested = False
+        self._failsafe_done = False
+        self._failsafe_tries = 0
+        self._failsafe_sent_s = -math.inf
         self.counters = LinkCounters()
         #: Attitude is stamped when the autopilot sampled it (see vehicle/boottime.py).
         self._boot_clock = BootClockMap()
@@ -222,6 +234,7 @@ class MessageVehicleLink:
             if not st.home_position_ok and now_s - self._last_home_request_s >= HOME_REQUEST_PERIOD_S:
                 self._last_home_request_s = now_s
                 self._command_msg(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+            self._failsafe_due(now_s)
             if not self._hover_requested:
                 self._hover_requested = True
                 self._send(
@@ -345,7 +358,11 @@ class MessageVehicleLink:
         elif kind == "COMMAND_ACK":
             self._on_ack(int(msg.command), int(msg.result))
         elif kind == "PARAM_VALUE":
-            self._on_param(_text(msg.param_id), float(msg.param_value))
+            name = _text(msg.param_id)
+            if name == failsafe.PARAM:
+                self._on_failsafe_param(_param_int(float(msg.param_value), int(msg.param_type)))
+            else:
+                self._on_param(name, float(msg.param_value))
 
     def _on_ack(self, command: int, result: int) -> None:
         if result == mavlink.MAV_RESULT_IN_PROGRESS:
@@ -356,6 +373,41 @@ class MessageVehicleLink:
                 if not p.future.done():
                     p.future.set_result(result)
                 return
+
+    def _failsafe_due(self, now_s: float) -> None:
+        """Set (or read) COM_OBL_RC_ACT, resent like a command until PX4 echoes it (as mavsdk_link does)."""
+        if self._failsafe_done or now_s - self._failsafe_sent_s < COMMAND_RETRY_S:
+            return
+        wanted = failsafe.wanted_value(self.cfg.offboard_loss_action)
+        if self._failsafe_tries >= COMMAND_RETRIES:
+            self._failsafe_done = True
+            log.warning("vehicle link: %s", failsafe.not_applied(self.cfg.offboard_loss_action, "no reply"))
+            return
+        self._failsafe_tries += 1
+        self._failsafe_sent_s = now_s
+        pid = failsafe.PARAM.encode()
+        if wanted is None:
+            self._send(
+                mavlink.MAVLink_param_request_read_message(self.target_system, AUTOPILOT_COMPONENT, pid, -1)
+            )
+        else:
+            self._send(
+                mavlink.MAVLink_param_set_message(
+                    self.target_system,
+                    AUTOPILOT_COMPONENT,
+                    pid,
+                    struct.unpack("<f", struct.pack("<i", wanted))[0],  # PX4: INT32 sent bytewise
+                    mavlink.MAV_PARAM_TYPE_INT32,
+                )
+            )
+
+    def _on_failsafe_param(self, value: int) -> None:
+        if self._failsafe_done and self._state.offboard_loss_param == value:
+            return
+        self._failsafe_done = True
+        self._update(offboard_loss_param=value)
+        ok, line = failsafe.applied(self.cfg.offboard_loss_action, value)
+        (log.info if ok else log.warning)("vehicle link: %s", line)
 
     def _on_param(self, name: str, value: float) -> None:
         if name == "MPC_THR_HOVER" and 0.05 < value < 0.95 and self._state.hover_thrust_norm is None:

@@ -128,6 +128,8 @@ class VehicleState:
 
     #: The autopilot's hover thrust (PX4 MPC_THR_HOVER) if it could be read, normalised 0..1.
     hover_thrust_norm: float | None = None
+    #: PX4's COM_OBL_RC_ACT (offboard-loss action) as read back from it; None until known.
+    offboard_loss_param: int | None = None
 
     last_status_text: StatusText | None = None
     #: Counts STATUSTEXTs received, so a reader can tell a new one from the same one.

@@ -56,6 +56,8 @@ async def test_link_arm_takeoff_velocity_attitude_guard_land(tmp_path: Path) -> 
         assert 0.0 <= age_s < 0.5, age_s
         assert s.gps_fix_type >= 3
         assert s.hover_thrust_norm is not None
+        # The offboard-loss failsafe was set to Hold through MAVSDK's param plugin and read back from PX4.
+        await _until(lambda: link.snapshot().offboard_loss_param == 5, 10, "COM_OBL_RC_ACT = 5 (Hold)")
         await link.send_status_text("WM link test", Severity.INFO)
 
         await link.arm()

@@ -130,6 +130,8 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
                 assert st["link"]["connected"] is True
                 assert st["link"]["armed"] is True
                 assert st["link"]["in_air"] is True
+                # The service set PX4's offboard-loss action to Hold on connect (link.offboard_loss_action).
+                assert st["link"]["offboard_loss_failsafe"] == "Hold"
                 assert st["gps"]["fix_type"] >= 3
                 assert st["leader"]["status"] in ("confirmed", "coasting")
                 assert 5.0 < st["leader"]["range_m"] < 11.0

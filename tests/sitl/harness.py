@@ -28,10 +28,10 @@ def one_vehicle_config(**world: Any) -> SitlConfig:
 class Client:
     """Sends like a GCS (255/190) and records what comes back, stamped with sim time."""
 
-    def __init__(self, world: World, name: str = "follower") -> None:
+    def __init__(self, world: World, name: str = "follower", link_index: int = 0) -> None:
         self.world = world
         self.sysid = world.vehicle(name).sysid
-        self.link = world.link(name)
+        self.link = world.link(name, link_index)
         self.log: list[tuple[float, Any]] = []
         self.name = name
 
