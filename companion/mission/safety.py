@@ -40,7 +40,10 @@ class SafetyLimits:
     response_s: float = 1.0
     #: The depth guard holds off only what lies within this of the path ahead, m
     #: (``safety.depth_guard_corridor_m``).
-    corridor_m: float = 0.6
+    corridor_m: float = 0.8
+    #: Nearer than this to the path the follower would hit it: brake; between this and ``corridor_m``,
+    #: slide past (``safety.depth_guard_hit_radius_m``).
+    hit_radius_m: float = 0.35
 
     @classmethod
     def from_config(cls, cfg: SafetyConfig, max_accel_m_s2: float) -> SafetyLimits:
@@ -57,6 +60,7 @@ class SafetyLimits:
             brake_m_s2=brake,
             response_s=cfg.separation_response_s,
             corridor_m=cfg.depth_guard_corridor_m,
+            hit_radius_m=cfg.depth_guard_hit_radius_m,
         )
 
     @property

@@ -17,6 +17,7 @@ from companion.mission.formation import (
     heading_to_ned,
     ned_to_heading,
     on_course,
+    path_approach,
     slot_error,
     tilt_from_accel,
 )
@@ -444,3 +445,42 @@ def test_on_course_is_the_corridor_ahead_along_the_velocity() -> None:
     assert not on_course(np.array([3.0, 0.9, 0.0]), v, 0.6)  # a pole passed 0.9 m to the side
     assert not on_course(np.array([-3.0, 0.0, 0.0]), v, 0.6)  # behind
     assert not on_course(np.array([3.0, 0.0, 0.0]), np.zeros(3), 0.6)  # not moving: nothing to hit
+
+
+def test_path_approach_follows_px4s_lag_from_the_present_velocity() -> None:
+    # Flying north at 2 m/s, commanded 6 deg right: the path bends over ~0.55 s, so a pole 4 m ahead and
+    # 0.95 m right is passed ~0.64 m off, where the command's straight ray passes it 0.53 m off.
+    v_now = np.array([2.0, 0.0, 0.0])
+    v_cmd = np.array([1.99, 0.21, 0.0])
+    pole = np.array([4.0, 0.95, 0.0])
+    cpa, q = path_approach(pole, v_now, v_cmd)
+    assert on_course(pole, v_cmd, 0.6)
+    assert 0.6 < cpa < 0.7
+    assert q[1] > 0.0  # the pole is to the right of the path's nearest point
+    # Behind, or moving away: never approached.
+    assert path_approach(np.array([-3.0, 0.0, 0.0]), v_now, v_now)[0] == math.inf
+    assert path_approach(np.array([3.0, 0.0, 0.0]), np.zeros(3), np.zeros(3))[0] == math.inf
+
+
+def test_the_depth_guard_slides_past_an_obstacle_beside_the_path_without_braking() -> None:
+    """A pole 0.45 m beside the path (corridor 0.8 m): full speed, turned away; dead ahead: a brake."""
+    fol = hover(v=(2.0, 0.0, 0.0))
+    lw = law()
+    free = lw.velocity(np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0)
+    lw.reset()
+    beside = lw.velocity(
+        np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0, obstacle_ned_m=np.array([3.0, 0.45, 0.0])
+    )
+    assert beside.v_ned_m_s[0] == pytest.approx(free.v_ned_m_s[0])  # no braking
+    assert beside.v_ned_m_s[1] < free.v_ned_m_s[1] - 0.1  # stepping left, away from the pole
+    assert beside.v_ned_m_s[1] > -0.5  # a step, not a swerve
+    lw.reset()
+    ahead = lw.velocity(
+        np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0, obstacle_ned_m=np.array([3.0, 0.1, 0.0])
+    )
+    assert ahead.v_ned_m_s[0] < 0.5 * free.v_ned_m_s[0]
+    lw.reset()
+    clear = lw.velocity(
+        np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0, obstacle_ned_m=np.array([3.0, 0.9, 0.0])
+    )
+    assert clear.v_ned_m_s == pytest.approx(free.v_ned_m_s)
