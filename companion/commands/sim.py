@@ -56,6 +56,7 @@ def register(sub: Any) -> None:
 
 def _sim(args: argparse.Namespace) -> int:
     from companion.evaluation.campaign import RunSpec, parse_seeds, require_weights, run_many, run_one
+    from companion.evaluation.report import summary_markdown
     from companion.evaluation.setup import all_scenarios, scenario_path
 
     out: Path = args.out
@@ -90,8 +91,11 @@ def _sim(args: argparse.Namespace) -> int:
             RunSpec(name, args.seed, out / name, **{**common, "harness": _all_harness(name, args.harness)})
             for name in all_scenarios()
         ]
-        run_many(specs, out, jobs=args.jobs, env=env, stream=sys.stdout, monte_carlo=False)
-        print(f"sim: {len(specs)} scenarios; {out / 'summary.md'}")
+        summary = run_many(specs, out, jobs=args.jobs, env=env, stream=sys.stdout, monte_carlo=False)
+        # The paper's table beside ours on the terminal too: the first thing a user wants to see.
+        print()
+        print(summary_markdown(summary["reports"]), end="")
+        print(f"sim: {len(specs)} scenarios; {out / 'summary.md'}, plots in {out}/*/plots")
         return 0
     # One scenario, in this process.
     out.mkdir(parents=True, exist_ok=True)

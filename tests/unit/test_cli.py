@@ -88,3 +88,34 @@ def test_sitl_lazy_handler_reports_missing_module(capsys: pytest.CaptureFixture[
     code = _lazy("sitl.no_such_module", "main", "thing")(None)  # type: ignore[arg-type]
     assert code == 2
     assert capsys.readouterr().err.strip() == "sitl thing: not built yet"
+
+
+def test_sim_all_prints_the_paper_table(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`sim --scenario all` ends with the paper's table beside ours on stdout (the runs are stood in for)."""
+    from companion.evaluation import campaign
+
+    report = {
+        "outcome": "completed",
+        "relative_position_rmse_m": 0.036,
+        "relative_yaw_rmse_deg": 0.3,
+        "formation_rmse_m": 0.08,
+        "formation_max_deviation_m": 0.28,
+        "min_separation_m": 4.7,
+        "detection_recall": 0.9,
+        "false_positive_rate": 0.0,
+        "perception_latency_ms": {"p50": 5.0},
+        "meets_targets": True,
+    }
+
+    def fake_run_many(specs: list, out_dir: Path, **_kw: object) -> dict:
+        return {"reports": {s.scenario: report for s in specs}, "failed": [], "wall_s": 1.0}
+
+    monkeypatch.setattr(campaign, "run_many", fake_run_many)
+    argv = ["sim", "--scenario", "all", "--detector", "truth", "--out", str(tmp_path / "out")]
+    assert companion_main(argv) == 0
+    out = capsys.readouterr().out
+    assert "# Wingman vs the paper" in out
+    assert "| Straight line | 0.25 / 0.036 | 2.5 / 0.30 | 0.60 / 0.280 | completed | yes |" in out
+    assert out.rstrip().endswith("/*/plots")
