@@ -220,3 +220,40 @@ async def test_gps_failure_injection_follows_px4_timeline(one_vehicle: SitlProce
     beats = [m for t, m in gcs.of(SYSID, "HEARTBEAT", since_s=t0 + 6.7)]
     assert beats
     assert all(m.custom_mode == AUTO_LAND and m.system_status == 5 for m in beats if m.base_mode & 128)
+
+
+async def test_health_reads_the_offboard_loss_failsafe_and_never_writes_it(
+    one_vehicle: SitlProcess, tmp_path: Path
+) -> None:
+    """`companion health` with no service running: the autopilot check says what PX4 does on offboard loss
+    (the simulator keeps PX4's default, 0), and the probe leaves the parameter as it found it."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from mavsdk.asyncio.plugins.param import ParamAsync
+
+    env = {
+        **os.environ,
+        "WINGMAN_STATUS__SOCKET_PATH": str(tmp_path / "none.sock"),
+        "WINGMAN_DETECTOR__RUNTIME": "truth",
+        "WINGMAN_LINK__URL": one_vehicle.api_url(0),
+        "WINGMAN_CAMERA__PATH": str(tmp_path / "cam.sock"),
+    }
+    r = await asyncio.to_thread(
+        subprocess.run,
+        [sys.executable, "-m", "companion", "health", "--json", "--timeout", "20"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=90,
+        check=False,
+    )
+    checks = {c["name"]: c for c in json.loads(r.stdout)["checks"]}
+    auto = checks["autopilot"]
+    print("health autopilot:", auto["detail"])
+    assert auto["ok"], auto
+    assert "offboard loss: Position (without RC: NAV_RCL_ACT, default Return)" in auto["detail"], auto
+    async with connected(one_vehicle) as system:
+        assert await ParamAsync(system).get_param_int("COM_OBL_RC_ACT") == 0
