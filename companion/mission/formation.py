@@ -59,6 +59,8 @@ PX4_VEL_TAU_S = 1.0 / 1.8
 #: How far ahead in time the depth guard follows that path (the guard's 4 m at 2 m/s), s.
 GUARD_HORIZON_S = 2.0
 _GUARD_T_S = np.linspace(0.0, GUARD_HORIZON_S, 21)
+#: How far the present velocity still carries at those times, s (the first-order lag's integral).
+_GUARD_LAG_S = PX4_VEL_TAU_S * (1.0 - np.exp(-_GUARD_T_S / PX4_VEL_TAU_S))
 #: How hard the follower steps aside from an obstacle it would pass too close: m/s per m short of the
 #: depth guard's corridor (at most 0.45 m/s with the defaults: corridor 0.8 m, hit radius 0.35 m).
 STATIC_SLIDE_GAIN_1_S = 1.0
@@ -562,23 +564,20 @@ class FormationLaw:
         return VelocityBodySetpoint(v_body_m_s=(0.0, 0.0, v_down_m_s), yaw_rate_rad_s=yaw_rate_rad_s)
 
 
-def path_approach(
-    p_ned_m: Vec3, v_now_ned_m_s: Vec3, v_cmd_ned_m_s: Vec3, horizon_s: float = GUARD_HORIZON_S
-) -> tuple[float, Vec3]:
+def path_approach(p_ned_m: Vec3, v_now_ned_m_s: Vec3, v_cmd_ned_m_s: Vec3) -> tuple[float, Vec3]:
     """Closest approach of a static point ``p_ned_m`` (relative) to the path the follower will fly.
 
     The path: from ``v_now`` toward ``v_cmd`` as PX4's velocity loop takes it (first order,
-    :data:`PX4_VEL_TAU_S`), over ``horizon_s``. Returns the distance (m; inf when the path moves away from
-    the point from the start: behind, or already passed) and the vector from the path's nearest point to
-    the point (NED, m). Why a path, not the command's straight ray: the command's direction swings by 10 deg
-    or more with the lateral corrections, and a ray 4 m long swings 0.7 m with it, onto a pole the follower
-    then flies past 0.8 m away.
+    :data:`PX4_VEL_TAU_S`), over :data:`GUARD_HORIZON_S`. Returns the distance (m; inf when the path
+    moves away from the point from the start: behind, or already passed) and the vector from the path's
+    nearest point to the point (NED, m). Why a path, not the command's straight ray: the command's
+    direction swings by 10 deg or more with the lateral corrections, and a ray 4 m long swings 0.7 m with
+    it, onto a pole the follower then flies past 0.8 m away.
     """
     p = np.asarray(p_ned_m, dtype=np.float64)
     v0 = np.asarray(v_now_ned_m_s, dtype=np.float64)
     vc = np.asarray(v_cmd_ned_m_s, dtype=np.float64)
-    t = _GUARD_T_S * (horizon_s / GUARD_HORIZON_S)
-    disp = np.outer(t, vc) + np.outer(PX4_VEL_TAU_S * (1.0 - np.exp(-t / PX4_VEL_TAU_S)), v0 - vc)
+    disp = np.outer(_GUARD_T_S, vc) + np.outer(_GUARD_LAG_S, v0 - vc)
     q = p - disp
     d = np.linalg.norm(q, axis=1)
     k = int(np.argmin(d))
