@@ -63,9 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seq-len", type=int, default=6, help="frames per sequence (splits are by sequence)")
     d.add_argument(
         "--profile",
-        choices=("wide", "formation"),
+        choices=("wide", "formation", "clutter"),
         default="wide",
-        help="wide: drones seen every way (default); formation: the follower's in-flight view of the leader",
+        help="wide: drones seen every way (default); formation: the follower's in-flight view of the leader; "
+        "clutter: that view with a tree or building behind the leader",
     )
     d.set_defaults(handler=_lazy("sitl.dataset", "main_dataset", "dataset"))
 

@@ -28,7 +28,7 @@ SPLITS = ("train", "val", "test")
 #: frame). ``formation``: the follower's own view in flight (camera within about 15 deg of level, the leader
 #: 2-15 m away near the middle of the image, usually the f450 the simulator flies), so the detector sees
 #: the case the closed loop lives in (a dark airframe against ground, horizon and tree line) often enough.
-PROFILES = ("wide", "formation")
+PROFILES = ("wide", "formation", "clutter")
 
 
 def split_of(seed: int, index: int) -> str:
@@ -319,6 +319,33 @@ def _occluder_between(
     return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size, yaw_deg=yaw)
 
 
+def _backdrop_behind(rng: np.random.Generator, p_cam: Vec3, p_leader: Vec3) -> OccluderSpec:
+    """A tree, conifer, building or wall standing behind the leader, its face across the line of sight.
+
+    The leader is then seen against foliage or a facade rather than the sky: the case where a detector
+    trained mostly on open backgrounds loses it (a leader hovering in front of a tree).
+    """
+    los = p_leader - p_cam
+    dist = float(np.linalg.norm(los))
+    behind_m = _log_uniform(rng, 1.5, 25.0)
+    p = p_leader + los * (behind_m / max(dist, 1e-9))
+    alt = max(-float(p[2]), 0.5)
+    side = np.cross(los, np.array([0.0, 0.0, 1.0]))
+    side /= max(float(np.linalg.norm(side)), 1e-9)
+    kind = str(rng.choice(["tree", "conifer", "building", "wall"], p=[0.4, 0.2, 0.25, 0.15]))
+    if kind in ("tree", "conifer"):
+        width = rng.uniform(3.0, 8.0)
+        off = rng.uniform(-0.3, 0.3) * width
+        size = (width, 0.0, max(alt + 0.5 * width * rng.uniform(0.2, 1.0), 2.0))
+    else:
+        width = rng.uniform(6.0, 20.0)
+        off = rng.uniform(-0.3, 0.3) * width
+        size = (width, rng.uniform(0.3, 8.0), alt + rng.uniform(0.5, 6.0))
+    base = p + side * off
+    yaw = math.degrees(math.atan2(side[1], side[0]))
+    return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size, yaw_deg=yaw)
+
+
 def sample_sequence(
     seed: int, index: int, n_frames: int, intr: Intrinsics, profile: str = "wide"
 ) -> SequenceSpec:
@@ -329,7 +356,8 @@ def sample_sequence(
     """
     if profile not in PROFILES:
         raise ValueError(f"unknown dataset profile {profile!r} (one of {', '.join(PROFILES)})")
-    formation = profile == "formation"
+    # clutter: the formation view with a structure behind the leader in most sequences.
+    formation = profile in ("formation", "clutter")
     rng = np.random.default_rng([seed, index])
     split = split_of(seed, index)
     visual = sample_visual(rng)
@@ -393,6 +421,8 @@ def sample_sequence(
         if rng.random() < 0.15:
             radius = 0.5 * visual.leader.resolved_span_m + 0.1
             occluders.append(_occluder_between(rng, cameras[0].p_ned_cam_m, p_leader0, radius))
+        if profile == "clutter" and rng.random() < 0.75:
+            occluders.append(_backdrop_behind(rng, cameras[0].p_ned_cam_m, p_leader0))
     if occluders:
         visual = visual.model_copy(update={"occluders": tuple(occluders)})
     return SequenceSpec(

@@ -44,6 +44,35 @@ def test_formation_profile_is_the_followers_view() -> None:
     assert centred >= 0.85 * n_leader
 
 
+def test_clutter_profile_puts_a_structure_behind_the_leader() -> None:
+    """Most clutter sequences stand a tree or building farther along the line of sight than the leader,
+    its crown or facade spanning the leader's height where that line meets it."""
+    n_leader = n_behind = 0
+    for i in range(120):
+        spec = sample_sequence(5, i, 1, INTR, profile="clutter")
+        if spec.leaders is None:
+            continue
+        n_leader += 1
+        cam = spec.cameras[0].p_ned_cam_m
+        los = spec.leaders[0][1] - cam
+        for occ in spec.visual.occluders:
+            if occ.kind not in ("tree", "conifer", "building", "wall") or occ.size_m is None:
+                continue
+            base = np.array(occ.p_ned_m)
+            # Where the line of sight passes the structure (horizontal projection), and its height there.
+            h = los[:2] / np.linalg.norm(los[:2])
+            along = float(np.dot(base[:2] - cam[:2], h))
+            d = base[:2] - cam[:2]
+            lateral = abs(float(h[0] * d[1] - h[1] * d[0]))
+            frac = along / float(np.linalg.norm(los[:2]))
+            alt_there = -float(cam[2] + los[2] * frac)
+            if frac > 1.0 and lateral <= 0.5 * occ.size_m[0] and occ.size_m[2] >= alt_there:
+                n_behind += 1
+                break
+    assert n_leader > 90
+    assert 0.6 * n_leader <= n_behind <= 0.9 * n_leader  # 75 % drawn
+
+
 def test_wide_profile_is_the_default_and_unchanged_by_the_option() -> None:
     a = sample_sequence(1, 7, 3, INTR)
     b = sample_sequence(1, 7, 3, INTR, profile="wide")
