@@ -180,6 +180,12 @@ class TrackerConfig(Section):
     #: before it takes a new track after a loss as the leader (``mission.reacquire_min_hit_ratio``).
     quality_window_frames: int = Field(15, ge=1, le=300)
     size_ratio_tolerance: float = Field(2.5, gt=1.0)
+    #: A second object seen steadily outside the track's gate (in at least ``switch_hits`` of the last
+    #: ``quality_window_frames`` frames) replaces a track seen in at most ``switch_max_track_ratio`` of
+    #: them: a false track confirmed on a distant tree before the leader came into view otherwise kept
+    #: gating the leader out. 0 hits = never.
+    switch_hits: int = Field(12, ge=0)
+    switch_max_track_ratio: float = Field(0.3, ge=0.0, le=1.0)
     #: Velocity uncertainty of a new track (the leader's relative speed is unknown at first sight), m/s.
     init_velocity_std_m_s: float = Field(3.0, gt=0)
     #: Acceleration noise along the line of sight while the track is ranged by box size (beyond the

@@ -16,7 +16,11 @@ Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurem
 3. selects the leader: with a track, among measurements inside the Mahalanobis gate
    (``d^2 < gate_chi2``) the one with the least ``d^2 - 2 ln(score)``; without one, the best score
    (a size-ranged track gates returning depth with a 15 % range error added);
-4. updates, or coasts: no update, so the covariance grows with the prediction.
+4. updates, or coasts: no update, so the covariance grows with the prediction;
+5. follows the best candidate outside the gate with a second filter (a challenger) and hands the track to
+   it when it is seen in ``switch_hits`` of the last ``quality_window_frames`` frames while the track is
+   seen in at most ``switch_max_track_ratio`` of them (a false track confirmed before the leader came into
+   view otherwise gated the leader out for as long as the false one was re-detected now and then).
 
 Opt-in (``leader_accel_filter``): a constant-acceleration (Singer) filter runs beside the track on the
 measurements the track accepts, with the same ego-motion; the estimate's position, velocity and the
@@ -250,6 +254,12 @@ class TargetTracker:
         self._v_follower: Vec3 | None = None
         #: The constant-acceleration filter beside the track (``leader_accel_filter``), or None.
         self._kf_acc: KalmanFilter | None = None
+        self._chal_stamp_s = 0.0
+        self._chal_v_follower: Vec3 | None = None
+        #: A challenger: what is seen outside the track's gate, followed by its own filter, and its hits
+        #: over the same window as ``_recent`` (``switch_hits``).
+        self._chal: KalmanFilter | None = None
+        self._chal_recent: deque[bool] = deque(maxlen=cfg.quality_window_frames)
 
     @property
     def has_track(self) -> bool:
@@ -259,6 +269,8 @@ class TargetTracker:
         """Forget the current track (e.g. when the mission starts a new acquisition)."""
         self._kf = None
         self._kf_acc = None
+        self._chal = None
+        self._chal_recent.clear()
         self._confirmed = False
         self._window.clear()
         self._recent.clear()
@@ -316,6 +328,11 @@ class TargetTracker:
                 self._update(self._kf, accepted)
             elif candidates and self._confirmed and self._stamp_s - self._last_meas_s > cfg.coast_timeout_s:
                 self.reset()  # the old track is unusable and something else is seen: start over
+            if self._kf is not None and self._confirmed and cfg.switch_hits > 0:
+                others = [c for c in candidates if c is not accepted]
+                switched = self._challenge(stamp_s, others, v_ned_follower_m_s)
+                if switched is not None:
+                    accepted = switched
             if not self._confirmed and self._kf is not None:
                 self._window.append(accepted is not None)
                 if sum(self._window) >= cfg.confirm_hits:
@@ -369,6 +386,63 @@ class TargetTracker:
                 best, best_cost = c, cost
         return best
 
+    def _challenge(
+        self, stamp_s: float, others: list[_Candidate], v_follower: Vec3 | None
+    ) -> _Candidate | None:
+        """Follow what is seen outside the track's gate; take it over when it is steady and the track is not.
+
+        Returns the challenger's measurement when it replaced the track (the track is then the challenger's
+        filter, confirmed, with a new id), else None.
+        """
+        cfg = self.cfg
+        hit: _Candidate | None = None
+        if self._chal is not None:
+            dt = stamp_s - self._chal_stamp_s
+            if dt > 0.0:
+                self._chal.predict(F=self._F(dt, 6), Q=self._Q(dt, self._chal.x[:3, 0], 6))
+                if v_follower is not None and self._chal_v_follower is not None:
+                    dv = np.asarray(v_follower, dtype=np.float64) - self._chal_v_follower
+                    self._chal.x[:3, 0] -= 0.5 * dt * dv
+                    self._chal.x[3:6, 0] -= dv
+                self._chal_stamp_s = stamp_s
+            hit = self._select_gated(self._chal, others) if others else None
+            if hit is not None:
+                self._chal.update(hit.p_ned_m.reshape(3, 1), R=hit.R_ned_m2)
+            self._chal_recent.append(hit is not None)
+            if (
+                sum(self._chal_recent) + (self._chal_recent.maxlen or 0) - len(self._chal_recent)
+                < cfg.switch_hits
+            ):
+                self._chal = None  # cannot reach the count any more
+        self._chal_v_follower = None if v_follower is None else np.asarray(v_follower, dtype=np.float64)
+        if self._chal is None and others:
+            best = max(others, key=lambda c: c.meas.score)
+            self._chal = self._new_filter(best, 6)
+            self._chal_stamp_s = stamp_s
+            self._chal_recent.clear()
+            self._chal_recent.append(True)
+            return None
+        track_ratio = sum(self._recent) / len(self._recent) if self._recent else 0.0
+        if (
+            hit is None
+            or self._chal is None
+            or sum(self._chal_recent) < cfg.switch_hits
+            or track_ratio > cfg.switch_max_track_ratio
+        ):
+            return None
+        self._kf = self._chal
+        self._kf_acc = self._new_filter(hit, 9) if self.cfg.leader_accel_filter else None
+        self._recent.clear()
+        self._recent.extend(self._chal_recent)
+        self._chal = None
+        self._chal_recent.clear()
+        self._track_id += 1
+        self._start_s = stamp_s
+        self._last_meas_s = stamp_s
+        self._size_ranged = hit.meas.range_source == "size"
+        self._hits += 1
+        return hit
+
     def _new_filter(self, c: _Candidate, n: int) -> KalmanFilter:
         """A filter of ``n`` states (6: p, v; 9: p, v, a) started at measurement ``c``, at rest."""
         kf = KalmanFilter(dim_x=n, dim_z=3)
@@ -394,6 +468,8 @@ class TargetTracker:
         self._recent.append(True)
         self._hits = 1
         self._size_ranged = c.meas.range_source == "size"
+        self._chal = None
+        self._chal_recent.clear()
 
     def _predict(self, kf: KalmanFilter, stamp_s: float, v_follower: Vec3 | None) -> None:
         dt = stamp_s - self._stamp_s

@@ -304,3 +304,66 @@ def test_acceleration_model_decays_the_acceleration_while_coasting() -> None:
     assert st_.estimate is not None
     assert st_.estimate.a_ned_leader_m_s2 is not None
     assert float(st_.estimate.a_ned_leader_m_s2[0]) == pytest.approx(a0 * math.exp(-1.0), rel=1e-6)
+
+
+def test_a_steady_object_outside_the_gate_replaces_a_track_that_is_rarely_seen() -> None:
+    """gps-loss seed 5 (stage-4 network): a distant tree was confirmed during take-off, before the leader
+    came into view, and its detections every ~1.5 s kept the track alive and the leader gated out."""
+    cfg = TrackerConfig()
+    tracker = TargetTracker(cfg, CAM)
+    rng = np.random.default_rng(4)
+    phantom = np.array([15.0, -6.5, -6.0])
+    leader = np.array([5.0, 0.0, 0.0])
+    k = 0
+    for _ in range(10):  # the phantom alone: confirmed
+        t = k * DT
+        st_ = tracker.step(t, [meas(noisy_cam(phantom, LEVEL, rng), t, score=0.4)], LEVEL)
+        k += 1
+    assert st_.status == TrackStatus.CONFIRMED
+    phantom_id = st_.track_id
+    switched_at = None
+    for i in range(60):  # the leader every frame, the phantom every 20th
+        t = k * DT
+        ms = [meas(noisy_cam(leader, LEVEL, rng), t, score=0.7)]
+        if i % 20 == 0:
+            ms.append(meas(noisy_cam(phantom, LEVEL, rng), t, score=0.4))
+        st_ = tracker.step(t, ms, LEVEL)
+        k += 1
+        if switched_at is None and st_.track_id != phantom_id:
+            switched_at = i
+    assert switched_at is not None
+    assert switched_at <= cfg.quality_window_frames
+    assert st_.status == TrackStatus.CONFIRMED
+    assert st_.estimate is not None
+    assert np.linalg.norm(st_.estimate.p_ned_rel_m - leader) < 0.1
+
+
+def test_a_steadily_seen_track_is_not_replaced_by_a_second_object() -> None:
+    """Two objects seen every frame (the leader and a tree behind it): the track stays on the first."""
+    tracker = TargetTracker(TrackerConfig(), CAM)
+    rng = np.random.default_rng(5)
+    leader = np.array([5.0, 0.0, 0.0])
+    other = np.array([12.0, 3.0, -1.0])
+    ids = set()
+    for k in range(120):
+        t = k * DT
+        ms = [meas(noisy_cam(leader, LEVEL, rng), t, score=0.6)]
+        if k >= 5:
+            ms.append(meas(noisy_cam(other, LEVEL, rng), t, score=0.9))
+        st_ = tracker.step(t, ms, LEVEL)
+        ids.add(st_.track_id)
+    assert ids == {1}
+    assert st_.estimate is not None
+    assert np.linalg.norm(st_.estimate.p_ned_rel_m - leader) < 0.1
+
+
+def test_switching_can_be_turned_off() -> None:
+    tracker = TargetTracker(TrackerConfig(switch_hits=0), CAM)
+    rng = np.random.default_rng(6)
+    for k in range(10):
+        tracker.step(k * DT, [meas(noisy_cam(np.array([15.0, -6.5, -6.0]), LEVEL, rng), k * DT)], LEVEL)
+    for k in range(10, 40):
+        t = k * DT
+        st_ = tracker.step(t, [meas(noisy_cam(np.array([5.0, 0.0, 0.0]), LEVEL, rng), t)], LEVEL)
+    assert st_.track_id == 1
+    assert st_.status == TrackStatus.COASTING
