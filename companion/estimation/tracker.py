@@ -254,10 +254,8 @@ class TargetTracker:
         self._v_follower: Vec3 | None = None
         #: The constant-acceleration filter beside the track (``leader_accel_filter``), or None.
         self._kf_acc: KalmanFilter | None = None
-        self._chal_stamp_s = 0.0
-        self._chal_v_follower: Vec3 | None = None
-        #: A challenger: what is seen outside the track's gate, followed by its own filter, and its hits
-        #: over the same window as ``_recent`` (``switch_hits``).
+        #: A challenger: what is seen outside the track's gate, followed by its own filter (predicted with
+        #: the track's), and its hits over the same window as ``_recent`` (``switch_hits``).
         self._chal: KalmanFilter | None = None
         self._chal_recent: deque[bool] = deque(maxlen=cfg.quality_window_frames)
 
@@ -330,7 +328,7 @@ class TargetTracker:
                 self.reset()  # the old track is unusable and something else is seen: start over
             if self._kf is not None and self._confirmed and cfg.switch_hits > 0:
                 others = [c for c in candidates if c is not accepted]
-                switched = self._challenge(stamp_s, others, v_ned_follower_m_s)
+                switched = self._challenge(others)
                 if switched is not None:
                     accepted = switched
             if not self._confirmed and self._kf is not None:
@@ -386,9 +384,7 @@ class TargetTracker:
                 best, best_cost = c, cost
         return best
 
-    def _challenge(
-        self, stamp_s: float, others: list[_Candidate], v_follower: Vec3 | None
-    ) -> _Candidate | None:
+    def _challenge(self, others: list[_Candidate]) -> _Candidate | None:
         """Follow what is seen outside the track's gate; take it over when it is steady and the track is not.
 
         Returns the challenger's measurement when it replaced the track (the track is then the challenger's
@@ -396,15 +392,7 @@ class TargetTracker:
         """
         cfg = self.cfg
         hit: _Candidate | None = None
-        if self._chal is not None:
-            dt = stamp_s - self._chal_stamp_s
-            if dt > 0.0:
-                self._chal.predict(F=self._F(dt, 6), Q=self._Q(dt, self._chal.x[:3, 0], 6))
-                if v_follower is not None and self._chal_v_follower is not None:
-                    dv = np.asarray(v_follower, dtype=np.float64) - self._chal_v_follower
-                    self._chal.x[:3, 0] -= 0.5 * dt * dv
-                    self._chal.x[3:6, 0] -= dv
-                self._chal_stamp_s = stamp_s
+        if self._chal is not None:  # already predicted to this stamp with the track (_predict)
             hit = self._select_gated(self._chal, others) if others else None
             if hit is not None:
                 self._chal.update(hit.p_ned_m.reshape(3, 1), R=hit.R_ned_m2)
@@ -414,20 +402,17 @@ class TargetTracker:
                 < cfg.switch_hits
             ):
                 self._chal = None  # cannot reach the count any more
-        self._chal_v_follower = None if v_follower is None else np.asarray(v_follower, dtype=np.float64)
         if self._chal is None and others:
             best = max(others, key=lambda c: c.meas.score)
             self._chal = self._new_filter(best, 6)
-            self._chal_stamp_s = stamp_s
             self._chal_recent.clear()
             self._chal_recent.append(True)
             return None
-        track_ratio = sum(self._recent) / len(self._recent) if self._recent else 0.0
         if (
             hit is None
             or self._chal is None
             or sum(self._chal_recent) < cfg.switch_hits
-            or track_ratio > cfg.switch_max_track_ratio
+            or self._recent_ratio() > cfg.switch_max_track_ratio
         ):
             return None
         self._kf = self._chal
@@ -437,11 +422,14 @@ class TargetTracker:
         self._chal = None
         self._chal_recent.clear()
         self._track_id += 1
-        self._start_s = stamp_s
-        self._last_meas_s = stamp_s
+        self._start_s = self._last_meas_s = self._stamp_s
         self._size_ranged = hit.meas.range_source == "size"
-        self._hits += 1
+        self._hits = sum(self._recent)
         return hit
+
+    def _recent_ratio(self) -> float:
+        """The track's hit ratio over the last ``quality_window_frames`` frames."""
+        return sum(self._recent) / len(self._recent) if self._recent else 0.0
 
     def _new_filter(self, c: _Candidate, n: int) -> KalmanFilter:
         """A filter of ``n`` states (6: p, v; 9: p, v, a) started at measurement ``c``, at rest."""
@@ -475,7 +463,7 @@ class TargetTracker:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
-        for f in (kf, self._kf_acc):
+        for f in (kf, self._kf_acc, self._chal):
             if f is not None:
                 n = f.dim_x
                 f.predict(F=self._F(dt, n), Q=self._Q(dt, f.x[:3, 0], n))
@@ -597,7 +585,7 @@ class TargetTracker:
             measurement=None if accepted is None else accepted.meas,
             n_candidates=n_candidates,
             n_size_rejected=n_rejected,
-            recent_hit_ratio=sum(self._recent) / len(self._recent) if self._recent else 0.0,
+            recent_hit_ratio=self._recent_ratio(),
         )
 
     def _estimate(self, kf: KalmanFilter, R_ned_body: Mat3) -> RelativeEstimate:

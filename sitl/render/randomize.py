@@ -300,8 +300,6 @@ def _occluder_between(
     r_app = leader_radius_m * frac  # the leader's half-size seen at the occluder's distance
     edge = rng.uniform(-0.8, 0.8) * r_app
     kind = str(rng.choice(["tree", "conifer", "pole", "wall", "building"], p=[0.3, 0.15, 0.25, 0.15, 0.15]))
-    side = np.cross(p_leader - p_cam, np.array([0.0, 0.0, 1.0]))
-    side /= max(float(np.linalg.norm(side)), 1e-9)
     sgn = float(rng.choice([-1.0, 1.0]))
     if kind in ("tree", "conifer"):
         width = rng.uniform(2.0, 6.0)
@@ -314,9 +312,21 @@ def _occluder_between(
         w = rng.uniform(3.0, 12.0)
         off = sgn * (edge + 0.5 * w)
         size = (w, rng.uniform(0.3, 6.0), alt + rng.uniform(0.3, 3.0))
-    base = p + side * off
+    return _across_los(kind, p, p_leader - p_cam, off, size)
+
+
+def _across_los(
+    kind: str, p_ned_m: Vec3, los: Vec3, off_m: float, size_m: tuple[float, float, float]
+) -> OccluderSpec:
+    """A structure on the ground below ``p_ned_m``, ``off_m`` sideways of the line of sight, facing it.
+
+    ``los`` is the line of sight (NED, m); the structure's face is across it.
+    """
+    side = np.cross(los, np.array([0.0, 0.0, 1.0]))
+    side /= max(float(np.linalg.norm(side)), 1e-9)
+    base = p_ned_m + side * off_m
     yaw = math.degrees(math.atan2(side[1], side[0]))
-    return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size, yaw_deg=yaw)
+    return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size_m, yaw_deg=yaw)
 
 
 def _backdrop_behind(rng: np.random.Generator, p_cam: Vec3, p_leader: Vec3) -> OccluderSpec:
@@ -330,8 +340,6 @@ def _backdrop_behind(rng: np.random.Generator, p_cam: Vec3, p_leader: Vec3) -> O
     behind_m = _log_uniform(rng, 1.5, 25.0)
     p = p_leader + los * (behind_m / max(dist, 1e-9))
     alt = max(-float(p[2]), 0.5)
-    side = np.cross(los, np.array([0.0, 0.0, 1.0]))
-    side /= max(float(np.linalg.norm(side)), 1e-9)
     kind = str(rng.choice(["tree", "conifer", "building", "wall"], p=[0.4, 0.2, 0.25, 0.15]))
     if kind in ("tree", "conifer"):
         width = rng.uniform(3.0, 8.0)
@@ -341,9 +349,7 @@ def _backdrop_behind(rng: np.random.Generator, p_cam: Vec3, p_leader: Vec3) -> O
         width = rng.uniform(6.0, 20.0)
         off = rng.uniform(-0.3, 0.3) * width
         size = (width, rng.uniform(0.3, 8.0), alt + rng.uniform(0.5, 6.0))
-    base = p + side * off
-    yaw = math.degrees(math.atan2(side[1], side[0]))
-    return OccluderSpec(kind=kind, p_ned_m=(float(base[0]), float(base[1]), 0.0), size_m=size, yaw_deg=yaw)
+    return _across_los(kind, p, los, off, size)
 
 
 def sample_sequence(
