@@ -118,6 +118,11 @@ class DetectorConfig(Section):
     #: landed, min separation 2.44 m; 15 (the tracker's coast): 6 + 2 and 1.63 m (a phantom re-acquired
     #: from the whole frame); straight, circle, gps-loss, visibility (seeds 1-2) identical.
     roi_hold_frames: int = Field(60, ge=0, le=100)
+    #: Network input (px) for the whole frame when there is no window on the leader (acquiring, lost) or the
+    #: window found nothing: 640 searches a 640x480 frame at 1:1 instead of the 0.5x of ``input_size_px``.
+    #: A quad 7 m away against the horizon was not found at 0.5x in 4 s of re-acquisition and was at 1:1
+    #: (leader-occluded seed 9, docs/evaluation.md "Stop 20"); the search costs ~4x the small input.
+    search_input_px: int = Field(640, ge=128, le=1280, multiple_of=32)
 
 
 class LeaderConfig(Section):
@@ -165,6 +170,13 @@ class PoseConfig(Section):
     #: of 8 completed); straight, circle, gps-loss and visibility (seeds 1-2) identical either way.
     #: A real camera with wide holes on a dark airframe at 5-8 m would lose those frames (not ranged).
     size_fallback_min_frac: float = Field(0.8, ge=0.0, lt=1.0)
+    #: A box this many times the size a leader would have at its depth cluster's range has ranged
+    #: something behind the leader (a thin quad in front of a tree fills a small share of its box): the
+    #: box is searched again for a sparser cluster in front, where its size puts the leader, and takes
+    #: it when there is one. A correct box is 1.1-1.5x (a loose one up to ~2x: it keeps its cluster).
+    #: leader-occluded seed 7 re-acquired a leader 4.4 m away at the tree's 7.2 m (size ratio 2.0-2.5),
+    #: flew at it and came within 0.57 m (docs/evaluation.md "Stop 20"). 0 turns it off.
+    size_suspect_ratio: float = Field(1.8, ge=0.0)
 
 
 class TrackerConfig(Section):
@@ -235,14 +247,17 @@ class FormationConfig(Section):
     #: (3.0: 5 of 8), so it stays at max_accel_m_s2's 3.0 (docs/evaluation.md).
     command_slew_m_s2: float = Field(3.0, gt=0)
     #: The slew while the track is steady: confirmed and seen in at least ``steady_hit_ratio`` of its
-    #: recent frames (``tracker.quality_window_frames``), m/s^2. Equal to ``command_slew_m_s2``: off (the
-    #: default). 8.0 (lockstep, seeds 1-4, mean max deviation): straight 0.435 -> 0.315, circle 0.432 ->
-    #: 0.329, gps-loss 0.435 -> 0.315, visibility 0.623 -> 0.352, figure8 0.461 -> 0.355, wind 0.433 ->
-    #: 0.308 m; but leader-occluded seeds 1-8 6 -> 1 completed, 4 with the re-acquire look (the rest
-    #: landed safely: the leader reappears in front of a tree the detector misses it against), and
-    #: link-loss (seeds 1-4) 0.559 -> 1.017 m, height swings of 1-1.4 m under 40 ms of latency.
-    #: docs/evaluation.md.
-    command_slew_steady_m_s2: float = Field(3.0, gt=0)
+    #: recent frames (``tracker.quality_window_frames``), and the link on time (``steady_link_age_s``),
+    #: m/s^2; horizontal only (the vertical keeps ``command_slew_m_s2``). 8.0 against 3.0 (lockstep, mean
+    #: max deviation, docs/evaluation.md "Stop 20"): straight seeds 1-8 0.416 -> 0.308 m, circle, gps-loss,
+    #: figure8 and wind 20-30 % lower. Off (3.0) it lost the leader less in leader-occluded before the
+    #: detector learnt trees (stop 19) and the whole-frame search went to 1:1 (``search_input_px``).
+    command_slew_steady_m_s2: float = Field(8.0, gt=0)
+    #: The attitude's age averaged over ~1 s above this (s) marks the link late: the fast slew waits
+    #: ``steady_link_hold_s``. Under link-loss's 30 % loss and 40 ms latency the fast slew swung the height
+    #: 0.4-0.6 m (3.0: 0.25-0.3); the average there is ~0.033 s, on a clean link ~0.005 s.
+    steady_link_age_s: float = Field(0.02, gt=0)
+    steady_link_hold_s: float = Field(3.0, ge=0)
     steady_hit_ratio: float = Field(0.8, ge=0.0, le=1.0)
 
 

@@ -358,12 +358,18 @@ class FormationLaw:
 
         v = clamp_speed(raw, lim)
         if self._v_prev is not None:
-            dv = v - self._v_prev
-            n = float(np.linalg.norm(dv))
+            # Horizontal and vertical slew apart: only the horizontal follows the leader's speed changes;
+            # a fast vertical slew swung the height under a lossy link (docs/evaluation.md "Stop 20").
+            step_s = dt if dt > 0.0 else FIRST_SLEW_DT_S
             slew = cfg.command_slew_m_s2 if slew_m_s2 is None else slew_m_s2
-            max_dv = slew * (dt if dt > 0.0 else FIRST_SLEW_DT_S)
-            if n > max_dv:
-                v = self._v_prev + dv * (max_dv / n)
+            dv = v - self._v_prev
+            n_h = math.hypot(dv[0], dv[1])
+            max_h = slew * step_s
+            if n_h > max_h:
+                dv[:2] *= max_h / n_h
+            max_z = cfg.command_slew_m_s2 * step_s
+            dv[2] = min(max(dv[2], -max_z), max_z)
+            v = self._v_prev + dv
         v = self._bound(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, follower, obstacle_ned_m)
         # Separation wins over max speed: a leader rushing at us may push the command past it.
         self._v_prev = v

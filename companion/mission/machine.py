@@ -93,6 +93,8 @@ DISARM_RETRY_S = 2.0
 GPS_STALE_S = 2.0
 #: Attitude telemetry older than this makes the attitude law unavailable, s.
 ATTITUDE_STALE_S = 0.5
+#: Time constant of the attitude-age average that tells a late link (FormationConfig.steady_link_age_s), s.
+LINK_AGE_TAU_S = 1.0
 #: A depth-guard reading older than this is dropped (the camera runs at 15-30 Hz), s.
 OBSTACLE_STALE_S = 0.5
 #: PX4 must report a valid estimate this long before velocity setpoints ride on an external fix, s.
@@ -145,6 +147,10 @@ class MissionMachine:
         self._gps_ok = False
         self._gps_bad_since: float | None = None
         self._gps_good_since: float | None = None
+        #: The attitude's age averaged over LINK_AGE_TAU_S, and until when the link counts as late (s).
+        self._link_age_avg_s = 0.0
+        self._link_age_stamp_s = -math.inf
+        self._link_late_until_s = -math.inf
         # Per-state memory.
         self._attitude_kind = False
         self._last_leader: LeaderEstimate | None = None
@@ -322,6 +328,7 @@ class MissionMachine:
     def _global_checks(self, inp: MissionInputs) -> None:
         veh = inp.vehicle
         st = self.state
+        self._watch_link_age(veh)
         if st != MissionState.WAIT_LINK and not self._link_ok(veh):
             if st in AIRBORNE_STATES or st == MissionState.LANDED:
                 self._go(MissionState.LINK_LOST, Reason.LINK_LOST)
@@ -682,10 +689,25 @@ class MissionMachine:
         return cmd.setpoint, None, cmd.error.error_ned_m
 
     def _slew(self, est: LeaderEstimate) -> float:
-        """The command slew, m/s^2: the faster one only while the leader is seen steadily."""
+        """The command slew, m/s^2: the faster one only while the leader is seen steadily on a clean link."""
         f = self.cfg.formation
         steady = est.status == TrackStatus.CONFIRMED and est.recent_hit_ratio >= f.steady_hit_ratio
-        return f.command_slew_steady_m_s2 if steady else f.command_slew_m_s2
+        clean = self._now_s >= self._link_late_until_s
+        return f.command_slew_steady_m_s2 if steady and clean else f.command_slew_m_s2
+
+    def _watch_link_age(self, veh: VehicleState) -> None:
+        """Note late telemetry, which keeps the fast slew off.
+
+        Late: the attitude's age averaged over ~1 s above ``steady_link_age_s``, and for
+        ``steady_link_hold_s`` after (a lossy or slow link; the fast slew swung the follower there).
+        """
+        f = self.cfg.formation
+        age_s = min(max(self._now_s - veh.attitude_stamp_s, 0.0), 1.0)
+        dt_s = min(max(self._now_s - self._link_age_stamp_s, 0.0), 1.0)
+        self._link_age_stamp_s = self._now_s
+        self._link_age_avg_s += dt_s / (LINK_AGE_TAU_S + dt_s) * (age_s - self._link_age_avg_s)
+        if self._link_age_avg_s > f.steady_link_age_s:
+            self._link_late_until_s = self._now_s + f.steady_link_hold_s
 
     def _obstacle_now(self, inp: MissionInputs) -> Vec3 | None:
         """The depth guard's obstacle relative to the follower now (static: shifted by our own motion)."""

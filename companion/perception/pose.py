@@ -56,6 +56,11 @@ _HINT_SIGMAS = 3.0
 _MIN_KEPT_FRACTION = 0.3
 #: Above this many valid pixels, the cluster search runs on an even subsample (the mean uses all).
 _SEARCH_SAMPLES = 2048
+#: The second search, where the box size puts the leader (``PoseConfig.size_suspect_ratio``): a sparser
+#: cluster counts, centred on the size range times the usual box-to-leader ratio, within this fraction.
+_SIZE_SEARCH_FRACTION = 0.02
+_SIZE_SEARCH_RATIO = 1.25
+_SIZE_SEARCH_REL_STD = 0.3
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,6 +152,7 @@ def robust_depth(
     cfg: PoseConfig,
     z_hint_m: float | None = None,
     z_hint_std_m: float = math.inf,
+    min_fraction: float = _CLUSTER_FRACTION,
 ) -> DepthCluster | None:
     """Depth of the leader's cluster of valid pixels inside ``bounds``, or None.
 
@@ -163,6 +169,7 @@ def robust_depth(
         cfg: valid range, noise model and minimum pixel count.
         z_hint_m: predicted depth of the leader's centre, m (None: no track to predict from).
         z_hint_std_m: its standard deviation, m.
+        min_fraction: share of the box's valid pixels a cluster needs.
     """
     x0, y0, x1, y1 = bounds
     if x1 <= x0 or y1 <= y0:
@@ -180,7 +187,7 @@ def robust_depth(
     counts = np.searchsorted(s, s + width, side="right") - np.arange(s.size)
     # The nearest window holding a fair share of the pixels starts on the leader's near tail (lone
     # speckles in front are too few); the densest window starting inside it is the leader itself.
-    need = max(float(cfg.min_valid_px) / step, _CLUSTER_FRACTION * s.size)
+    need = max(float(cfg.min_valid_px) / step, min_fraction * s.size)
     dense = counts >= need
     if not dense.any():
         return None
@@ -457,6 +464,18 @@ def measure_leader(
         z_hint_m=z_hint_m,
         z_hint_std_m=z_hint_std_m,
     )
+    if cluster is not None and cfg.size_suspect_ratio > 0.0:
+        z_size = intr.fx_px * leader.span_m / max(size_px, 1.0)
+        if cluster.z_m > cfg.size_suspect_ratio * z_size:
+            cluster = _size_consistent_cluster(
+                depth_m,
+                bounds,
+                focal_px=intr.fx_px,
+                span_m=leader.span_m,
+                cfg=cfg,
+                z_size_m=z_size,
+                first=cluster,
+            )
     if cluster is not None:
         cos_ray = 1.0 / math.sqrt(1.0 + a * a + b * b)
         # The centre is surface_to_centre_m further along the ray than the visible surface.
@@ -510,6 +529,38 @@ def measure_leader(
         width_m=w_px * z / intr.fx_px,
         height_m=h_px * z / intr.fy_px,
     )
+
+
+def _size_consistent_cluster(
+    depth_m: DepthImage,
+    bounds: tuple[int, int, int, int],
+    *,
+    focal_px: float,
+    span_m: float,
+    cfg: PoseConfig,
+    z_size_m: float,
+    first: DepthCluster,
+) -> DepthCluster:
+    """A sparser cluster nearer than ``first`` where the box size puts the leader, else ``first``.
+
+    ``z_size_m``: the range at which a leader of span ``span_m`` fills the box (size ratio 1).
+    """
+    z_hint = _SIZE_SEARCH_RATIO * z_size_m
+    std = _SIZE_SEARCH_REL_STD * z_hint
+    found = robust_depth(
+        depth_m,
+        bounds,
+        focal_px=focal_px,
+        body_depth_m=span_m,
+        cfg=cfg,
+        z_hint_m=z_hint,
+        z_hint_std_m=std,
+        min_fraction=_SIZE_SEARCH_FRACTION,
+    )
+    # The search falls back to the nearest cluster when none fits the size: only a fit, in front, counts.
+    if found is None or found.z_m > first.z_m - span_m or abs(found.z_m - z_hint) > _HINT_SIGMAS * std:
+        return first
+    return found
 
 
 def measure_all(

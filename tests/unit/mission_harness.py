@@ -53,6 +53,8 @@ class FakeAutopilot:
     #: Commands that get no answer at all (in flight forever).
     mute: set[CommandKind] = field(default_factory=set)
     climb_m_s: float = 2.0
+    #: How old the attitude sample is on arrival (a slow or lossy link), s.
+    attitude_lag_s: float = 0.0
     target_alt_m: float = 0.0
     sent: list[Command] = field(default_factory=list)
 
@@ -98,7 +100,7 @@ class FakeAutopilot:
             flight_mode=self.mode,
             landed_state=self.landed,
             yaw_rad=self.yaw_rad,
-            attitude_stamp_s=stamp,
+            attitude_stamp_s=stamp - self.attitude_lag_s,
             v_ned_m_s=self.v_ned_m_s,
             velocity_stamp_s=stamp,
             p_ned_m=self.p_ned_m,

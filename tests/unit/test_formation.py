@@ -187,6 +187,16 @@ def test_a_per_call_slew_overrides_the_configured_one() -> None:
     assert np.linalg.norm(cmd.v_ned_m_s) == pytest.approx(8.0 * 0.05)
 
 
+def test_the_steady_slew_is_horizontal_the_vertical_keeps_the_configured_one() -> None:
+    """A fast vertical slew swung the height under a lossy link: only the horizontal gets ``slew_m_s2``."""
+    lw = law(command_slew_m_s2=3.0, kp_z=5.0)
+    lw.seed_velocity(np.zeros(3))
+    # The leader 8 m ahead and 2 m above (NED down -2): both channels ask for far more than one step.
+    cmd = lw.velocity(np.array([8.0, 0.0, -2.0]), np.zeros(3), hover(), 20.0, slew_m_s2=8.0)
+    assert math.hypot(cmd.v_ned_m_s[0], cmd.v_ned_m_s[1]) == pytest.approx(8.0 * 0.05)
+    assert cmd.v_ned_m_s[2] == pytest.approx(-3.0 * 0.05)
+
+
 def test_integrators_are_bounded_and_reset() -> None:
     lw = law(kp_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, ki_xy=1.0, i_limit_xy_m_s=0.3)
     out = None

@@ -365,6 +365,38 @@ def test_leader_lost_then_reacquired() -> None:
     assert h.last_transition().reason == R.LEADER_REACQUIRED
 
 
+def test_the_fast_slew_waits_for_a_clean_link() -> None:
+    """Steady track: the horizontal command may change at the steady slew, but not while the attitude arrives
+    late (averaged over ~1 s), nor for ``steady_link_hold_s`` after."""
+    f = Config().formation
+    h = Harness()
+    h.to_follow()
+    h.leader_mode, h.leader_status = "fresh", TrackStatus.CONFIRMED
+
+    def step_after_jump_m_s(settle_s: float) -> float:
+        """Hold the slot for ``settle_s``, then put the leader 10 m further: the command's first change."""
+        h.leader_p = (5.0, 0.0, 0.0)
+        h.run(settle_s)
+        outs = [h.step() for _ in range(2)]
+        h.leader_p = (15.0, 0.0, 0.0)
+        outs += [h.step() for _ in range(2)]
+        v = []
+        for o in outs:
+            assert isinstance(o.setpoint, VelocityBodySetpoint)
+            v.append(o.setpoint.v_body_m_s)
+        assert math.hypot(v[1][0] - v[0][0], v[1][1] - v[0][1]) < 1e-6  # settled before the jump
+        return math.hypot(v[3][0] - v[2][0], v[3][1] - v[2][1])
+
+    assert step_after_jump_m_s(1.0) == pytest.approx(f.command_slew_steady_m_s2 * DT_S, rel=0.02)
+    h.ap.attitude_lag_s = 0.04  # link-loss's lossy spells: ~0.033 s on average
+    assert step_after_jump_m_s(2.0) == pytest.approx(f.command_slew_m_s2 * DT_S, rel=0.02)
+    h.ap.attitude_lag_s = 0.0  # clean again: still slow for the hold
+    assert step_after_jump_m_s(1.0) == pytest.approx(f.command_slew_m_s2 * DT_S, rel=0.02)
+    assert step_after_jump_m_s(f.steady_link_hold_s) == pytest.approx(
+        f.command_slew_steady_m_s2 * DT_S, rel=0.02
+    )
+
+
 def test_reacquire_waits_for_a_steady_track() -> None:
     """A new track after a loss must be old and seen often enough (a phantom of sporadic hits is not)."""
     h = Harness(cfg=cfg_with(reacquire_min_track_s=0.8, reacquire_min_hit_ratio=0.6))

@@ -155,6 +155,42 @@ def test_size_ratio_flags_a_box_that_does_not_fit_its_depth() -> None:
     assert huge.size_ratio > 2.5
 
 
+def test_a_loose_box_on_a_leader_in_front_of_a_wall_is_ranged_where_its_size_says() -> None:
+    """A thin quad fills under 10 % of a loose box in front of a wall: the nearest dense cluster is the wall.
+
+    The box is then ~2.8x the size a leader would have at the wall's range, so it is searched again for a
+    sparser cluster in front, near the range its size gives (leader-occluded seed 7 re-acquired a leader
+    4.4 m away at the tree's 7.2 m and flew at it).
+    """
+    view = render((0.0, 0.0, 4.4), background_m=7.2, rng=np.random.default_rng(5))
+    bx0, by0, bx1, by1 = view.box_xyxy_px
+    w, h = bx1 - bx0, by1 - by0
+    loose = Detection((bx0 - 0.15 * w, by0 - 2.5 * h, bx1 + 0.15 * w, by1 + 2.5 * h), 0.9)
+    off = measure_leader(
+        view.depth_m,
+        D435_COLOR,
+        loose,
+        0.0,
+        leader=LEADER,
+        cfg=POSE.model_copy(update={"size_suspect_ratio": 0.0}),
+    )
+    on = measure_leader(view.depth_m, D435_COLOR, loose, 0.0, leader=LEADER, cfg=POSE)
+    assert off is not None
+    assert on is not None
+    assert off.p_cam_leader_m[2] == pytest.approx(7.25, abs=0.1)
+    assert off.size_ratio > 2.5
+    assert on.p_cam_leader_m[2] == pytest.approx(4.4, abs=0.1)
+    assert on.size_ratio < 2.0
+    # A tight box on the same scene was right before and is untouched.
+    tight = Detection(view.box_xyxy_px, 0.9)
+    cfg_off = POSE.model_copy(update={"size_suspect_ratio": 0.0})
+    m_on = measure_leader(view.depth_m, D435_COLOR, tight, 0.0, leader=LEADER, cfg=POSE)
+    m_off = measure_leader(view.depth_m, D435_COLOR, tight, 0.0, leader=LEADER, cfg=cfg_off)
+    assert m_on is not None
+    assert m_off is not None
+    assert np.array_equal(m_on.p_cam_leader_m, m_off.p_cam_leader_m)
+
+
 def test_range_limit_truncation_is_undone() -> None:
     # At 9.7 m with a 10 m cut-off a third of the leader's noisy pixels are dropped (all of them far):
     # a plain mean of the rest reads ~0.2 m short; the truncated-normal correction removes that.

@@ -9,7 +9,8 @@ to 0.96-0.98 (window), and the smaller input also costs less (a 128x96 window at
 
 The window follows the box of the measurement that the tracker accepted into a confirmed track, never the
 detector's own best guess, so a false positive steers it only if the tracker takes it. Without such a box,
-or when the window finds nothing usable, the whole frame is searched, in the same call. A lower threshold
+or when the window finds nothing usable, the whole frame is searched, in the same call, at
+``search_input_px`` (1:1 for a 640 px frame: a lost leader is small too). A lower threshold
 inside the window (``roi_conf_threshold``, for the best box, only when none passes the usual one and within
 ``roi_low_conf_misses`` frames of the last tracked box) is available but off by default: at 0.2 it raised
 closed-loop recall by 0.02-0.04, but in a network leader-occluded run the window kept finding the tree
@@ -75,7 +76,10 @@ def roi_window(
 
 def window_note(cfg: DetectorConfig) -> str:
     """What a run's detector description adds for the window ("" when it is off)."""
-    return f", {cfg.roi_magnification:g}x window on the tracked leader" if cfg.roi_enabled else ""
+    if not cfg.roi_enabled:
+        return ""
+    search = f", whole frame at {cfg.search_input_px} px" if cfg.search_input_px != cfg.input_size_px else ""
+    return f", {cfg.roi_magnification:g}x window on the tracked leader{search}"
 
 
 def cut_by_window(box_xyxy_px: Box, win: RoiWindow, frame_w_px: int, frame_h_px: int) -> bool:
@@ -147,7 +151,7 @@ class RoiDetector:
         h, w = rgb.shape[0], rgb.shape[1]
         win = None if self._focus is None else roi_window(self._focus, w, h, self.cfg)
         if win is None:
-            return self.inner.detect(rgb)
+            return self._search(rgb)
         self.window_frames += 1
         # The lower threshold only just after the tracker placed the leader here: once it has missed a few
         # frames (an occlusion, say), whatever the window holds is no likelier the leader than anything else.
@@ -164,8 +168,15 @@ class RoiDetector:
         if kept:
             return DetectorResult(kept, first.timing) if len(kept) < len(first.detections) else first
         self.fallback_frames += 1
-        whole = self.inner.detect(rgb)
+        whole = self._search(rgb)
         return DetectorResult(whole.detections, _sum_timing(first.timing, whole.timing))
+
+    def _search(self, rgb: RgbImage) -> DetectorResult:
+        """The whole frame at ``search_input_px`` (the detector's own input when they are equal)."""
+        size = self.cfg.search_input_px
+        if size == self.inner.input_size_px:
+            return self.inner.detect(rgb)
+        return self.inner.detect_window(rgb, (0, 0, rgb.shape[1], rgb.shape[0]), size)
 
 
 def _sum_timing(a: DetectorTiming | None, b: DetectorTiming | None) -> DetectorTiming | None:

@@ -74,12 +74,15 @@ class _Inner:
         self.calls: list[str] = []
 
     def detect(self, rgb: np.ndarray) -> DetectorResult:
-        self.calls.append("whole")
+        self.calls.append(f"whole {self.input_size_px}")
         return DetectorResult(list(self.whole), DetectorTiming(1.0, 8.0, 0.5))
 
     def detect_window(
         self, rgb: np.ndarray, xywh: tuple[int, int, int, int], size: int, conf: float | None = None
     ) -> DetectorResult:
+        if xywh == (0, 0, rgb.shape[1], rgb.shape[0]):
+            self.calls.append(f"whole {size}")
+            return DetectorResult(list(self.whole), DetectorTiming(1.0, 8.0, 0.5))
         self.calls.append(f"window {xywh} {size} {conf}")
         return DetectorResult(list(self.window), DetectorTiming(0.5, 4.0, 0.5))
 
@@ -105,7 +108,21 @@ def test_detector_searches_the_window_holds_it_and_falls_back_to_the_frame() -> 
     assert inner.calls[-1].endswith(" None")
     roi.focus(None)  # one miss too many: whole frames again
     roi.detect(rgb)
-    assert inner.calls[-1] == "whole"
+    assert inner.calls[-1] == f"whole {CFG.search_input_px}"
+    assert inner.calls[0] == inner.calls[-1]
+
+
+def test_the_whole_frame_is_searched_at_its_own_input_size() -> None:
+    """640 (the default) shows a 640 px frame 1:1; equal to ``input_size_px`` it is the plain detect."""
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    for size, call in ((640, "whole 640"), (320, "whole 320")):
+        inner = _Inner([], [])
+        roi = RoiDetector(inner, CFG.model_copy(update={"search_input_px": size}))  # type: ignore[arg-type]
+        roi.detect(rgb)
+        roi.focus((300.0, 200.0, 351.0, 229.0))
+        roi.detect(rgb)  # the window finds nothing: the same search
+        assert inner.calls == [call, inner.calls[1], call]
+        assert inner.calls[1].startswith("window")
 
 
 def test_an_empty_or_cut_window_result_falls_back_to_the_whole_frame_in_the_same_call() -> None:
@@ -116,7 +133,7 @@ def test_an_empty_or_cut_window_result_falls_back_to_the_whole_frame_in_the_same
     roi.focus((300.0, 200.0, 351.0, 229.0))
     result = roi.detect(np.zeros((480, 640, 3), np.uint8))
     assert inner.calls[0].startswith("window")
-    assert inner.calls[1] == "whole"
+    assert inner.calls[1] == f"whole {CFG.search_input_px}"
     assert result.detections == [whole]
     assert result.timing is not None
     assert result.timing.inference_ms == pytest.approx(12.0)
