@@ -242,9 +242,9 @@ class FormationConfig(Section):
     max_yaw_rate_deg_s: float = Field(60.0, gt=0)
     max_accel_m_s2: float = Field(3.0, gt=0)
     #: How fast the velocity command may change, m/s^2 (a first command that jumped to the full PID output
-    #: pitched the vehicle past 40 deg). Faster cuts the leader-start lag (8.0: straight max deviation over
-    #: seeds 1-4 0.396 -> 0.316 m) but leader-occluded then lost the leader and landed in 8 of 8 seeds
-    #: (3.0: 5 of 8), so it stays at max_accel_m_s2's 3.0 (docs/evaluation.md).
+    #: pitched the vehicle past 40 deg). Faster cuts the leader-start lag but, for every track, lost the
+    #: leader in leader-occluded (8.0: 8 of 8 seeds landed, stop 15), so only a steady track gets the
+    #: faster ``command_slew_steady_m_s2``; this one also bounds the vertical (docs/evaluation.md).
     command_slew_m_s2: float = Field(3.0, gt=0)
     #: The slew while the track is steady: confirmed and seen in at least ``steady_hit_ratio`` of its
     #: recent frames (``tracker.quality_window_frames``), and the link on time (``steady_link_age_s``),
