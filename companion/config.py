@@ -118,11 +118,10 @@ class DetectorConfig(Section):
     #: landed, min separation 2.44 m; 15 (the tracker's coast): 6 + 2 and 1.63 m (a phantom re-acquired
     #: from the whole frame); straight, circle, gps-loss, visibility (seeds 1-2) identical.
     roi_hold_frames: int = Field(60, ge=0, le=100)
-    #: Network input (px) for the whole frame when no window on the leader is held (acquiring, lost): 640
-    #: searches a 640x480 frame at 1:1 instead of the 0.5x of ``input_size_px``. A quad 7 m away against
-    #: the horizon was not found at 0.5x in 4 s of re-acquisition and was at 1:1 (leader-occluded seed 9,
-    #: docs/evaluation.md "Stop 20"); it costs ~4x the small input. A window that finds nothing still
-    #: falls back to ``input_size_px`` (at 1:1 the weave's 10-12 m RMSE went 0.417 -> 0.454 m).
+    #: Network input (px) for the whole frame when there is no window on the leader (acquiring, lost) or the
+    #: window found nothing: 640 searches a 640x480 frame at 1:1 instead of the 0.5x of ``input_size_px``.
+    #: A quad 7 m away against the horizon was not found at 0.5x in 4 s of re-acquisition and was at 1:1
+    #: (leader-occluded seed 9, docs/evaluation.md "Stop 20"); the search costs ~4x the small input.
     search_input_px: int = Field(640, ge=128, le=1280, multiple_of=32)
 
 

@@ -9,9 +9,8 @@ to 0.96-0.98 (window), and the smaller input also costs less (a 128x96 window at
 
 The window follows the box of the measurement that the tracker accepted into a confirmed track, never the
 detector's own best guess, so a false positive steers it only if the tracker takes it. Without such a box,
-the whole frame is searched at ``search_input_px`` (1:1 for a 640 px frame: a lost leader is small too);
-when the window finds nothing usable, the whole frame is searched in the same call at the network's own
-input. A lower threshold
+or when the window finds nothing usable, the whole frame is searched, in the same call, at
+``search_input_px`` (1:1 for a 640 px frame: a lost leader is small too). A lower threshold
 inside the window (``roi_conf_threshold``, for the best box, only when none passes the usual one and within
 ``roi_low_conf_misses`` frames of the last tracked box) is available but off by default: at 0.2 it raised
 closed-loop recall by 0.02-0.04, but in a network leader-occluded run the window kept finding the tree
@@ -169,13 +168,11 @@ class RoiDetector:
         if kept:
             return DetectorResult(kept, first.timing) if len(kept) < len(first.detections) else first
         self.fallback_frames += 1
-        # The window's miss goes to the network's own input, not the 1:1 search: a 1:1 box differs in scale
-        # from the window's, and range from size (past the stereo range) learnt from those took it as a jump.
-        whole = self.inner.detect(rgb)
+        whole = self._search(rgb)
         return DetectorResult(whole.detections, _sum_timing(first.timing, whole.timing))
 
     def _search(self, rgb: RgbImage) -> DetectorResult:
-        """The whole frame at ``search_input_px``, with no window held (the detector's own input if equal)."""
+        """The whole frame at ``search_input_px`` (the detector's own input when they are equal)."""
         size = self.cfg.search_input_px
         if size == self.inner.input_size_px:
             return self.inner.detect(rgb)

@@ -113,16 +113,15 @@ def test_detector_searches_the_window_holds_it_and_falls_back_to_the_frame() -> 
 
 
 def test_the_whole_frame_is_searched_at_its_own_input_size() -> None:
-    """640 (the default) shows a 640 px frame 1:1 while no window is held; an empty window falls back to
-    the network's own input (a 1:1 box differs in scale from the window's); 320 is the plain detect."""
+    """640 (the default) shows a 640 px frame 1:1; equal to ``input_size_px`` it is the plain detect."""
     rgb = np.zeros((480, 640, 3), np.uint8)
     for size, call in ((640, "whole 640"), (320, "whole 320")):
         inner = _Inner([], [])
         roi = RoiDetector(inner, CFG.model_copy(update={"search_input_px": size}))  # type: ignore[arg-type]
         roi.detect(rgb)
         roi.focus((300.0, 200.0, 351.0, 229.0))
-        roi.detect(rgb)  # the window finds nothing
-        assert inner.calls == [call, inner.calls[1], "whole 320"]
+        roi.detect(rgb)  # the window finds nothing: the same search
+        assert inner.calls == [call, inner.calls[1], call]
         assert inner.calls[1].startswith("window")
 
 
@@ -134,7 +133,7 @@ def test_an_empty_or_cut_window_result_falls_back_to_the_whole_frame_in_the_same
     roi.focus((300.0, 200.0, 351.0, 229.0))
     result = roi.detect(np.zeros((480, 640, 3), np.uint8))
     assert inner.calls[0].startswith("window")
-    assert inner.calls[1] == f"whole {inner.input_size_px}"
+    assert inner.calls[1] == f"whole {CFG.search_input_px}"
     assert result.detections == [whole]
     assert result.timing is not None
     assert result.timing.inference_ms == pytest.approx(12.0)
