@@ -91,7 +91,7 @@ class PerceptionPipeline:
             frame.stamp_s,
             leader=self.leader,
             cfg=self.pose_cfg,
-            size_prior=None if self.size is None else self.size.prior(),
+            size_prior=self.size,
             down_cam=down_cam,
             z_hint_m=None if predicted is None else float(predicted[0][2]),
             z_hint_std_m=math.inf if predicted is None else math.sqrt(float(predicted[1][2, 2])),

@@ -103,6 +103,8 @@ class LeaderMeasurement:
     #: The box's width and height at the measured range, m (what the size calibration learns from).
     width_m: float = math.nan
     height_m: float = math.nan
+    #: The detection's :attr:`~companion.perception.types.Detection.scale`.
+    box_scale: float = 1.0
 
 
 def back_project(u_px: float, v_px: float, z_m: float, intr: Intrinsics) -> Vec3:
@@ -350,28 +352,40 @@ class SizeCalibrator:
         self._prior = SizePrior(
             width_ratio * span_m, prior_rel_std, 2.0, height_ratio * span_m, prior_rel_std, 2.0
         )
-        #: (width, height) learnt in the band near the cut-off, and from closer range.
-        self._band = (_SideStats(self._prior.width_m, 2.0), _SideStats(self._prior.height_m, 2.0))
-        self._near = (_SideStats(self._prior.width_m, 2.0), _SideStats(self._prior.height_m, 2.0))
+        #: Per box scale (:func:`scale_key`): (width, height) learnt in the band near the cut-off, and
+        #: from closer range.
+        self._stats: dict[int, tuple[tuple[_SideStats, _SideStats], tuple[_SideStats, _SideStats]]] = {}
+
+    def _sides(self) -> tuple[_SideStats, _SideStats]:
+        return (_SideStats(self._prior.width_m, 2.0), _SideStats(self._prior.height_m, 2.0))
 
     @property
     def updates(self) -> int:
-        """Depth measurements learnt from, in the band and closer."""
-        return self._band[0].updates + self._near[0].updates
+        """Depth measurements learnt from, in the band and closer, at every box scale."""
+        return sum(band[0].updates + near[0].updates for band, near in self._stats.values())
 
     def update(self, m: LeaderMeasurement) -> None:
         """Learn from a depth measurement the tracker accepted (others are ignored)."""
         z = float(m.p_cam_leader_m[2])
         if m.range_source != "depth" or m.truncated or z > self.max_depth_m:
             return
-        stats = self._band if z >= self.min_depth_m else self._near
+        key = scale_key(m.box_scale)
+        if key not in self._stats:
+            self._stats[key] = (self._sides(), self._sides())
+        band, near = self._stats[key]
+        stats = band if z >= self.min_depth_m else near
         x0, y0, x1, y1 = m.box_xyxy_px
         stats[0].add(m.width_m, x1 - x0, self.alpha)
         stats[1].add(m.height_m, y1 - y0, self.alpha)
 
-    def prior(self) -> SizePrior:
-        """The current apparent-size estimate (the configured prior until enough updates)."""
-        for w, h in (self._band, self._near):
+    def prior(self, scale: float = 1.0) -> SizePrior:
+        """The apparent size of a box found at ``scale`` (the configured prior until enough updates there).
+
+        A box found 1:1 is not as tight as one found magnified in the window: learnt from the window's
+        boxes, the size read a 1:1 box's range as a jump (issue 5's far band, docs/perception.md).
+        """
+        stats = self._stats.get(scale_key(scale))
+        for w, h in () if stats is None else stats:
             if w.updates >= self.min_updates:
                 return SizePrior(
                     w.mean_m,
@@ -382,6 +396,11 @@ class SizeCalibrator:
                     max(self.min_noise_px, math.sqrt(h.noise_px2)),
                 )
         return self._prior
+
+
+def scale_key(scale: float) -> int:
+    """Half-octave bucket of a box scale (0.5 -> -2, 1.0 -> 0, 1.5 -> 1, 2.0 -> 2)."""
+    return round(2.0 * math.log2(max(scale, 1e-3)))
 
 
 def range_from_size(
@@ -528,6 +547,7 @@ def measure_leader(
         range_source=source,
         width_m=w_px * z / intr.fx_px,
         height_m=h_px * z / intr.fy_px,
+        box_scale=det.scale,
     )
 
 
@@ -571,14 +591,18 @@ def measure_all(
     *,
     leader: LeaderConfig,
     cfg: PoseConfig,
-    size_prior: SizePrior | None = None,
+    size_prior: SizePrior | SizeCalibrator | None = None,
     down_cam: Vec3 | None = None,
     z_hint_m: float | None = None,
     z_hint_std_m: float = math.inf,
 ) -> list[LeaderMeasurement]:
-    """:func:`measure_leader` for every detection of a frame; boxes without a usable range are dropped."""
+    """:func:`measure_leader` for every detection of a frame; boxes without a usable range are dropped.
+
+    ``size_prior``: one prior for every box, or the calibrator, asked for each box's own scale.
+    """
     out = []
     for det in detections:
+        prior = size_prior.prior(det.scale) if isinstance(size_prior, SizeCalibrator) else size_prior
         m = measure_leader(
             depth_m,
             intr,
@@ -586,7 +610,7 @@ def measure_all(
             stamp_s,
             leader=leader,
             cfg=cfg,
-            size_prior=size_prior,
+            size_prior=prior,
             down_cam=down_cam,
             z_hint_m=z_hint_m,
             z_hint_std_m=z_hint_std_m,

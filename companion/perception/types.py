@@ -79,6 +79,9 @@ class Detection:
 
     box_xyxy_px: tuple[float, float, float, float]
     score: float
+    #: Network input px per frame px the box was found at (0.5: a 640 px frame at 320; ~1.5: the window).
+    #: Box tightness depends on it, so range from size is calibrated per scale.
+    scale: float = 1.0
 
     @property
     def center_px(self) -> tuple[float, float]:

@@ -166,7 +166,7 @@ class FrameDetector:
             boxes[:, 0::2] += dx_px
             boxes[:, 1::2] += dy_px
         dets = [
-            Detection((float(b[0]), float(b[1]), float(b[2]), float(b[3])), float(s))
+            Detection((float(b[0]), float(b[1]), float(b[2]), float(b[3])), float(s), geom.scale)
             for b, s in zip(boxes, scores, strict=True)
         ]
         t3 = time.perf_counter()
