@@ -290,7 +290,9 @@ def test_tracker_prediction_picks_the_leader_behind_a_nearer_occluder() -> None:
     assert lost.p_cam_leader_m[2] == blind.p_cam_leader_m[2]
 
 
-def _depth_meas(z_m: float, w_px: float, h_px: float, f_px: float = 465.6) -> LeaderMeasurement:
+def _depth_meas(
+    z_m: float, w_px: float, h_px: float, f_px: float = 465.6, box_scale: float = 1.0
+) -> LeaderMeasurement:
     return LeaderMeasurement(
         stamp_s=0.0,
         p_cam_leader_m=np.array([0.0, 0.0, z_m]),
@@ -305,6 +307,7 @@ def _depth_meas(z_m: float, w_px: float, h_px: float, f_px: float = 465.6) -> Le
         truncated=False,
         width_m=w_px * z_m / f_px,
         height_m=h_px * z_m / f_px,
+        box_scale=box_scale,
     )
 
 
@@ -325,6 +328,21 @@ def test_size_calibration_learns_near_the_cut_off_and_the_box_noise_in_px() -> N
     assert prior.width_noise_px == pytest.approx(3.0, rel=0.25)
     calib.update(_depth_meas(12.0, 10.0, 5.0))  # beyond the band: ignored
     assert calib.prior().height_m == pytest.approx(prior.height_m)
+
+
+def test_size_calibration_is_per_box_scale() -> None:
+    """Boxes found magnified (the window, 1.5x) are tighter than boxes found 1:1: each scale learns its own
+    size, and a scale never seen keeps the configured prior rather than borrowing another's."""
+    f = 465.6
+    calib = SizeCalibrator(0.45, min_depth_m=7.5, max_depth_m=9.5)
+    for z in np.linspace(7.5, 9.5, 100):
+        calib.update(_depth_meas(z, f * 0.55 / z, f * 0.30 / z, box_scale=1.6))  # the window
+        calib.update(_depth_meas(z, f * 0.60 / z, f * 0.36 / z, box_scale=1.0))  # the 1:1 search
+    assert calib.prior(1.5).height_m == pytest.approx(0.30, rel=0.01)  # 1.5 and 1.6: one half-octave
+    assert calib.prior(1.0).height_m == pytest.approx(0.36, rel=0.01)
+    unseen = calib.prior(0.5)
+    assert unseen.height_m == pytest.approx(0.65 * 0.45)  # the configured prior, loose
+    assert unseen.height_rel_std == pytest.approx(0.25)
 
 
 def test_range_from_size_averages_without_bias_under_box_noise() -> None:
