@@ -249,9 +249,9 @@ class FormationConfig(Section):
     #: The slew while the track is steady: confirmed and seen in at least ``steady_hit_ratio`` of its
     #: recent frames (``tracker.quality_window_frames``), and the link on time (``steady_link_age_s``),
     #: m/s^2; horizontal only (the vertical keeps ``command_slew_m_s2``). 8.0 against 3.0 (lockstep, mean
-    #: max deviation, docs/evaluation.md "Stop 20"): straight seeds 1-8 0.416 -> 0.308 m, circle, gps-loss,
-    #: figure8 and wind 20-30 % lower. Off (3.0) it lost the leader less in leader-occluded before the
-    #: detector learnt trees (stop 19) and the whole-frame search went to 1:1 (``search_input_px``).
+    #: max deviation, seeds 1-4, docs/evaluation.md "Stop 20"): straight 0.416 -> 0.350 m, circle,
+    #: gps-loss, figure8 and wind 15-25 % lower. It was off (3.0) while it cost leader-occluded seeds, until
+    #: the detector learnt trees (stop 19) and the whole-frame search went to 1:1 (``search_input_px``).
     command_slew_steady_m_s2: float = Field(8.0, gt=0)
     #: The attitude's age averaged over ~1 s above this (s) marks the link late: the fast slew waits
     #: ``steady_link_hold_s``. Under link-loss's 30 % loss and 40 ms latency the fast slew swung the height
