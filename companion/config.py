@@ -250,7 +250,7 @@ class FormationConfig(Section):
     #: recent frames (``tracker.quality_window_frames``), and the link on time (``steady_link_age_s``),
     #: m/s^2; horizontal only (the vertical keeps ``command_slew_m_s2``). 8.0 against 3.0 (lockstep, mean
     #: max deviation, seeds 1-4, docs/evaluation.md "Stop 20"): straight 0.416 -> 0.350 m, circle,
-    #: gps-loss, figure8 and wind 15-25 % lower. It was off (3.0) while it cost leader-occluded seeds, until
+    #: gps-loss, figure8 and wind 14-24 % lower. It was off (3.0) while it cost leader-occluded seeds, until
     #: the detector learnt trees (stop 19) and the whole-frame search went to 1:1 (``search_input_px``).
     command_slew_steady_m_s2: float = Field(8.0, gt=0)
     #: The attitude's age averaged over ~1 s above this (s) marks the link late: the fast slew waits
