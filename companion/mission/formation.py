@@ -332,13 +332,15 @@ class FormationLaw:
         a_leader_ned_m_s2: Vec3T | None = None,
         obstacle_ned_m: Vec3 | None = None,
         slew_m_s2: float | None = None,
+        coasting: bool = False,
     ) -> VelocityCommand:
         """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
 
         ``a_leader_ned_m_s2``: the tracker's estimate of the leader's acceleration (NED, m/s^2), if it
         makes one; otherwise the law differentiates the leader's velocity. ``obstacle_ned_m``: the depth
         guard's nearest thing ahead (relative NED, m), held off like the leader but taken as static.
-        ``slew_m_s2``: how fast the command may change (default ``command_slew_m_s2``).
+        ``slew_m_s2``: how fast the command may change (default ``command_slew_m_s2``). ``coasting``: the
+        track has no detection now (the lead is dropped unless ``accel_lead_while_coasting``).
         """
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
@@ -346,6 +348,8 @@ class FormationLaw:
         v_rel = np.asarray(v_ned_rel_m_s, dtype=np.float64)
         v_leader = None if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s) + v_rel
         a_leader = self._leader_accel(v_leader, dt, a_leader_ned_m_s2)
+        if coasting and not cfg.accel_lead_while_coasting:
+            a_leader = np.zeros(3)
         ff = (
             np.zeros(3)
             if v_leader is None

@@ -685,6 +685,7 @@ class MissionMachine:
             a_leader_ned_m_s2=est.a_ned_leader_m_s2,
             obstacle_ned_m=self._obstacle_now(inp),
             slew_m_s2=self._slew(est),
+            coasting=est.status == TrackStatus.COASTING,
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
 

@@ -197,6 +197,27 @@ def test_the_steady_slew_is_horizontal_the_vertical_keeps_the_configured_one() -
     assert cmd.v_ned_m_s[2] == pytest.approx(-3.0 * 0.05)
 
 
+def test_the_acceleration_lead_can_be_dropped_while_the_track_coasts() -> None:
+    """A leader speeding up at 2 m/s^2: the lead is fed forward unless the track coasts with the knob off."""
+
+    def command(coasting: bool, keep: bool) -> float:
+        lw = law(accel_lead_while_coasting=keep, kp_xy=0.0, kd_xy=0.0, ki_xy=0.0, command_slew_m_s2=100.0)
+        out = None
+        for k in range(40):  # the follower hovers while the leader's velocity rises: v_rel = 2 t
+            t = k * 0.05
+            out = lw.velocity(
+                np.array([5.0, 0.0, 0.0]), np.array([2.0 * t, 0.0, 0.0]), hover(), t, coasting=coasting
+            )
+        assert out is not None
+        return out.v_ned_m_s[0]
+
+    v_leader = 2.0 * 39 * 0.05
+    lead = command(coasting=False, keep=False) - v_leader
+    assert lead > 0.5 * FormationConfig().leader_accel_ff_s * 2.0  # the lead is there
+    assert command(coasting=True, keep=True) == pytest.approx(v_leader + lead)
+    assert command(coasting=True, keep=False) == pytest.approx(v_leader)
+
+
 def test_integrators_are_bounded_and_reset() -> None:
     lw = law(kp_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, ki_xy=1.0, i_limit_xy_m_s=0.3)
     out = None
