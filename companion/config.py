@@ -241,7 +241,7 @@ class FormationConfig(Section):
     #: Keep the acceleration lead while the track coasts (no detection). False drops it then: a coasting
     #: estimate's velocity is extrapolated, and a faster lead amplified it (circle seed 3, tau 0.2: 1.34 m).
     #: False with tau 0.2 and ff 0.7 (lockstep, stop 20): straight seeds 1-8 mean 0.338 -> 0.294 m, circle
-    #: 1-4 0.340 -> 0.353 m; not the default until leader-occluded and the gps-loss Monte Carlo are run.
+    #: 1-4 0.340 -> 0.353 m; but leader-occluded seeds 1-16 15 completed + 1 landed safely (16 shipped).
     accel_lead_while_coasting: bool = True
     kp_yaw: float = 1.5
     max_yaw_rate_deg_s: float = Field(60.0, gt=0)
