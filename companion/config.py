@@ -198,6 +198,12 @@ class TrackerConfig(Section):
     #: gating the leader out. 0 hits = never.
     switch_hits: int = Field(12, ge=0)
     switch_max_track_ratio: float = Field(0.3, ge=0.0, le=1.0)
+    #: ... or sooner, once seen in ``switch_fast_hits`` frames, when its hit ratio over its frames beats the
+    #: track's by ``switch_ratio_margin``: the leader reappearing beside a tree crossed the view in 9 frames
+    #: while a false track on the crown, hit in a third of its frames, held the follower's eye
+    #: (leader-occluded seed 8). A steady leader track (0.8-1.0) cannot be beaten by 0.5. 0 = off.
+    switch_fast_hits: int = Field(6, ge=0)
+    switch_ratio_margin: float = Field(0.5, gt=0.0, le=1.0)
     #: Velocity uncertainty of a new track (the leader's relative speed is unknown at first sight), m/s.
     init_velocity_std_m_s: float = Field(3.0, gt=0)
     #: Acceleration noise along the line of sight while the track is ranged by box size (beyond the

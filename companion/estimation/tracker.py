@@ -20,7 +20,9 @@ Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurem
 5. follows the best candidate outside the gate with a second filter (a challenger) and hands the track to
    it when it is seen in ``switch_hits`` of the last ``quality_window_frames`` frames while the track is
    seen in at most ``switch_max_track_ratio`` of them (a false track confirmed before the leader came into
-   view otherwise gated the leader out for as long as the false one was re-detected now and then).
+   view otherwise gated the leader out for as long as the false one was re-detected now and then); or
+   sooner, after ``switch_fast_hits``, when its hit ratio beats the track's by ``switch_ratio_margin``
+   (the leader crossing the view for under a second while a tree-crown track blinks on).
 
 Opt-in (``leader_accel_filter``): a constant-acceleration (Singer) filter runs beside the track on the
 measurements the track accepts, with the same ego-motion; the estimate's position, velocity and the
@@ -408,12 +410,17 @@ class TargetTracker:
             self._chal_recent.clear()
             self._chal_recent.append(True)
             return None
-        if (
-            hit is None
-            or self._chal is None
-            or sum(self._chal_recent) < cfg.switch_hits
-            or self._recent_ratio() > cfg.switch_max_track_ratio
-        ):
+        if hit is None or self._chal is None:
+            return None
+        chal_hits = sum(self._chal_recent)
+        track_ratio = self._recent_ratio()
+        steadier = chal_hits >= cfg.switch_hits and track_ratio <= cfg.switch_max_track_ratio
+        clearly_better = (
+            cfg.switch_fast_hits > 0
+            and chal_hits >= cfg.switch_fast_hits
+            and chal_hits / len(self._chal_recent) >= track_ratio + cfg.switch_ratio_margin
+        )
+        if not (steadier or clearly_better):
             return None
         self._kf = self._chal
         self._kf_acc = self._new_filter(hit, 9) if self.cfg.leader_accel_filter else None

@@ -338,6 +338,60 @@ def test_a_steady_object_outside_the_gate_replaces_a_track_that_is_rarely_seen()
     assert np.linalg.norm(st_.estimate.p_ned_rel_m - leader) < 0.1
 
 
+def test_an_object_seen_far_more_often_than_a_blinking_track_takes_over_within_half_a_second() -> None:
+    """leader-occluded seed 8: a false track on a tree crown, hit in about a third of its frames, held the
+    follower's eye while the leader, seen in every frame, crossed the view in 9 frames (0.6 s at 15 Hz)."""
+    cfg = TrackerConfig()
+    tracker = TargetTracker(cfg, CAM)
+    rng = np.random.default_rng(8)
+    crown = np.array([7.0, 0.5, -1.5])
+    leader = np.array([5.0, 2.5, 0.0])
+    k = 0
+    for _ in range(15):  # the crown every frame: confirmed; then hit in every third frame
+        t = k * DT
+        tracker.step(t, [meas(noisy_cam(crown, LEVEL, rng), t, score=0.5)], LEVEL)
+        k += 1
+    for i in range(15):
+        t = k * DT
+        ms = [meas(noisy_cam(crown, LEVEL, rng), t, score=0.5)] if i % 3 == 0 else []
+        st_ = tracker.step(t, ms, LEVEL)
+        k += 1
+    crown_id = st_.track_id
+    assert st_.status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)
+    switched_at = None
+    for i in range(9):  # the leader every frame, the crown every third
+        t = k * DT
+        ms = [meas(noisy_cam(leader, LEVEL, rng), t, score=0.8)]
+        if i % 3 == 0:
+            ms.append(meas(noisy_cam(crown, LEVEL, rng), t, score=0.5))
+        st_ = tracker.step(t, ms, LEVEL)
+        k += 1
+        if switched_at is None and st_.track_id != crown_id:
+            switched_at = i
+    assert switched_at is not None
+    assert switched_at < cfg.switch_fast_hits  # 6 frames of the leader, the first one included
+    assert st_.estimate is not None
+    assert np.linalg.norm(st_.estimate.p_ned_rel_m - leader) < 0.15
+    # With the fast rule off, 9 frames are not enough (the steady rule needs 12 of 15).
+    slow = TargetTracker(TrackerConfig(switch_fast_hits=0), CAM)
+    rng = np.random.default_rng(8)
+    k = 0
+    for i in range(30):
+        t = k * DT
+        ms = [meas(noisy_cam(crown, LEVEL, rng), t, score=0.5)] if (i < 15 or i % 3 == 0) else []
+        slow.step(t, ms, LEVEL)
+        k += 1
+    first_id = slow.step(k * DT, [], LEVEL).track_id
+    for i in range(9):
+        k += 1
+        t = k * DT
+        ms = [meas(noisy_cam(leader, LEVEL, rng), t, score=0.8)]
+        if i % 3 == 0:
+            ms.append(meas(noisy_cam(crown, LEVEL, rng), t, score=0.5))
+        st_slow = slow.step(t, ms, LEVEL)
+    assert st_slow.track_id == first_id
+
+
 def test_a_steadily_seen_track_is_not_replaced_by_a_second_object() -> None:
     """Two objects seen every frame (the leader and a tree behind it): the track stays on the first."""
     tracker = TargetTracker(TrackerConfig(), CAM)
