@@ -242,6 +242,11 @@ class FormationConfig(Section):
     #: follows a setpoint with a lag of about 1 / MPC_XY_VEL_P_ACC (0.55 s); without this lead the follower
     #: trails an accelerating leader by accel x lag / kp_xy (0.7 m at 1.5 m/s^2). 0 turns it off.
     leader_accel_ff_s: float = Field(0.6, ge=0.0, le=2.0)
+    #: The same lead on the vertical, s. 0: none. PX4's vertical velocity loop is about twice as fast as the
+    #: horizontal (MPC_Z_VEL_P_ACC 4 against MPC_XY_VEL_P_ACC 1.8), and the vertical acceleration estimate
+    #: is the noisiest (elevation and the follower's pitch): under link-loss's late attitudes it swung the
+    #: height 0.3-0.6 m (docs/evaluation.md "Stop 21").
+    leader_accel_ff_z_s: float = Field(0.0, ge=0.0, le=2.0)
     #: Low-pass time constant of that acceleration estimate (the derivative of the leader's velocity), s.
     leader_accel_tau_s: float = Field(0.3, gt=0.0, le=5.0)
     #: Keep the acceleration lead while the track coasts (no detection). False drops it then: a coasting

@@ -17,12 +17,13 @@ Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurem
    (``d^2 < gate_chi2``) the one with the least ``d^2 - 2 ln(score)``; without one, the best score
    (a size-ranged track gates returning depth with a 15 % range error added);
 4. updates, or coasts: no update, so the covariance grows with the prediction;
-5. follows the best candidate outside the gate with a second filter (a challenger) and hands the track to
-   it when it is seen in ``switch_hits`` of the last ``quality_window_frames`` frames while the track is
-   seen in at most ``switch_max_track_ratio`` of them (a false track confirmed before the leader came into
-   view otherwise gated the leader out for as long as the false one was re-detected now and then); or
-   sooner, after ``switch_fast_hits``, when its hit ratio beats the track's by ``switch_ratio_margin``
-   (the leader crossing the view for under a second while a tree-crown track blinks on).
+5. follows up to three objects outside the gate, each with its own filter (challengers), and hands the
+   track to one when it is seen in ``switch_hits`` of the last ``quality_window_frames`` frames while
+   the track is seen in at most ``switch_max_track_ratio`` of them (a false track confirmed before the
+   leader came into view otherwise gated the leader out for as long as the false one was re-detected
+   now and then); or sooner, after ``switch_fast_hits``, when its hit ratio beats the track's by
+   ``switch_ratio_margin`` (the leader crossing the view for under a second while a tree-crown track
+   blinks on).
 
 Opt-in (``leader_accel_filter``): a constant-acceleration (Singer) filter runs beside the track on the
 measurements the track accepts, with the same ego-motion; the estimate's position, velocity and the
@@ -77,6 +78,9 @@ _EYE3 = np.eye(3)
 _SIZE_RANGE_GATE_REL = 0.15
 #: Scores below this are clamped before the log in the selection cost.
 _MIN_SCORE = 1e-3
+#: Objects followed outside the track's gate at once: one slot held by a blinking tree kept the leader,
+#: seen in 6 straight frames beside it, from ever counting (leader-occluded seed 8).
+_MAX_CHALLENGERS = 3
 
 
 def _mahalanobis2(y: Vec3, S: Mat3) -> float:
@@ -234,6 +238,14 @@ class _Candidate:
     R_ned_m2: Mat3
 
 
+@dataclass(slots=True)
+class _Challenger:
+    """Something seen outside the track's gate: its filter and its hit (True) per frame since first seen."""
+
+    kf: KalmanFilter
+    recent: deque[bool]
+
+
 class TargetTracker:
     """Constant-velocity Kalman tracker of one leader, with gating, N-of-M confirmation and coasting."""
 
@@ -256,10 +268,9 @@ class TargetTracker:
         self._v_follower: Vec3 | None = None
         #: The constant-acceleration filter beside the track (``leader_accel_filter``), or None.
         self._kf_acc: KalmanFilter | None = None
-        #: A challenger: what is seen outside the track's gate, followed by its own filter (predicted with
-        #: the track's), and its hits over the same window as ``_recent`` (``switch_hits``).
-        self._chal: KalmanFilter | None = None
-        self._chal_recent: deque[bool] = deque(maxlen=cfg.quality_window_frames)
+        #: Challengers: what is seen outside the track's gate, each followed by its own filter (predicted
+        #: with the track's) with its hits over the same window as ``_recent`` (``switch_hits``).
+        self._chals: list[_Challenger] = []
 
     @property
     def has_track(self) -> bool:
@@ -269,8 +280,7 @@ class TargetTracker:
         """Forget the current track (e.g. when the mission starts a new acquisition)."""
         self._kf = None
         self._kf_acc = None
-        self._chal = None
-        self._chal_recent.clear()
+        self._chals.clear()
         self._confirmed = False
         self._window.clear()
         self._recent.clear()
@@ -393,41 +403,47 @@ class TargetTracker:
         filter, confirmed, with a new id), else None.
         """
         cfg = self.cfg
-        hit: _Candidate | None = None
-        if self._chal is not None:  # already predicted to this stamp with the track (_predict)
-            hit = self._select_gated(self._chal, others) if others else None
+        window = cfg.quality_window_frames
+        free = list(others)
+        hits: list[_Candidate | None] = []
+        for ch in self._chals:  # already predicted to this stamp with the track (_predict)
+            hit = self._select_gated(ch.kf, free) if free else None
             if hit is not None:
-                self._chal.update(hit.p_ned_m.reshape(3, 1), R=hit.R_ned_m2)
-            self._chal_recent.append(hit is not None)
-            if (
-                sum(self._chal_recent) + (self._chal_recent.maxlen or 0) - len(self._chal_recent)
-                < cfg.switch_hits
-            ):
-                self._chal = None  # cannot reach the count any more
-        if self._chal is None and others:
-            best = max(others, key=lambda c: c.meas.score)
-            self._chal = self._new_filter(best, 6)
-            self._chal_recent.clear()
-            self._chal_recent.append(True)
-            return None
-        if hit is None or self._chal is None:
-            return None
-        chal_hits = sum(self._chal_recent)
+                ch.kf.update(hit.p_ned_m.reshape(3, 1), R=hit.R_ned_m2)
+                free = [c for c in free if c is not hit]
+            ch.recent.append(hit is not None)
+            hits.append(hit)
+        # A challenger that can no longer reach ``switch_hits`` in its window is dropped.
+        keep = [sum(ch.recent) + window - len(ch.recent) >= cfg.switch_hits for ch in self._chals]
         track_ratio = self._recent_ratio()
-        steadier = chal_hits >= cfg.switch_hits and track_ratio <= cfg.switch_max_track_ratio
-        clearly_better = (
-            cfg.switch_fast_hits > 0
-            and chal_hits >= cfg.switch_fast_hits
-            and chal_hits / len(self._chal_recent) >= track_ratio + cfg.switch_ratio_margin
-        )
-        if not (steadier or clearly_better):
+        best: tuple[float, _Challenger, _Candidate] | None = None
+        for ch, hit, kept in zip(self._chals, hits, keep, strict=True):
+            if hit is None or not kept:
+                continue
+            n_hits = sum(ch.recent)
+            ratio = n_hits / len(ch.recent)
+            steadier = n_hits >= cfg.switch_hits and track_ratio <= cfg.switch_max_track_ratio
+            clearly_better = (
+                cfg.switch_fast_hits > 0
+                and n_hits >= cfg.switch_fast_hits
+                and ratio >= track_ratio + cfg.switch_ratio_margin
+            )
+            if (steadier or clearly_better) and (best is None or ratio > best[0]):
+                best = (ratio, ch, hit)
+        self._chals = [ch for ch, kept in zip(self._chals, keep, strict=True) if kept]
+        if best is None:
+            for c in sorted(free, key=lambda c: c.meas.score, reverse=True):
+                if len(self._chals) >= _MAX_CHALLENGERS:
+                    break
+                ch = _Challenger(self._new_filter(c, 6), deque([True], maxlen=window))
+                self._chals.append(ch)
             return None
-        self._kf = self._chal
+        _, ch, hit = best
+        self._kf = ch.kf
         self._kf_acc = self._new_filter(hit, 9) if self.cfg.leader_accel_filter else None
         self._recent.clear()
-        self._recent.extend(self._chal_recent)
-        self._chal = None
-        self._chal_recent.clear()
+        self._recent.extend(ch.recent)
+        self._chals.clear()
         self._track_id += 1
         self._start_s = self._last_meas_s = self._stamp_s
         self._size_ranged = hit.meas.range_source == "size"
@@ -463,14 +479,13 @@ class TargetTracker:
         self._recent.append(True)
         self._hits = 1
         self._size_ranged = c.meas.range_source == "size"
-        self._chal = None
-        self._chal_recent.clear()
+        self._chals.clear()
 
     def _predict(self, kf: KalmanFilter, stamp_s: float, v_follower: Vec3 | None) -> None:
         dt = stamp_s - self._stamp_s
         if dt <= 0.0:
             return
-        for f in (kf, self._kf_acc, self._chal):
+        for f in (kf, self._kf_acc, *(ch.kf for ch in self._chals)):
             if f is not None:
                 n = f.dim_x
                 f.predict(F=self._F(dt, n), Q=self._Q(dt, f.x[:3, 0], n))

@@ -350,11 +350,11 @@ class FormationLaw:
         a_leader = self._leader_accel(v_leader, dt, a_leader_ned_m_s2)
         if coasting and not cfg.accel_lead_while_coasting:
             a_leader = np.zeros(3)
-        ff = (
-            np.zeros(3)
-            if v_leader is None
-            else cfg.leader_velocity_ff * v_leader + cfg.leader_accel_ff_s * a_leader
-        )
+        ff = np.zeros(3)
+        if v_leader is not None:
+            ff = cfg.leader_velocity_ff * v_leader
+            ff[:2] += cfg.leader_accel_ff_s * a_leader[:2]
+            ff[2] += cfg.leader_accel_ff_z_s * a_leader[2]
 
         v_range = cfg.kp_xy * err.e_range_m + cfg.kd_xy * err.e_range_rate_m_s + self._i_range_m_s
         v_down = cfg.kp_z * err.e_down_m + self._i_down_m_s

@@ -218,6 +218,26 @@ def test_the_acceleration_lead_can_be_dropped_while_the_track_coasts() -> None:
     assert command(coasting=True, keep=False) == pytest.approx(v_leader)
 
 
+def test_the_acceleration_lead_is_horizontal_unless_a_vertical_one_is_configured() -> None:
+    """A leader speeding up north at 1 m/s^2 and climbing at 0.5: the lead goes on the horizontal only."""
+
+    def command(**kw: float) -> np.ndarray:
+        lw = law(kp_xy=0.0, kd_xy=0.0, ki_xy=0.0, kp_z=0.0, ki_z=0.0, command_slew_m_s2=100.0, **kw)
+        out = None
+        for k in range(40):
+            t = k * 0.05
+            v_rel = np.array([1.0 * t, 0.0, -0.5 * t])
+            out = lw.velocity(np.array([5.0, 0.0, 0.0]), v_rel, hover(), t)
+        assert out is not None
+        return out.v_ned_m_s
+
+    t_end = 39 * 0.05
+    cmd = command()
+    assert cmd[0] - t_end > 0.5 * FormationConfig().leader_accel_ff_s  # a horizontal lead
+    assert cmd[2] == pytest.approx(-0.5 * t_end)  # the climb rate fed forward, no lead on it
+    assert command(leader_accel_ff_z_s=0.5)[2] < -0.5 * t_end - 0.1
+
+
 def test_integrators_are_bounded_and_reset() -> None:
     lw = law(kp_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, ki_xy=1.0, i_limit_xy_m_s=0.3)
     out = None
