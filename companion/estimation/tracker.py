@@ -375,26 +375,26 @@ class TargetTracker:
         return out, rejected
 
     def _select_gated(self, kf: KalmanFilter, candidates: list[_Candidate]) -> _Candidate | None:
-        x = kf.x[:, 0]
-        P_pp = kf.P[:3, :3]
         best: _Candidate | None = None
         best_cost = math.inf
-        # A track ranged by box size can be off in range by far more than its covariance says (the
-        # size calibration's error persists): depth coming back is gated with that error added.
-        S_extra: Mat3 | None = None
-        if self._size_ranged:
-            S_extra = (_SIZE_RANGE_GATE_REL**2) * np.outer(x[:3], x[:3])
         for c in candidates:
-            S = P_pp + c.R_ned_m2
-            if S_extra is not None and c.meas.range_source == "depth":
-                S = S + S_extra
-            d2 = _mahalanobis2(c.p_ned_m - x[:3], S)
-            if d2 >= self.cfg.gate_chi2:
-                continue
-            cost = d2 - 2.0 * math.log(max(c.meas.score, _MIN_SCORE))
-            if cost < best_cost:
+            cost = self._gated_cost(kf, c)
+            if cost is not None and cost < best_cost:
                 best, best_cost = c, cost
         return best
+
+    def _gated_cost(self, kf: KalmanFilter, c: _Candidate) -> float | None:
+        """``d^2 - 2 ln(score)`` of a candidate for a filter, or None outside its gate."""
+        x = kf.x[:3, 0]
+        S = kf.P[:3, :3] + c.R_ned_m2
+        # A track ranged by box size can be off in range by far more than its covariance says (the
+        # size calibration's error persists): depth coming back is gated with that error added.
+        if self._size_ranged and c.meas.range_source == "depth":
+            S = S + (_SIZE_RANGE_GATE_REL**2) * np.outer(x, x)
+        d2 = _mahalanobis2(c.p_ned_m - x, S)
+        if d2 >= self.cfg.gate_chi2:
+            return None
+        return d2 - 2.0 * math.log(max(c.meas.score, _MIN_SCORE))
 
     def _challenge(self, others: list[_Candidate]) -> _Candidate | None:
         """Follow what is seen outside the track's gate; take it over when it is steady and the track is not.
@@ -404,15 +404,25 @@ class TargetTracker:
         """
         cfg = self.cfg
         window = cfg.quality_window_frames
-        free = list(others)
-        hits: list[_Candidate | None] = []
-        for ch in self._chals:  # already predicted to this stamp with the track (_predict)
-            hit = self._select_gated(ch.kf, free) if free else None
+        # Each box to at most one challenger, the cheapest pairs first: a young challenger's wide gate
+        # otherwise took the leader's box from the challenger that had followed it.
+        pairs = sorted(
+            (cost, i, j)
+            for i, ch in enumerate(self._chals)  # already predicted to this stamp with the track (_predict)
+            for j, c in enumerate(others)
+            if (cost := self._gated_cost(ch.kf, c)) is not None
+        )
+        hits: list[_Candidate | None] = [None] * len(self._chals)
+        taken: set[int] = set()
+        for _, i, j in pairs:
+            if hits[i] is None and j not in taken:
+                hits[i] = others[j]
+                taken.add(j)
+        for ch, hit in zip(self._chals, hits, strict=True):
             if hit is not None:
                 ch.kf.update(hit.p_ned_m.reshape(3, 1), R=hit.R_ned_m2)
-                free = [c for c in free if c is not hit]
             ch.recent.append(hit is not None)
-            hits.append(hit)
+        free = [c for j, c in enumerate(others) if j not in taken]
         # A challenger that can no longer reach ``switch_hits`` in its window is dropped.
         keep = [sum(ch.recent) + window - len(ch.recent) >= cfg.switch_hits for ch in self._chals]
         track_ratio = self._recent_ratio()
