@@ -63,7 +63,9 @@ class PerceptionPipeline:
         self.counters = PipelineCounters()
         self.size = (
             SizeCalibrator(
-                leader.span_m, min_depth_m=0.75 * pose.depth_max_m, max_depth_m=0.95 * pose.depth_max_m
+                leader.span_m,
+                min_depth_m=pose.size_learn_min_frac * pose.depth_max_m,
+                max_depth_m=0.95 * pose.depth_max_m,
             )
             if pose.size_fallback
             else None

@@ -318,8 +318,10 @@ class SizeCalibrator:
     mostly from its height. The apparent size depends on the airframe, on its yaw and on range (thin
     parts vanish at low resolution: the box's width at 11 m is ~10 % under its width at 5 m), so it is
     learnt online from confirmed, untruncated depth measurements in ``[min_depth_m, max_depth_m]``,
-    just inside the stereo range: depth there is still ~0.5 % accurate and the resolution is closest to
-    what follows beyond it. The average is long (``1/alpha`` samples, ~2 s at 30 Hz): a 1 % bias in
+    inside the stereo range, where depth is still ~0.5 % accurate (the service learns from half the
+    stereo range out, ``pose.size_learn_min_frac``: the height, which the range mostly comes from, hardly
+    changes with range but swings with the leader's tilt and yaw, so more frames give a better mean).
+    The average is long (``1/alpha`` samples, ~2 s at 30 Hz): a 1 % bias in
     the height is 0.11 m at 11 m, for as long as the leader stays out there. The per-frame scatter of
     each side (px) is learnt too: it is the detector's box noise that range-from-size inherits. Until
     the band has ``min_updates`` samples, closer depth measurements stand in; before those,
