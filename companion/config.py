@@ -163,11 +163,12 @@ class PoseConfig(Section):
     #: online from depth measurements at closer range.
     size_fallback: bool = True
     #: The size is learnt from depth measurements from this fraction of ``depth_max_m`` out to 0.95 of it.
-    #: The box height barely changes with range (0.333 / 0.330 / 0.329 m apparent at 3-7.5 / 7.5-10 /
-    #: 10-12 m on the weave) but swings +-5-10 % with the leader's tilt and yaw, so the mean over the
-    #: wider band is the better size: 0.75 (the last 2 s before the cut-off) gave issue 5's 6-12 m band
-    #: 0.266 m on the weave and 0.389 m on a fresh render of it, 0.5 gives 0.160 / 0.221 (the arc, which
-    #: spends only 2 s inside 10 m before going out, is unchanged; docs/evaluation.md "Stop 21").
+    #: The network's box height barely changes with range (0.333 / 0.330 / 0.329 m apparent at 3-7.5 /
+    #: 7.5-10 / 10-12 m on the weave) but swings 5-10 % with the leader's tilt and yaw, so the mean over
+    #: the wider band is the better size: 0.75 (the last 2 s before the cut-off) gave issue 5's 6-12 m
+    #: band 0.266 m on the weave and 0.389 m on a fresh render of it, 0.5 gives 0.157 / 0.221 (the arc,
+    #: inside 10 m for only 2 s before going out, is unchanged). Exact renderer boxes grow at close range
+    #: and do better at 0.75: check a retrained detector (docs/perception.md "Stop 21").
     size_learn_min_frac: float = Field(0.5, ge=0.0, lt=0.95)
     #: ...but not nearer than this fraction of ``depth_max_m``: a leader that near returns stereo depth
     #: (the D435i noise model's holes are single pixels), so a box with none there is something beyond
