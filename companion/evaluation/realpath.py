@@ -171,12 +171,6 @@ def die_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
-def die_with_parent_niced() -> None:
-    """:func:`die_with_parent`, and run at nice 10 (a lockstep run beside a real-time one)."""
-    die_with_parent()
-    os.nice(10)
-
-
 def score(observer: RunObserver, truth: TruthTrack, scorer: RunScorer, end_s: float) -> None:
     """Feed the scorer in time order: truth samples, transitions, ticks and frames."""
     events: list[tuple[float, int, Any]] = [(float(t), 0, i) for i, t in enumerate(truth.t_s) if t <= end_s]
