@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+import io
 import math
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from companion.errors import ConfigError
+from companion.evaluation import campaign
 from companion.evaluation.campaign import (
     RunSpec,
     child_args,
@@ -116,3 +121,37 @@ def test_ego_motion_carries_the_leader_acceleration_over_the_age() -> None:
     rel = ego.predict(0.8, np.array([5.0, 0.0, 0.0]), np.zeros(3), 1.0, np.array([1.0, 0.0, 0.0]))
     assert rel.v_ned_rel_m_s[0] == pytest.approx(0.2)
     assert rel.p_ned_rel_m[0] == pytest.approx(5.0 + 0.5 * 0.04)
+
+
+def test_all_flies_the_real_path_alone_then_the_lockstep_runs_side_by_side(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A lockstep run beside a real-time one delayed its follower (straight 0.353 m against 0.247 m alone)."""
+    running: set[str] = set()
+    seen: list[tuple[str, frozenset[str]]] = []
+
+    async def fake_child(child: Any, env: Any, line: Any, children: Any) -> None:
+        running.add(child.name)
+        seen.append((child.name, frozenset(running)))
+        await asyncio.sleep(0.01)
+        running.discard(child.name)
+        child.done = True
+
+    monkeypatch.setattr(campaign, "_run_child", fake_child)
+    specs = [
+        RunSpec(name, 1, tmp_path / name, harness=harness)  # type: ignore[arg-type]
+        for name, harness in (
+            ("straight", "real"),
+            ("figure8", "lockstep"),
+            ("circle", "real"),
+            ("wind", "lockstep"),
+            ("link-loss", "lockstep"),
+        )
+    ]
+    line = campaign.ProgressLine(io.StringIO(), len(specs))
+    asyncio.run(campaign._run_children(specs, 2, line, {}))
+    order = [name for name, _ in seen]
+    assert order[:2] == ["straight", "circle"]  # the real path first, one at a time
+    assert all(others == {name} for name, others in seen if name in ("straight", "circle"))
+    lockstep_together = [others for name, others in seen if name not in ("straight", "circle")]
+    assert max(len(o) for o in lockstep_together) == 2  # then two lockstep runs side by side
