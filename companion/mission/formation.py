@@ -350,8 +350,9 @@ class FormationLaw:
         a_leader = self._leader_accel(v_leader, dt, a_leader_ned_m_s2)
         if coasting and not cfg.accel_lead_while_coasting:
             a_leader = np.zeros(3)
-        ff = np.zeros(3)
-        if v_leader is not None:
+        if v_leader is None:
+            ff = np.zeros(3)
+        else:
             ff = cfg.leader_velocity_ff * v_leader
             ff[:2] += cfg.leader_accel_ff_s * a_leader[:2]
             ff[2] += cfg.leader_accel_ff_z_s * a_leader[2]

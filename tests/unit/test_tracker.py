@@ -338,58 +338,52 @@ def test_a_steady_object_outside_the_gate_replaces_a_track_that_is_rarely_seen()
     assert np.linalg.norm(st_.estimate.p_ned_rel_m - leader) < 0.1
 
 
+CROWN = np.array([7.0, 0.5, -1.5])
+
+
+def _blinking_crown(tracker: TargetTracker, rng: np.random.Generator) -> int:
+    """A tree-crown track: seen in 15 frames (confirmed), then every third of 15. Returns the next frame."""
+    for k in range(30):
+        t = k * DT
+        ms = [meas(noisy_cam(CROWN, LEVEL, rng), t, score=0.5)] if (k < 15 or k % 3 == 0) else []
+        tracker.step(t, ms, LEVEL)
+    return 30
+
+
+def _leader_passes(
+    tracker: TargetTracker, rng: np.random.Generator, k0: int, leader: np.ndarray
+) -> int | None:
+    """The leader in 9 straight frames, the crown in every third: the frame the track switched, or None."""
+    first_id = tracker.step(k0 * DT, [], LEVEL).track_id
+    for i in range(9):
+        t = (k0 + 1 + i) * DT
+        ms = [meas(noisy_cam(leader, LEVEL, rng), t, score=0.8)]
+        if i % 3 == 0:
+            ms.append(meas(noisy_cam(CROWN, LEVEL, rng), t, score=0.5))
+        if tracker.step(t, ms, LEVEL).track_id != first_id:
+            return i
+    return None
+
+
 def test_an_object_seen_far_more_often_than_a_blinking_track_takes_over_within_half_a_second() -> None:
     """leader-occluded seed 8: a false track on a tree crown, hit in about a third of its frames, held the
     follower's eye while the leader, seen in every frame, crossed the view in 9 frames (0.6 s at 15 Hz)."""
     cfg = TrackerConfig()
     tracker = TargetTracker(cfg, CAM)
     rng = np.random.default_rng(8)
-    crown = np.array([7.0, 0.5, -1.5])
     leader = np.array([5.0, 2.5, 0.0])
-    k = 0
-    for _ in range(15):  # the crown every frame: confirmed; then hit in every third frame
-        t = k * DT
-        tracker.step(t, [meas(noisy_cam(crown, LEVEL, rng), t, score=0.5)], LEVEL)
-        k += 1
-    for i in range(15):
-        t = k * DT
-        ms = [meas(noisy_cam(crown, LEVEL, rng), t, score=0.5)] if i % 3 == 0 else []
-        st_ = tracker.step(t, ms, LEVEL)
-        k += 1
-    crown_id = st_.track_id
-    assert st_.status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)
-    switched_at = None
-    for i in range(9):  # the leader every frame, the crown every third
-        t = k * DT
-        ms = [meas(noisy_cam(leader, LEVEL, rng), t, score=0.8)]
-        if i % 3 == 0:
-            ms.append(meas(noisy_cam(crown, LEVEL, rng), t, score=0.5))
-        st_ = tracker.step(t, ms, LEVEL)
-        k += 1
-        if switched_at is None and st_.track_id != crown_id:
-            switched_at = i
+    k = _blinking_crown(tracker, rng)
+    assert tracker.step(k * DT, [], LEVEL).status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)
+    switched_at = _leader_passes(tracker, rng, k + 1, leader)
     assert switched_at is not None
     assert switched_at < cfg.switch_fast_hits  # 6 frames of the leader, the first one included
+    st_ = tracker.step((k + 12) * DT, [meas(noisy_cam(leader, LEVEL, rng), (k + 12) * DT, score=0.8)], LEVEL)
     assert st_.estimate is not None
     assert np.linalg.norm(st_.estimate.p_ned_rel_m - leader) < 0.15
     # With the fast rule off, 9 frames are not enough (the steady rule needs 12 of 15).
     slow = TargetTracker(TrackerConfig(switch_fast_hits=0), CAM)
     rng = np.random.default_rng(8)
-    k = 0
-    for i in range(30):
-        t = k * DT
-        ms = [meas(noisy_cam(crown, LEVEL, rng), t, score=0.5)] if (i < 15 or i % 3 == 0) else []
-        slow.step(t, ms, LEVEL)
-        k += 1
-    first_id = slow.step(k * DT, [], LEVEL).track_id
-    for i in range(9):
-        k += 1
-        t = k * DT
-        ms = [meas(noisy_cam(leader, LEVEL, rng), t, score=0.8)]
-        if i % 3 == 0:
-            ms.append(meas(noisy_cam(crown, LEVEL, rng), t, score=0.5))
-        st_slow = slow.step(t, ms, LEVEL)
-    assert st_slow.track_id == first_id
+    assert _leader_passes(slow, rng, _blinking_crown(slow, rng), leader) is None
 
 
 def _leader_after_a_passing_phantom(max_challengers: int, monkeypatch: pytest.MonkeyPatch) -> bool:
@@ -399,16 +393,11 @@ def _leader_after_a_passing_phantom(max_challengers: int, monkeypatch: pytest.Mo
     monkeypatch.setattr(tracker_module, "_MAX_CHALLENGERS", max_challengers)
     tracker = TargetTracker(TrackerConfig(), CAM)
     rng = np.random.default_rng(9)
-    crown = np.array([7.0, 0.5, -1.5])
     other = np.array([7.5, -1.5, 0.5])
     leader = np.array([5.0, 2.5, 0.0])
-    k = 0
-    for i in range(30):  # the crown confirmed, then hit in every third frame
-        t = k * DT
-        ms = [meas(noisy_cam(crown, LEVEL, rng), t, score=0.5)] if (i < 15 or i % 3 == 0) else []
-        st_ = tracker.step(t, ms, LEVEL)
-        k += 1
-    crown_id = st_.track_id
+    k = _blinking_crown(tracker, rng)
+    crown_id = tracker.step(k * DT, [], LEVEL).track_id
+    k += 1
     t = k * DT
     tracker.step(t, [meas(noisy_cam(other, LEVEL, rng), t, score=0.6)], LEVEL)
     k += 1
