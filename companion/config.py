@@ -212,6 +212,10 @@ class TrackerConfig(Section):
     #: (leader-occluded seed 8). A steady leader track (0.8-1.0) cannot be beaten by 0.5. 0 = off.
     switch_fast_hits: int = Field(6, ge=0)
     switch_ratio_margin: float = Field(0.5, gt=0.0, le=1.0)
+    #: While a new track is tentative, what is seen outside its gate in as many frames with a higher mean
+    #: detector score takes it over (still tentative): a false box seen first, on the frame the leader was
+    #: missed, otherwise confirmed and held the track for 0.3 s of the leader in plain view.
+    contend_tentative: bool = True
     #: Velocity uncertainty of a new track (the leader's relative speed is unknown at first sight), m/s.
     init_velocity_std_m_s: float = Field(3.0, gt=0)
     #: Acceleration noise along the line of sight while the track is ranged by box size (beyond the

@@ -23,7 +23,9 @@ Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurem
    leader came into view otherwise gated the leader out for as long as the false one was re-detected
    now and then); or sooner, after ``switch_fast_hits``, when its hit ratio beats the track's by
    ``switch_ratio_margin`` (the leader crossing the view for under a second while a tree-crown track
-   blinks on).
+   blinks on);
+   while the track is still tentative, a challenger seen as often with a higher mean score takes it over
+   (``contend_tentative``: a false box seen alone on the first frame otherwise started the track).
 
 Opt-in (``leader_accel_filter``): a constant-acceleration (Singer) filter runs beside the track on the
 measurements the track accepts, with the same ego-motion; the estimate's position, velocity and the
@@ -244,6 +246,8 @@ class _Challenger:
 
     kf: KalmanFilter
     recent: deque[bool]
+    #: Sum of the detector scores of its hits (a tentative track's contest is decided on the mean).
+    score_sum: float = 0.0
 
 
 class TargetTracker:
@@ -261,6 +265,8 @@ class TargetTracker:
         #: Hit (True) or miss per frame over the last ``quality_window_frames`` of this track.
         self._recent: deque[bool] = deque(maxlen=cfg.quality_window_frames)
         self._hits = 0
+        #: Sum of the detector scores the track accepted while tentative (its contest with challengers).
+        self._tentative_score_sum = 0.0
         self._track_id = 0
         #: The last accepted measurement was ranged from box size (no stereo depth).
         self._size_ranged = False
@@ -338,13 +344,16 @@ class TargetTracker:
                 self._update(self._kf, accepted)
             elif candidates and self._confirmed and self._stamp_s - self._last_meas_s > cfg.coast_timeout_s:
                 self.reset()  # the old track is unusable and something else is seen: start over
-            if self._kf is not None and self._confirmed and cfg.switch_hits > 0:
+            if self._kf is not None and not self._confirmed:
+                self._window.append(accepted is not None)
+                if accepted is not None:
+                    self._tentative_score_sum += accepted.meas.score
+            if self._kf is not None and (cfg.switch_hits > 0 if self._confirmed else cfg.contend_tentative):
                 others = [c for c in candidates if c is not accepted]
                 switched = self._challenge(others)
                 if switched is not None:
                     accepted = switched
             if not self._confirmed and self._kf is not None:
-                self._window.append(accepted is not None)
                 if sum(self._window) >= cfg.confirm_hits:
                     self._confirmed = True
                 elif len(self._window) == cfg.confirm_window:
@@ -399,8 +408,9 @@ class TargetTracker:
     def _challenge(self, others: list[_Candidate]) -> _Candidate | None:
         """Follow what is seen outside the track's gate; take it over when it is steady and the track is not.
 
-        Returns the challenger's measurement when it replaced the track (the track is then the challenger's
-        filter, confirmed, with a new id), else None.
+        A tentative track is taken over by a challenger seen in at least as many frames with a higher mean
+        score (``contend_tentative``). Returns the challenger's measurement when it replaced the track (the
+        track is then the challenger's filter, with a new id, confirmed if the track was), else None.
         """
         cfg = self.cfg
         window = cfg.quality_window_frames
@@ -421,17 +431,27 @@ class TargetTracker:
         for ch, hit in zip(self._chals, hits, strict=True):
             if hit is not None:
                 ch.kf.update(hit.p_ned_m.reshape(3, 1), R=hit.R_ned_m2)
+                ch.score_sum += hit.meas.score
             ch.recent.append(hit is not None)
         free = [c for j, c in enumerate(others) if j not in taken]
         # A challenger that can no longer reach ``switch_hits`` in its window is dropped.
         keep = [sum(ch.recent) + window - len(ch.recent) >= cfg.switch_hits for ch in self._chals]
         track_ratio = self._recent_ratio()
         best: tuple[float, _Challenger, _Candidate] | None = None
+        track_hits = sum(self._window)
+        track_mean_score = self._tentative_score_sum / max(1, self._hits)
         for ch, hit, kept in zip(self._chals, hits, keep, strict=True):
             if hit is None or not kept:
                 continue
             n_hits = sum(ch.recent)
             ratio = n_hits / len(ch.recent)
+            if not self._confirmed:
+                # Nothing flies on a tentative track yet: what is seen as often and scores better wins.
+                mean_score = ch.score_sum / n_hits
+                wins = cfg.contend_tentative and n_hits >= track_hits and mean_score > track_mean_score
+                if wins and (best is None or mean_score > best[0]):
+                    best = (mean_score, ch, hit)
+                continue
             steadier = n_hits >= cfg.switch_hits and track_ratio <= cfg.switch_max_track_ratio
             clearly_better = (
                 cfg.switch_fast_hits > 0
@@ -445,7 +465,7 @@ class TargetTracker:
             for c in sorted(free, key=lambda c: c.meas.score, reverse=True):
                 if len(self._chals) >= _MAX_CHALLENGERS:
                     break
-                ch = _Challenger(self._new_filter(c, 6), deque([True], maxlen=window))
+                ch = _Challenger(self._new_filter(c, 6), deque([True], maxlen=window), c.meas.score)
                 self._chals.append(ch)
             return None
         _, ch, hit = best
@@ -453,6 +473,11 @@ class TargetTracker:
         self._kf_acc = self._new_filter(hit, 9) if self.cfg.leader_accel_filter else None
         self._recent.clear()
         self._recent.extend(ch.recent)
+        if not self._confirmed:
+            # The winner stays tentative, its own frames counting towards confirmation.
+            self._window.clear()
+            self._window.extend(ch.recent)
+            self._tentative_score_sum = ch.score_sum
         self._chals.clear()
         self._track_id += 1
         self._start_s = self._last_meas_s = self._stamp_s
@@ -488,6 +513,7 @@ class TargetTracker:
         self._recent.clear()
         self._recent.append(True)
         self._hits = 1
+        self._tentative_score_sum = c.meas.score
         self._size_ranged = c.meas.range_source == "size"
         self._chals.clear()
 

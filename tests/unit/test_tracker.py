@@ -447,3 +447,30 @@ def test_switching_can_be_turned_off() -> None:
         st_ = tracker.step(t, [meas(noisy_cam(np.array([5.0, 0.0, 0.0]), LEVEL, rng), t)], LEVEL)
     assert st_.track_id == 1
     assert st_.status == TrackStatus.COASTING
+
+
+def _first_confirmed(cfg: TrackerConfig) -> tuple[np.ndarray, int]:
+    """The fresh arc render (seed 22): a false box alone on the first frame (the leader missed), then the
+    leader every frame and the false box on frames 3-4. Returns the first confirmed estimate and its id."""
+    tracker = TargetTracker(cfg, CAM)
+    rng = np.random.default_rng(22)
+    false_box = np.array([10.5, -5.4, -0.7])
+    leader = np.array([7.4, 0.0, -0.6])
+    for k in range(10):
+        t = k * DT
+        ms = [] if k == 0 else [meas(noisy_cam(leader, LEVEL, rng), t, score=0.9)]
+        if k in (0, 2, 3):
+            ms.append(meas(noisy_cam(false_box, LEVEL, rng), t, score=0.45, sigma_z=1.0))
+        st_ = tracker.step(t, ms, LEVEL)
+        if st_.status is TrackStatus.CONFIRMED:
+            assert st_.estimate is not None
+            return st_.estimate.p_ned_rel_m, k
+    raise AssertionError("never confirmed")
+
+
+def test_a_tentative_track_yields_to_an_object_seen_as_often_with_a_better_score() -> None:
+    p, k = _first_confirmed(TrackerConfig())
+    assert np.linalg.norm(p - np.array([7.4, 0.0, -0.6])) < 0.15
+    assert k == 3  # the leader's third frame: no later than the false box would have been
+    p_off, _ = _first_confirmed(TrackerConfig(contend_tentative=False))
+    assert np.linalg.norm(p_off - np.array([10.5, -5.4, -0.7])) < 1.0
