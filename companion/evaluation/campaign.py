@@ -250,7 +250,7 @@ async def _run_child(child: _Child, env: dict[str, str], line: ProgressLine, chi
     child.spec.out_dir.mkdir(parents=True, exist_ok=True)
     child.started_s = time.monotonic()
     with (child.spec.out_dir / "sim.log").open("ab") as err:
-        from companion.evaluation.realpath import die_with_parent  # noqa: PLC0415
+        from companion.evaluation.procs import die_with_parent  # noqa: PLC0415
 
         child.proc = await asyncio.create_subprocess_exec(
             *child_args(child.spec),

@@ -27,9 +27,6 @@ import logging
 import os
 import random
 import shutil
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -39,8 +36,9 @@ from pathlib import Path
 from typing import Any, cast
 
 from companion.config import Config
-from companion.errors import CompanionError
 from companion.evaluation.lockstep import RunResult
+from companion.evaluation.procs import REPO, Child, SimRunError
+from companion.evaluation.procs import SitlPorts as Ports
 from companion.evaluation.scoring import RunScorer, snapshot_times
 from companion.evaluation.simclock import SimClock
 from companion.evaluation.sitl_components import RUN_ENV
@@ -51,55 +49,12 @@ from companion.mission.types import MissionInputs, StepOutput
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[2]
 SITL_BASE_CONFIG = REPO / "config" / "sitl.toml"
 COMPONENT = "companion.evaluation.sitl_components:run"
 #: Truth samples per sim second (crash and landing detection, tick scoring).
 TRUTH_RATE_HZ = 50.0
 #: Wall time allowed for ``sitl serve`` (and its camera worker) to come up.
 START_TIMEOUT_S = 90.0
-
-
-class SimRunError(CompanionError):
-    """A closed-loop run could not be carried out (a process did not start, or died)."""
-
-    exit_code = 1
-
-
-@dataclass(frozen=True, slots=True)
-class Ports:
-    """A private block of UDP ports (API links only), so runs side by side never collide."""
-
-    base: int
-
-    @property
-    def api_local(self) -> int:
-        return self.base
-
-    @property
-    def api_remote(self) -> int:
-        return self.base + 2
-
-    @property
-    def follower_api(self) -> int:
-        return self.api_remote + 1
-
-    @classmethod
-    def pick(cls, rng: random.Random) -> Ports:
-        for _ in range(200):
-            base = rng.randrange(20000, 60000, 10)
-            if all(_udp_free(base + k) for k in range(4)):
-                return cls(base)
-        raise SimRunError("no free block of UDP ports")
-
-
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.bind(("0.0.0.0", port))  # noqa: S104 (the simulator binds all interfaces)
-        except OSError:
-            return False
-    return True
 
 
 def sitl_environment(cfg: Config, ports: Ports, base_vehicles: list[dict[str, Any]]) -> dict[str, str]:
@@ -116,59 +71,6 @@ def sitl_environment(cfg: Config, ports: Ports, base_vehicles: list[dict[str, An
         "SITL_MAVLINK__GCS_ENABLED": "false",
         "SITL_VEHICLES": toml_value(vehicles),
     }
-
-
-class Child:
-    """A child process with its output in a log file, stopped by its PID (SIGTERM, then SIGKILL)."""
-
-    def __init__(self, args: list[str], env: dict[str, str], log_path: Path) -> None:
-        self.args = args
-        self.env = env
-        self.log_path = log_path
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def start(self) -> None:
-        with self.log_path.open("ab") as out:
-            self.proc = subprocess.Popen(
-                self.args,
-                cwd=REPO,
-                env=self.env,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                preexec_fn=die_with_parent,  # noqa: PLW1509 (one prctl call, no locks taken)
-            )
-
-    def tail(self, n: int = 3000) -> str:
-        return self.log_path.read_text(errors="replace")[-n:] if self.log_path.exists() else ""
-
-    @property
-    def running(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    async def stop(self, timeout_s: float = 15.0) -> None:
-        proc, self.proc = self.proc, None
-        if proc is None or proc.poll() is not None:
-            return
-        proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + timeout_s
-        while proc.poll() is None and time.monotonic() < deadline:  # noqa: ASYNC110 (a Popen, no event)
-            await asyncio.sleep(0.05)
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
-
-
-def die_with_parent() -> None:
-    """In the child before exec: SIGTERM when ``companion sim`` dies, however it dies (Linux only).
-
-    Without it an interrupted or killed run left ``sitl serve`` and its render worker running.
-    """
-    if sys.platform != "linux":
-        return
-    import ctypes  # noqa: PLC0415
-
-    pr_set_pdeathsig = 1
-    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
 def score(observer: RunObserver, truth: TruthTrack, scorer: RunScorer, end_s: float) -> None:

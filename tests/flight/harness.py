@@ -14,10 +14,7 @@ import importlib.util
 import json
 import math
 import os
-import random
-import signal
 import socket
-import subprocess
 import sys
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -30,6 +27,8 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from companion.clock import MonotonicClock
 from companion.config import Config
+from companion.evaluation.procs import Child
+from companion.evaluation.procs import SitlPorts as Ports
 from companion.frames import R_from_quat
 from companion.mission.formation import Slot, ned_to_heading
 from companion.mission.machine import MissionMachine
@@ -60,59 +59,6 @@ def sitl_missing_reason() -> str | None:
 
 
 # ---------------------------------------------------------------------- ports and the process
-@dataclass(frozen=True)
-class Ports:
-    """A private block of UDP ports so parallel test runs on one machine never collide."""
-
-    base: int
-
-    @property
-    def api_local(self) -> int:
-        return self.base
-
-    @property
-    def api_remote(self) -> int:  # leader +0, follower +1: where the simulator sends
-        return self.base + 2
-
-    @property
-    def gcs_local(self) -> int:
-        return self.base + 4
-
-    @property
-    def truth(self) -> int:
-        return self.base + 6
-
-    @property
-    def client(self) -> int:
-        """Where MAVSDK listens when a wiretap sits in between."""
-        return self.base + 7
-
-    @property
-    def follower_remote(self) -> int:
-        return self.api_remote + 1
-
-    @property
-    def follower_gcs(self) -> int:
-        return self.gcs_local + 1
-
-    @classmethod
-    def pick(cls) -> Ports:
-        for _ in range(200):
-            base = random.randrange(21000, 59000, 10)
-            if all(_udp_free(base + k) for k in range(10)):
-                return cls(base)
-        raise RuntimeError("no free UDP port block")
-
-
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.bind(("0.0.0.0", port))  # noqa: S104 - the simulator binds all interfaces
-        except OSError:
-            return False
-    return True
-
-
 class SimProcess:
     """``sitl serve`` in a child process, stopped by its PID (SIGTERM, then SIGKILL) whatever happens."""
 
@@ -120,8 +66,7 @@ class SimProcess:
         self.tmp_path = tmp_path
         self.ports = ports
         self.scenario_toml = scenario_toml
-        self.proc: subprocess.Popen[bytes] | None = None
-        self.log_path = tmp_path / "sitl.log"
+        self.child: Child | None = None
 
     async def __aenter__(self) -> SimProcess:
         src = REPO
@@ -145,32 +90,19 @@ class SimProcess:
                 "SITL_MAVLINK__API_LOCAL_PORT_BASE": str(self.ports.api_local),
                 "SITL_MAVLINK__API_REMOTE_PORT_BASE": str(self.ports.api_remote),
                 "SITL_MAVLINK__GCS_LOCAL_PORT_BASE": str(self.ports.gcs_local),
-                "SITL_MAVLINK__GCS_REMOTE_PORT": str(self.ports.base + 9),
+                "SITL_MAVLINK__GCS_REMOTE_PORT": str(self.ports.gcs_remote),
                 "SITL_MAVLINK__REMOTE_HOST": "127.0.0.1",
                 "WINGMAN_TEST_TRUTH_PORT": str(self.ports.truth),
             }
         )
-        log = self.log_path.open("wb")
-        self.proc = subprocess.Popen(args, cwd=run_dir, env=env, stdout=log, stderr=subprocess.STDOUT)  # noqa: ASYNC220
-        deadline = time.monotonic() + 30.0
-        while b"running at" not in self.log_path.read_bytes():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                await self.stop()
-                raise RuntimeError(f"sitl serve did not start:\n{self.log_path.read_text()[-3000:]}")
-            await asyncio.sleep(0.1)
+        self.child = Child(args, env, self.tmp_path / "sitl.log", cwd=run_dir)
+        self.child.start()
+        await self.child.wait_for_output("running at", 30.0)
         return self
 
     async def stop(self) -> None:
-        proc, self.proc = self.proc, None
-        if proc is None or proc.poll() is not None:
-            return
-        proc.send_signal(signal.SIGTERM)
-        for _ in range(50):
-            if proc.poll() is not None:
-                return
-            await asyncio.sleep(0.1)
-        proc.kill()
-        proc.wait(timeout=5)
+        if self.child is not None:
+            await self.child.stop(timeout_s=5.0)
 
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
@@ -424,7 +356,7 @@ async def fly(
     loop = asyncio.get_running_loop()
     feed = TruthFeed(clock)
     transport, _ = await loop.create_datagram_endpoint(lambda: feed, local_addr=("127.0.0.1", ports.truth))
-    tap = await open_wiretap(ports.follower_remote, ports.client)
+    tap = await open_wiretap(ports.follower_api, ports.client)
     link_cfg = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{ports.client}"})
     flight: Flight | None = None
     try:
@@ -476,7 +408,7 @@ async def bare_link(
     loop = asyncio.get_running_loop()
     feed = TruthFeed(clock)
     transport, _ = await loop.create_datagram_endpoint(lambda: feed, local_addr=("127.0.0.1", ports.truth))
-    tap = await open_wiretap(ports.follower_remote, ports.client)
+    tap = await open_wiretap(ports.follower_api, ports.client)
     link_cfg = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{ports.client}"})
     try:
         async with (

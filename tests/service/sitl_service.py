@@ -7,17 +7,15 @@ from __future__ import annotations
 
 import asyncio
 import os
-import random
-import signal
-import socket
-import subprocess
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
+
+from companion.evaluation.procs import Child
+from companion.evaluation.procs import SitlPorts as Ports
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -48,103 +46,7 @@ turbulence_m_s = 0.1
 """
 
 
-@dataclass(frozen=True)
-class Ports:
-    """A private block of UDP ports so parallel runs never collide."""
-
-    base: int
-
-    @property
-    def api_local(self) -> int:
-        return self.base
-
-    @property
-    def api_remote(self) -> int:  # leader +0, follower +1: where the simulator sends
-        return self.base + 2
-
-    @property
-    def follower_api(self) -> int:
-        return self.api_remote + 1
-
-    @property
-    def gcs_local(self) -> int:
-        return self.base + 4
-
-    @property
-    def gcs_remote(self) -> int:
-        return self.base + 6
-
-    @property
-    def client(self) -> int:
-        """Where the service's MAVSDK listens when a wiretap sits between it and the simulator."""
-        return self.base + 7
-
-    @classmethod
-    def pick(cls) -> Ports:
-        for _ in range(200):
-            base = random.randrange(21000, 59000, 10)
-            if all(_udp_free(base + k) for k in range(8)):
-                return cls(base)
-        raise RuntimeError("no free UDP port block")
-
-
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.bind(("0.0.0.0", port))  # noqa: S104 - the simulator binds all interfaces
-        except OSError:
-            return False
-    return True
-
-
-class Process:
-    """A child process with its output in a log file, stopped by PID."""
-
-    def __init__(self, args: list[str], env: dict[str, str], log_path: Path) -> None:
-        self.args = args
-        self.env = env
-        self.log_path = log_path
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def start(self) -> None:
-        with self.log_path.open("ab") as log:
-            self.proc = subprocess.Popen(
-                self.args, cwd=REPO, env=self.env, stdout=log, stderr=subprocess.STDOUT
-            )
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
-
-    @property
-    def returncode(self) -> int | None:
-        return None if self.proc is None else self.proc.poll()
-
-    def signal(self, sig: int) -> None:
-        assert self.proc is not None
-        self.proc.send_signal(sig)
-
-    async def wait(self, timeout_s: float) -> int:
-        assert self.proc is not None
-        deadline = time.monotonic() + timeout_s
-        while (rc := self.proc.poll()) is None:
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"{self.args[2:4]} still running after {timeout_s} s")
-            await asyncio.sleep(0.1)
-        return rc
-
-    def stop(self) -> None:
-        proc, self.proc = self.proc, None
-        if proc is None or proc.poll() is not None:
-            return
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
-
-
-def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Process:
+def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Child:
     scenario = tmp_path / "scenario.toml"
     scenario.write_text(SCENARIO)
     env = {
@@ -168,7 +70,7 @@ def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Process:
         str(REPO / "config/sitl.toml"),
     ]
     args += ["--scenario", str(scenario), "--component", "tests.service.sitl_camera:camera"]
-    return Process(args, env, tmp_path / "sitl.log")
+    return Child(args, env, tmp_path / "sitl.log")
 
 
 def service_config(tmp_path: Path, link_port: int, camera_sock: Path, broker_port: int) -> Path:
@@ -210,7 +112,7 @@ format = "json"
     return cfg
 
 
-def service_process(tmp_path: Path, cfg: Path, notify_sock: Path) -> Process:
+def service_process(tmp_path: Path, cfg: Path, notify_sock: Path) -> Child:
     env = {
         **os.environ,
         "PYTHONPATH": str(REPO),
@@ -218,7 +120,7 @@ def service_process(tmp_path: Path, cfg: Path, notify_sock: Path) -> Process:
         "WATCHDOG_USEC": "10000000",
     }
     args = [sys.executable, "-m", "companion", "run", "--config", str(cfg)]
-    return Process(args, env, tmp_path / "service.log")
+    return Child(args, env, tmp_path / "service.log")
 
 
 @dataclass

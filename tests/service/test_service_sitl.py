@@ -217,8 +217,8 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
             raise
         finally:
             if svc is not None:
-                svc.stop()
-            sim.stop()
+                await svc.stop()
+            await sim.stop()
             if tap is not None:
                 tap.close()
             if gcs_transport is not None:
