@@ -350,6 +350,11 @@ class SafetyConfig(Section):
     #: Only what is nearer than this counts, m; the window's width and height as image fractions; how
     #: many sampled depth pixels (every 4th) an object needs.
     depth_guard_range_m: float = Field(4.0, gt=0.5, le=20.0)
+    #: Flying toward what the camera sees, the guard looks out to the follower's stopping distance
+    #: (``min_separation_m``, plus ``separation_response_s`` of the speed, plus braking at the barrier's
+    #: deceleration) when that is beyond ``depth_guard_range_m``, up to this, m: at 3.6 m/s 4 m is 1.1 s,
+    #: under the 7.9 m the barrier needs to hold ``min_separation_m`` off a pole.
+    depth_guard_max_range_m: float = Field(9.0, gt=0.5, le=20.0)
     depth_guard_window_frac: tuple[float, float] = (0.6, 0.3)
     depth_guard_min_px: int = Field(8, ge=1)
     #: What comes within this of the path the follower will fly (formation.path_approach) is passed with

@@ -23,6 +23,26 @@ MIN_RANGE_M = 0.3
 STRIDE = 4
 
 
+def guard_range_m(
+    v_ahead_m_s: float,
+    *,
+    min_range_m: float,
+    max_range_m: float,
+    separation_m: float,
+    response_s: float,
+    brake_m_s2: float,
+) -> float:
+    """How far ahead the depth guard looks, m: the follower's stopping distance, within the bounds.
+
+    Stopping distance at ``v_ahead_m_s`` (speed toward what the camera looks at): ``separation_m`` to keep,
+    ``response_s`` of the present speed before braking starts, then ``v^2 / 2 brake`` (the separation
+    barrier's own numbers, so what the guard reports can still be braked for).
+    """
+    v = max(0.0, v_ahead_m_s)
+    stop_m = separation_m + v * response_s + v * v / (2.0 * brake_m_s2)
+    return min(max_range_m, max(min_range_m, stop_m))
+
+
 def nearest_ahead(
     depth_m: np.ndarray,
     intrinsics: Intrinsics,

@@ -23,8 +23,9 @@ import numpy as np
 from companion.config import Config, LeaderConfig, PoseConfig, SafetyConfig, TrackerConfig
 from companion.estimation.tracker import TargetTracker, TrackState, TrackStatus
 from companion.frames import Mat3
+from companion.mission.safety import SafetyLimits
 from companion.mission.types import ObstacleAhead
-from companion.perception.obstacle import MIN_RANGE_M, nearest_ahead
+from companion.perception.obstacle import MIN_RANGE_M, guard_range_m, nearest_ahead
 from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
 from companion.perception.transform import AttitudeHistory, CameraGeometry, VelocityHistory
 from companion.perception.types import Detection, RgbdFrame
@@ -50,10 +51,14 @@ class PerceptionPipeline:
         attitude: AttitudeHistory | None = None,
         *,
         safety: SafetyConfig | None = None,
+        guard_brake_m_s2: float | None = None,
     ) -> None:
         self.leader = leader
         #: The depth guard's settings; None or ``depth_guard`` off: :meth:`obstacle` returns None.
         self.safety = safety
+        #: The separation barrier's braking deceleration, m/s^2: the depth guard looks out to the stopping
+        #: distance it gives (None: ``depth_guard_range_m`` whatever the speed).
+        self.guard_brake_m_s2 = guard_brake_m_s2
         self.pose_cfg = pose
         self.camera = camera
         self.tracker = TargetTracker(tracker, camera)
@@ -77,7 +82,12 @@ class PerceptionPipeline:
     @classmethod
     def from_config(cls, cfg: Config) -> PerceptionPipeline:
         return cls(
-            cfg.leader, cfg.pose, cfg.tracker, CameraGeometry.from_mount(cfg.camera.mount), safety=cfg.safety
+            cfg.leader,
+            cfg.pose,
+            cfg.tracker,
+            CameraGeometry.from_mount(cfg.camera.mount),
+            safety=cfg.safety,
+            guard_brake_m_s2=SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2).brake_m_s2,
         )
 
     def measure(self, frame: RgbdFrame, detections: Sequence[Detection]) -> list[LeaderMeasurement]:
@@ -155,10 +165,12 @@ class PerceptionPipeline:
                 exclude_xyxy = (u - hu, v - hv, u + hu, v + hv)
                 dz = self.leader.span_m + 2.0 * math.sqrt(float(cov[2, 2]))
                 exclude_range = (z - dz, z + dz)
+        R = self._attitude_at(frame.stamp_s)
+        R_ned_body = R if R is not None else self._last_R_ned_body
         p_cam = nearest_ahead(
             frame.depth_m,
             k,
-            max_range_m=g.depth_guard_range_m,
+            max_range_m=self._guard_range_m(frame.stamp_s, R_ned_body),
             window_frac=g.depth_guard_window_frac,
             min_px=g.depth_guard_min_px,
             exclude_xyxy=exclude_xyxy,
@@ -166,6 +178,22 @@ class PerceptionPipeline:
         )
         if p_cam is None:
             return None
-        R = self._attitude_at(frame.stamp_s)
-        p_ned = (R if R is not None else self._last_R_ned_body) @ self.camera.cam_to_body(p_cam)
+        p_ned = R_ned_body @ self.camera.cam_to_body(p_cam)
         return ObstacleAhead(frame.stamp_s, (float(p_ned[0]), float(p_ned[1]), float(p_ned[2])))
+
+    def _guard_range_m(self, stamp_s: float, R_ned_body: Mat3) -> float:
+        """The depth guard's range at this frame: the stopping distance toward the camera's axis, m."""
+        g = self.safety
+        assert g is not None  # noqa: S101 (only called with the guard on)
+        v_ned = self.velocity.v_at(stamp_s)
+        if self.guard_brake_m_s2 is None or v_ned is None:
+            return g.depth_guard_range_m
+        v_ahead = float(np.dot(v_ned, self.camera.R_ned_cam(R_ned_body)[:, 2]))
+        return guard_range_m(
+            v_ahead,
+            min_range_m=g.depth_guard_range_m,
+            max_range_m=g.depth_guard_max_range_m,
+            separation_m=g.min_separation_m,
+            response_s=g.separation_response_s,
+            brake_m_s2=self.guard_brake_m_s2,
+        )

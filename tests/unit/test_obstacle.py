@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.perception.obstacle import nearest_ahead
-from companion.perception.types import Intrinsics
+from companion.config import Config
+from companion.perception.obstacle import guard_range_m, nearest_ahead
+from companion.perception.pipeline import PerceptionPipeline
+from companion.perception.types import Intrinsics, RgbdFrame
 
 K = Intrinsics.from_hfov(640, 480, 69.0)
 ARGS = {"max_range_m": 4.0, "window_frac": (0.6, 0.3), "min_px": 8}
@@ -50,3 +52,33 @@ def test_the_tracked_leader_is_left_out_but_something_nearer_in_its_box_is_not()
     p = nearest_ahead(real, K, exclude_xyxy=box, exclude_range_m=(2.5, 3.5), **ARGS)
     assert p is not None
     assert p[2] == pytest.approx(1.5)
+
+
+def test_the_guard_looks_out_to_the_stopping_distance_within_its_bounds() -> None:
+    kw = {"min_range_m": 4.0, "max_range_m": 9.0, "separation_m": 2.0, "response_s": 1.0, "brake_m_s2": 1.5}
+    assert guard_range_m(0.0, **kw) == 4.0  # hovering, or backing away
+    assert guard_range_m(-3.0, **kw) == 4.0
+    assert guard_range_m(2.0, **kw) == pytest.approx(2.0 + 2.0 + 4.0 / 3.0)  # 5.33 m
+    assert guard_range_m(3.6, **kw) == 9.0  # 9.9 m wanted: the bound
+
+
+def _pole_seen(v_ned_m_s: tuple[float, float, float] | None) -> bool:
+    """A pole 7 m dead ahead of a level follower facing north, flying at ``v_ned_m_s``."""
+    pipeline = PerceptionPipeline.from_config(Config())
+    pipeline.attitude.push(0.0, (1.0, 0.0, 0.0, 0.0))
+    pipeline.attitude.push(1.0, (1.0, 0.0, 0.0, 0.0))
+    if v_ned_m_s is not None:
+        pipeline.velocity.push(0.0, v_ned_m_s)
+        pipeline.velocity.push(1.0, v_ned_m_s)
+    frame = RgbdFrame(
+        np.zeros((480, 640, 3), np.uint8), depth_with((300, 140, 340, 340, 7.0)), K, stamp_s=0.5
+    )
+    state = pipeline.track(0.5, [])
+    return pipeline.obstacle(frame, state) is not None
+
+
+def test_flying_fast_at_a_pole_the_guard_sees_it_beyond_its_resting_range() -> None:
+    assert not _pole_seen(None)  # no velocity known: the 4 m range
+    assert not _pole_seen((0.5, 0.0, 0.0))
+    assert _pole_seen((3.6, 0.0, 0.0))  # 7 m is inside the 9 m it now looks out to
+    assert not _pole_seen((0.0, 3.6, 0.0))  # flying sideways: not toward it
