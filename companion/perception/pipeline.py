@@ -170,7 +170,7 @@ class PerceptionPipeline:
         p_cam = nearest_ahead(
             frame.depth_m,
             k,
-            max_range_m=self._guard_range_m(frame.stamp_s, R_ned_body),
+            max_range_m=self._guard_range_m(g, frame.stamp_s, R_ned_body),
             window_frac=g.depth_guard_window_frac,
             min_px=g.depth_guard_min_px,
             exclude_xyxy=exclude_xyxy,
@@ -181,10 +181,8 @@ class PerceptionPipeline:
         p_ned = R_ned_body @ self.camera.cam_to_body(p_cam)
         return ObstacleAhead(frame.stamp_s, (float(p_ned[0]), float(p_ned[1]), float(p_ned[2])))
 
-    def _guard_range_m(self, stamp_s: float, R_ned_body: Mat3) -> float:
+    def _guard_range_m(self, g: SafetyConfig, stamp_s: float, R_ned_body: Mat3) -> float:
         """The depth guard's range at this frame: the stopping distance toward the camera's axis, m."""
-        g = self.safety
-        assert g is not None  # noqa: S101 (only called with the guard on)
         v_ned = self.velocity.v_at(stamp_s)
         if self.guard_brake_m_s2 is None or v_ned is None:
             return g.depth_guard_range_m
