@@ -368,6 +368,12 @@ class SafetyConfig(Section):
     #: 0.6 m beside the path left the follower 1.1-1.8 m behind its slot (visibility, lockstep).
     depth_guard_hit_radius_m: float = Field(0.35, gt=0)
 
+    @model_validator(mode="after")
+    def _guard_ranges(self) -> SafetyConfig:
+        if self.depth_guard_max_range_m < self.depth_guard_range_m:
+            raise ValueError("depth_guard_max_range_m must be >= depth_guard_range_m")
+        return self
+
 
 class MqttConfig(Section):
     """Telemetry to an MQTT broker (topics under ``<topic_prefix>/<vehicle_id>/``)."""

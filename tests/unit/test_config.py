@@ -91,3 +91,12 @@ def test_env_overrides_nesting() -> None:
     assert env_overrides({"WINGMAN_CAMERA__MOUNT__PITCH_DEG": "10"}) == {
         "camera": {"mount": {"pitch_deg": 10}}
     }
+
+
+def test_a_guard_range_beyond_its_maximum_is_one_clear_line(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text("[safety]\ndepth_guard_range_m = 6.0\ndepth_guard_max_range_m = 5.0\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(p, environ={})
+    (line,) = exc.value.problems
+    assert "depth_guard_max_range_m must be >= depth_guard_range_m" in line
