@@ -214,7 +214,7 @@ class TrackerConfig(Section):
     switch_ratio_margin: float = Field(0.5, gt=0.0, le=1.0)
     #: While a new track is tentative, what is seen outside its gate in as many frames with a higher mean
     #: detector score takes it over (still tentative): a false box seen first, on the frame the leader was
-    #: missed, otherwise confirmed and held the track for 0.3 s of the leader in plain view.
+    #: missed, otherwise confirmed and held the track for 0.2 s of the leader in plain view.
     contend_tentative: bool = True
     #: Velocity uncertainty of a new track (the leader's relative speed is unknown at first sight), m/s.
     init_velocity_std_m_s: float = Field(3.0, gt=0)
@@ -353,7 +353,7 @@ class SafetyConfig(Section):
     #: Flying toward what the camera sees, the guard looks out to the follower's stopping distance
     #: (``min_separation_m``, plus ``separation_response_s`` of the speed, plus braking at the barrier's
     #: deceleration) when that is beyond ``depth_guard_range_m``, up to this, m: at 3.6 m/s 4 m is 1.1 s,
-    #: under the 7.9 m the barrier needs to hold ``min_separation_m`` off a pole.
+    #: under the 9.9 m the barrier needs to hold ``min_separation_m`` off a pole.
     depth_guard_max_range_m: float = Field(9.0, gt=0.5, le=20.0)
     depth_guard_window_frac: tuple[float, float] = (0.6, 0.3)
     depth_guard_min_px: int = Field(8, ge=1)

@@ -438,7 +438,7 @@ class TargetTracker:
         keep = [sum(ch.recent) + window - len(ch.recent) >= cfg.switch_hits for ch in self._chals]
         track_ratio = self._recent_ratio()
         best: tuple[float, _Challenger, _Candidate] | None = None
-        track_hits = sum(self._window)
+        # While tentative, ``_hits`` counts the track's frames (those of its confirmation window).
         track_mean_score = self._tentative_score_sum / max(1, self._hits)
         for ch, hit, kept in zip(self._chals, hits, keep, strict=True):
             if hit is None or not kept:
@@ -448,7 +448,7 @@ class TargetTracker:
             if not self._confirmed:
                 # Nothing flies on a tentative track yet: what is seen as often and scores better wins.
                 mean_score = ch.score_sum / n_hits
-                wins = cfg.contend_tentative and n_hits >= track_hits and mean_score > track_mean_score
+                wins = n_hits >= self._hits and mean_score > track_mean_score
                 if wins and (best is None or mean_score > best[0]):
                     best = (mean_score, ch, hit)
                 continue

@@ -147,17 +147,19 @@ class Child:
     def returncode(self) -> int | None:
         return None if self.proc is None else self.proc.poll()
 
-    def signal(self, sig: int) -> None:
+    def _started(self) -> subprocess.Popen[bytes]:
         if self.proc is None:
             raise SimRunError(f"{self.args[2:4]} was never started")
-        self.proc.send_signal(sig)
+        return self.proc
+
+    def signal(self, sig: int) -> None:
+        self._started().send_signal(sig)
 
     async def wait(self, timeout_s: float) -> int:
         """The exit status, polled; TimeoutError if it still runs after ``timeout_s``."""
-        if self.proc is None:
-            raise SimRunError(f"{self.args[2:4]} was never started")
+        proc = self._started()
         deadline = time.monotonic() + timeout_s
-        while (rc := self.proc.poll()) is None:
+        while (rc := proc.poll()) is None:
             if time.monotonic() > deadline:
                 raise TimeoutError(f"{self.args[2:4]} still running after {timeout_s} s")
             await asyncio.sleep(0.05)
