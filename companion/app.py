@@ -72,6 +72,8 @@ class Parts:
     #: if one raises, the service ends. They are cancelled when the service stops.
     background: dict[str, Callable[[], Awaitable[None]]] = field(default_factory=dict)
     extra_status: dict[str, Callable[[], Any]] = field(default_factory=dict)
+    #: Returns once the link to the configured vehicle is up (READY=1 waits for it); None: at once.
+    link_ready: Callable[[], Awaitable[None]] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -177,6 +179,7 @@ class FollowerService:
                         "health": self.live_health,
                         "start": self._request_start,
                     },
+                    commands={"command": self._operator_command},
                 )
             )
             if self.cfg.mqtt.enabled:
@@ -199,21 +202,28 @@ class FollowerService:
                         tg.create_task(self._gcs(parts.gcs), name="companion.gcs")
                     tg.create_task(self._watchdog(), name="companion.watchdog")
                     tg.create_task(self._lifecycle(parts.mission), name="companion.lifecycle")
-                    self.notifier.ready(self._status_line(parts.mission.snapshot()))
-                    log.info(
-                        "service ready: vehicle %s, status on %s, mqtt %s",
-                        self.cfg.vehicle_id,
-                        self._socket_path(),
-                        "on" if self.mqtt else "off",
-                    )
+                    tg.create_task(self._ready(parts), name="companion.ready")
             except* _Finished:
                 pass
         log.info("service stopped (exit %d)", self.exit_code)
         return self.exit_code
 
+    async def _ready(self, parts: Parts) -> None:
+        """READY=1 for systemd once the link to the configured vehicle is up (the right system id)."""
+        if parts.link_ready is not None:
+            await parts.link_ready()
+        self.notifier.ready(self._status_line(parts.mission.snapshot()))
+        log.info(
+            "service ready: vehicle %s, status on %s, mqtt %s",
+            self.cfg.vehicle_id,
+            self._socket_path(),
+            "on" if self.mqtt else "off",
+        )
+
     async def _run_mission(self, mission: MissionPort) -> None:
         if self.cfg.service.auto_start:
-            mission.request_start()
+            # From the ground only: a vehicle found flying waits for an operator's start.
+            mission.request_start(takeover=False)
         try:
             await mission.run()
             await self._until_down(mission)
@@ -250,6 +260,24 @@ class FollowerService:
         self._parts.mission.request_start()
         log.info("mission start requested over the status socket")
         return {"ok": True, "detail": "start requested"}
+
+    def _operator_command(self, args: list[str]) -> dict[str, Any]:
+        """``command land|hold|set_offset X Y Z`` from the CLI: through the mission machine's checks."""
+        assert self._parts is not None  # noqa: S101
+        if not args:
+            return {"ok": False, "detail": "command refused: name one of land, hold, set_offset"}
+        name, rest = args[0], args[1:]
+        offset: tuple[float, float, float] | None = None
+        if name == "set_offset":
+            try:
+                x, y, z = (float(a) for a in rest)
+            except ValueError:
+                return {"ok": False, "detail": "set_offset refused: it needs three numbers X Y Z (m)"}
+            offset = (x, y, z)
+        elif rest:
+            return {"ok": False, "detail": f"{name} refused: it takes no arguments"}
+        reply = self._parts.mission.request_command(name, offset)
+        return {"ok": " refused: " not in reply, "detail": reply}
 
     async def _lifecycle(self, mission: MissionPort) -> None:
         await self._stop.wait()
@@ -525,6 +553,7 @@ class FollowerService:
         )
 
     def _on_command(self, cmd: Command) -> str:
+        """An MQTT operator command: through the mission machine's checks, like the CLI's."""
         assert self._parts is not None  # noqa: S101
         return self._parts.mission.request_command(cmd.name.value, cmd.offset_cam_m)
 

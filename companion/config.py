@@ -30,7 +30,13 @@ class Section(BaseModel):
 class LinkConfig(Section):
     """The autopilot link (MAVSDK connection URL and timing)."""
 
-    url: str = "udpin://0.0.0.0:14540"
+    #: MAVSDK connection URL: ``udpin://HOST:PORT``, ``udpout://HOST:PORT``, ``tcpin://``/``tcpout://`` or
+    #: ``serial:///dev/ttyX[:BAUD]``. PX4 SITL's vehicle i sends to 14540 + i: the simulator's follower
+    #: (system 2) is 14541.
+    url: str = "udpin://0.0.0.0:14541"
+    #: MAVLink system id of the autopilot this service flies. 0: the first autopilot heard that is not the
+    #: leader's (``leader.mavlink_system_id``). Any other autopilot on the link is never commanded.
+    system_id: int = Field(2, ge=0, le=255)
     connect_timeout_s: float = Field(10.0, gt=0)
     #: MAVSDK resends setpoints at 20 Hz; PX4 needs > 2 Hz. This is how often *we* compute fresh ones.
     setpoint_rate_hz: float = Field(20.0, gt=2.0, le=100.0)
@@ -46,6 +52,14 @@ class LinkConfig(Section):
     offboard_loss_action: Literal["hold", "land", "return", "autopilot"] = "hold"
     #: MAVSDK's own log lines go to the ``companion.vehicle.mavsdk`` logger at or above this level.
     mavsdk_log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "WARNING"
+
+    @field_validator("url")
+    @classmethod
+    def _known_url(cls, v: str) -> str:
+        problem = url_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
 
 
 class MountConfig(Section):
@@ -327,6 +341,11 @@ class MissionConfig(Section):
     external_position_accept_s: float = Field(5.0, gt=0)
     #: Hover thrust to start the attitude law from when PX4's MPC_THR_HOVER cannot be read (0..1).
     hover_thrust_norm: float = Field(0.5, gt=0.05, lt=0.95)
+    #: A service (re)started while its vehicle is already armed and flying only observes and reports until
+    #: ``companion start``. True: it takes the vehicle back into offboard by itself (after a crash under
+    #: ``Restart=on-failure``, too) as soon as it has a GPS verdict. Risk: a restarted service flies
+    #: whatever slot and leader it now sees, with nobody having confirmed that it should.
+    resume_in_air: bool = False
 
 
 class SafetyConfig(Section):
@@ -475,6 +494,15 @@ class Config(Section):
             raise ValueError("detector.runtime = 'truth' needs a source with ground truth (sim or file)")
         return self
 
+    @model_validator(mode="after")
+    def _never_the_leader(self) -> Config:
+        if self.link.system_id != 0 and self.link.system_id == self.leader.mavlink_system_id:
+            raise ValueError(
+                f"link.system_id: {self.link.system_id} is the leader's (leader.mavlink_system_id); "
+                "the service never commands the leader"
+            )
+        return self
+
     @field_validator("schema_version")
     @classmethod
     def _known_schema(cls, v: int) -> int:
@@ -485,14 +513,38 @@ class Config(Section):
         return v
 
 
+_URL_SCHEMES = ("udpin", "udpout", "tcpin", "tcpout", "serial")
+
+
+def url_problem(url: str) -> str | None:
+    """What is wrong with a MAVSDK connection URL, in words; None when it is well formed."""
+    scheme, sep, rest = url.partition("://")
+    if not sep or scheme not in _URL_SCHEMES:
+        return f"expected one of {', '.join(s + '://' for s in _URL_SCHEMES)}..."
+    if scheme == "serial":
+        device, _, baud = rest.partition(":")
+        if not device.startswith("/dev/"):
+            return "serial:// needs a device path, e.g. serial:///dev/ttyTHS1:921600"
+        if baud and not baud.isdigit():
+            return f"serial baud rate must be a number (got {baud!r})"
+        return None
+    host, colon, port = rest.rpartition(":")
+    if not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        return f"{scheme}:// needs HOST:PORT with a port in 1-65535 (got {rest!r})"
+    return None
+
+
 def format_validation_error(exc: ValidationError) -> list[str]:
     """One line per problem: ``dotted.key: what is wrong (got <value>)``."""
     lines = []
     for err in exc.errors():
-        key = ".".join(str(p) for p in err["loc"]) or "<root>"
-        msg = err["msg"]
+        key = ".".join(str(p) for p in err["loc"])
+        msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
+        if not key:
+            lines.append(msg)  # a rule across sections: its message names the keys
+            continue
         got = err.get("input")
         shown = "" if err["type"] in ("extra_forbidden", "missing") else f" (got {got!r})"
         lines.append(f"{key}: {msg}{shown}")

@@ -36,6 +36,15 @@ class LinkLostError(CompanionError):
     exit_code = 3
 
 
+class WrongVehicleError(CompanionError):
+    """The link carries only autopilots this service must not fly (the leader's, or another system id).
+
+    Exit code 4: a wiring or config mistake that a restart cannot fix (``RestartPreventExitStatus``).
+    """
+
+    exit_code = 4
+
+
 class CommandRejectedError(CompanionError):
     """The autopilot refused a command (``result`` is the MAVLink MAV_RESULT or a MAVSDK result name)."""
 

@@ -59,7 +59,7 @@ echo "== venv (system site-packages visible for JetPack's torch/TensorRT)"
 echo "== config"
 install -d -m 0750 -o root -g wingman /etc/wingman
 if [ ! -f /etc/wingman/wingman.toml ]; then
-    sed -e "s#^url = \"udpin://0.0.0.0:14540\".*#url = \"serial://$SERIAL:921600\"#" \
+    sed -e "s#^url = \"udpin://0.0.0.0:14541\".*#url = \"serial://$SERIAL:921600\"#" \
         -e 's#^source = "sim".*#source = "realsense"#' \
         -e 's#^model_path = "models/#model_path = "'"$PREFIX"'/models/#' \
         -e 's#^format = "human".*#format = "json"#' \

@@ -24,6 +24,22 @@ def register(sub: Any) -> None:
     s = sub.add_parser("start", help="ask the running service to start the mission (arm, take off, follow)")
     add_config_arg(s)
     s.set_defaults(handler=_start)
+    c = sub.add_parser(
+        "command",
+        help="send an operator command to the running service (checked by its mission machine)",
+        description="land | hold | set_offset X Y Z: the service's mission machine checks each and "
+        "answers in one line what it did or why it refused (exit 0 done, 1 refused).",
+    )
+    add_config_arg(c)
+    c.add_argument("name", choices=["land", "hold", "set_offset"], help="the command")
+    c.add_argument(
+        "offset_cam_m",
+        nargs="*",
+        type=float,
+        metavar="X Y Z",
+        help="set_offset: the leader's slot in the camera frame, m (right, down, forward)",
+    )
+    c.set_defaults(handler=_command)
 
 
 def _start(args: argparse.Namespace) -> int:
@@ -31,6 +47,16 @@ def _start(args: argparse.Namespace) -> int:
 
     cfg = load(args)
     reply = query_status(Path(cfg.status.socket_path), "start")
+    print(reply.get("detail", reply))
+    return 0 if reply.get("ok") else 1
+
+
+def _command(args: argparse.Namespace) -> int:
+    from companion.service.status import query_status
+
+    cfg = load(args)
+    words = [args.name, *(repr(float(v)) for v in args.offset_cam_m)]
+    reply = query_status(Path(cfg.status.socket_path), "command " + " ".join(words))
     print(reply.get("detail", reply))
     return 0 if reply.get("ok") else 1
 

@@ -1,9 +1,9 @@
 """The lockstep closed loop: the simulator, the camera and the service's cores on one clock, no sockets.
 
 Fast and repeatable (Monte Carlo): a :class:`sitl.world.World` steps the physics and the PX4-like autopilots;
-an in-process :class:`sitl.render.renderer.Renderer` draws the follower's camera; the *same* detector,
-:class:`~companion.perception.pipeline.PerceptionPipeline` (pose + tracker), :class:`MissionMachine`
-(formation law + mission) and :class:`MissionRunner` as in the service fly the follower through a
+an in-process :class:`sitl.render.renderer.Renderer` draws the follower's camera; the *same* detector and
+the service's own :class:`~companion.service.flight_core.FlightCore` (pose, tracker, mission machine and
+runner, and the glue between them) fly the follower through a
 :class:`~companion.vehicle.message_link.MessageVehicleLink` that speaks MAVLink messages to
 ``world.link("follower")``. Everything runs on sim time (a :class:`ManualClock` set from the world).
 
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -36,12 +35,9 @@ from companion.evaluation.log import FlightLog
 from companion.evaluation.plots import Snapshot
 from companion.evaluation.scoring import RunScorer
 from companion.evaluation.trace import RunObserver
-from companion.frames import quat_from_euler
-from companion.mission.machine import MissionMachine
-from companion.mission.runner import MissionRunner
 from companion.mission.types import MissionInputs, StepOutput, Transition
-from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.service.flight_core import FlightCore
 from companion.vehicle.message_link import MessageVehicleLink
 
 log = logging.getLogger(__name__)
@@ -107,22 +103,15 @@ class LockstepRun:
         self.clock = ManualClock(world.t_s)
         follower = world.vehicle("follower")
         self.link = MessageVehicleLink(world.link("follower"), self.clock, cfg.link, follower.sysid)
-        self.machine = MissionMachine(cfg)
-        self.runner = MissionRunner(
-            self.link,
-            self.machine,
-            self.clock,
-            rate_hz=cfg.link.setpoint_rate_hz,
-            command_timeout_s=cfg.link.command_timeout_s,
-            on_transition=self._on_transition,
-            on_step=self._on_step,
+        self.core = FlightCore(
+            cfg, self.link, self.clock, stage, on_transition=self._on_transition, on_step=self._on_step
         )
-        self.pipeline = PerceptionPipeline.from_config(cfg)
+        self.machine = self.core.machine
+        self.runner = self.core.runner
+        self.pipeline = self.core.pipeline
         self.scorer = RunScorer.for_scenario(sc, options.snapshots)
         self._in_flight: deque[_InFlight] = deque()
         self._compute_ms: list[float] = []
-        self._attitude_stamp_s = -math.inf
-        self._velocity_stamp_s = -math.inf
         self.observer = RunObserver(self.clock, [])
 
     # ------------------------------------------------------------------ mission callbacks
@@ -153,15 +142,15 @@ class LockstepRun:
         next_progress_s = 0.0
         end_s = sc.run.duration_s
         wall0 = time.perf_counter()
-        self.runner.request_start()
+        self.core.request_start()
         async with asyncio.TaskGroup() as tg:
-            mission = tg.create_task(self.runner.run(), name="lockstep.mission")
+            mission = tg.create_task(self.core.run(), name="lockstep.mission")
             while world.t_s < end_s - 1e-9 and not mission.done():
                 world.step()
                 t_s = world.t_s
                 self.clock.set(t_s)
                 self.link.pump()
-                self._feed_attitude()
+                self.core.feed_telemetry()
                 if t_s >= next_frame_s - 1e-9:
                     next_frame_s += frame_period_s
                     if self.link.snapshot().armed or self._in_flight:
@@ -197,18 +186,6 @@ class LockstepRun:
         )
         return RunResult(self.scorer.freeze(), self.scorer.snapshots, extra, self.observer)
 
-    def _feed_attitude(self) -> None:
-        """What the service's attitude feed does: new attitude and velocity samples into the histories."""
-        v = self.link.snapshot()
-        if v.attitude_stamp_s > self._attitude_stamp_s:
-            self._attitude_stamp_s = v.attitude_stamp_s
-            self.pipeline.attitude.push(
-                v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)
-            )
-        if v.velocity_stamp_s > self._velocity_stamp_s:
-            self._velocity_stamp_s = v.velocity_stamp_s
-            self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
-
     def _capture(self, t_s: float) -> None:
         follower = self.world.truth("follower")
         leader = None if self.scenario.run.leader_hidden(t_s) else self.world.truth("leader")
@@ -220,16 +197,12 @@ class LockstepRun:
 
     def _deliver(self, item: _InFlight) -> None:
         c0 = time.perf_counter()
-        track = self.pipeline.process(item.frame, item.result.detections)
-        self.stage.after_track(track)
+        track = self.core.on_frame(item.frame, item.result)
         process_ms = (time.perf_counter() - c0) * 1e3
         compute_ms = item.compute_ms + process_ms
         self._compute_ms.append(compute_ms)
         self.observer.on_frame(item.frame, item.result, track, process_ms)
         est = track.leader_estimate()
-        if est is not None:
-            self.runner.submit_leader(est)
-        self.runner.submit_obstacle(self.pipeline.obstacle(item.frame, track))
         stamp_s = item.frame.stamp_s
         self.scorer.frame(
             stamp_s,

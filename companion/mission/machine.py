@@ -81,6 +81,16 @@ AIRBORNE_STATES = OFFBOARD_STATES | {
 PX4_STATES = frozenset(
     {MissionState.PX4_HOLD, MissionState.PX4_LAND, MissionState.PX4_RTL, MissionState.PX4_IN_CONTROL}
 )
+#: States where the companion has nothing of the vehicle's to hand back on shutdown.
+_NOT_IN_CONTROL = frozenset(
+    {
+        MissionState.WAIT_LINK,
+        MissionState.PREFLIGHT,
+        MissionState.OBSERVE,
+        MissionState.DISARMED,
+        MissionState.LINK_LOST,
+    }
+)
 
 #: Re-send a command that got no result after this long (the link's own timeouts are shorter), s.
 COMMAND_STALE_S = 10.0
@@ -168,6 +178,8 @@ class MissionMachine:
         self._shutting_down = False
         self._start_latched = False
         self._prev_start = False
+        self._takeover_latched = False
+        self._prev_takeover = False
         self._home_hover_thrust_seeded = False
 
     # ------------------------------------------------------------------ public
@@ -188,6 +200,9 @@ class MissionMachine:
         if inp.start_requested and not self._prev_start:
             self._start_latched = True
         self._prev_start = inp.start_requested
+        if inp.takeover_requested and not self._prev_takeover:
+            self._takeover_latched = True
+        self._prev_takeover = inp.takeover_requested
         if inp.leader is not None and inp.leader.usable and self._fresh(inp.leader):
             self._last_leader = inp.leader
 
@@ -363,12 +378,7 @@ class MissionMachine:
 
     def _on_shutdown(self, veh: VehicleState) -> None:
         st = self.state
-        if st in (
-            MissionState.WAIT_LINK,
-            MissionState.PREFLIGHT,
-            MissionState.DISARMED,
-            MissionState.LINK_LOST,
-        ):
+        if st in _NOT_IN_CONTROL:
             self._transitions.append(Transition(self._now_s, st, st, Reason.SHUTDOWN_REQUESTED))
             return
         if st in (MissionState.ARMING, MissionState.LANDED) or (veh.armed and not veh.in_air):
@@ -402,6 +412,17 @@ class MissionMachine:
             return True
         return False  # hold without GPS is impossible on PX4: refused (the runner says so)
 
+    def operator_refusal(self, cmd: OperatorCommand) -> str | None:
+        """Why the machine would refuse an operator's land or hold now (None: it will act on it)."""
+        st = self.state
+        if st == MissionState.OBSERVE:
+            return "the companion is only observing this vehicle (run companion start to take it)"
+        if st not in AIRBORNE_STATES:
+            return f"the companion is not flying the vehicle (state {st.value})"
+        if cmd == OperatorCommand.HOLD and not self._gps_ok:
+            return "hold needs GPS (PX4 cannot hold without a position); land instead"
+        return None
+
     def set_slot(self, offset_cam_m: tuple[float, float, float]) -> str | None:
         """Change the formation slot in flight. Returns why it is refused, or None when applied.
 
@@ -425,12 +446,7 @@ class MissionMachine:
         if not self._shutting_down:
             return False
         st = self.state
-        if st in (
-            MissionState.WAIT_LINK,
-            MissionState.PREFLIGHT,
-            MissionState.DISARMED,
-            MissionState.LINK_LOST,
-        ):
+        if st in _NOT_IN_CONTROL:
             return not self._streaming
         if st == MissionState.PX4_LAND:
             return veh.flight_mode == FlightMode.LAND or not veh.armed
@@ -545,6 +561,9 @@ class MissionMachine:
         if st == MissionState.PREFLIGHT:
             self._preflight(inp)
             return None, None, None
+        if st == MissionState.OBSERVE:
+            self._observe(inp)
+            return None, None, None
         if st == MissionState.ARMING:
             self._arming(veh)
             return None, None, None
@@ -592,16 +611,38 @@ class MissionMachine:
     def _preflight(self, inp: MissionInputs) -> None:
         veh = inp.vehicle
         if veh.armed and veh.in_air:
-            # A companion restarted in flight: PX4 flies on its own meanwhile; wait for a GPS verdict.
-            self._start_latched = False
-            if self._gps_ok:
-                self._go(MissionState.ACQUIRE, Reason.ALREADY_FLYING)
-            elif self._gps_loss_confirmed(veh):
-                self._go(MissionState.CONTROLLED_LANDING, Reason.ALREADY_FLYING, "no GPS")
+            # A companion (re)started in flight: PX4 flies on its own meanwhile. Take it only when told.
+            if self.m.resume_in_air or self._takeover_latched:
+                self._take_over(veh)
+            else:
+                self._go(MissionState.OBSERVE, Reason.AIRBORNE_NOT_STARTED, veh.flight_mode.value)
             return
         if self._start_latched and not self._shutting_down and not self._preflight_problems(veh):
             self._start_latched = False
+            self._takeover_latched = False
             self._go(MissionState.ARMING, Reason.PREFLIGHT_OK)
+
+    def _observe(self, inp: MissionInputs) -> None:
+        """Airborne, not ours: report, and take over on an operator's start once GPS gives a verdict."""
+        veh = inp.vehicle
+        if not (veh.armed and veh.in_air):
+            self._start_latched = False
+            self._takeover_latched = False
+            self._go(MissionState.PREFLIGHT, Reason.LANDED_WHILE_OBSERVED)
+            return
+        if self._takeover_latched and not self._shutting_down:
+            self._take_over(veh)
+
+    def _take_over(self, veh: VehicleState) -> None:
+        """Into the formation from the air (a start once GPS is good), or down without GPS."""
+        if self._gps_ok:
+            self._start_latched = False
+            self._takeover_latched = False
+            self._go(MissionState.ACQUIRE, Reason.ALREADY_FLYING)
+        elif self._gps_loss_confirmed(veh):
+            self._start_latched = False
+            self._takeover_latched = False
+            self._go(MissionState.CONTROLLED_LANDING, Reason.ALREADY_FLYING, "no GPS")
 
     def _arming(self, veh: VehicleState) -> None:
         if veh.armed:

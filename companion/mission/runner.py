@@ -81,6 +81,7 @@ class MissionRunner:
         self._shared: SharedLeaderPosition | None = None
         self._obstacle: ObstacleAhead | None = None
         self._start = False
+        self._takeover = False
         self._shutdown = False
         self._commands: asyncio.Queue[Command] = asyncio.Queue()
         self._results: list[CommandResult] = []
@@ -101,8 +102,14 @@ class MissionRunner:
         """The depth guard's reading for the latest frame (None: nothing near); latest value wins."""
         self._obstacle = obstacle
 
-    def request_start(self) -> None:
+    def request_start(self, *, takeover: bool = True) -> None:
+        """Start the mission.
+
+        ``takeover``: an operator's start, which may also take a vehicle already in the air;
+        ``service.auto_start`` passes False (it arms and takes off from the ground only).
+        """
         self._start = True
+        self._takeover = self._takeover or takeover
 
     def request_shutdown(self) -> None:
         """Ask for the configured safe action; :meth:`run` returns once it is under way."""
@@ -116,18 +123,19 @@ class MissionRunner:
         """
         if name == "set_offset":
             if offset_cam_m is None:
-                return "refused: set_offset needs offset_cam_m"
+                return "set_offset refused: it needs offset_cam_m"
             why = self.machine.set_slot(offset_cam_m)
             if why is not None:
-                return f"refused: {why}"
+                return f"set_offset refused: {why}"
             log.info("mission: operator set the slot to %s (camera frame, m)", offset_cam_m)
             return f"slot set to {tuple(round(c, 2) for c in offset_cam_m)}"
         try:
             cmd = OperatorCommand(name)
         except ValueError:
-            return f"refused: unknown command {name!r}"
-        if cmd == OperatorCommand.HOLD and not self.machine.gps_ok:
-            return "refused: hold needs GPS (PX4 cannot hold without a position)"
+            return f"{name} refused: unknown command"
+        why = self.machine.operator_refusal(cmd)
+        if why is not None:
+            return f"{cmd.value} refused: {why}"
         self._operator = cmd
         return f"{cmd.value} requested"
 
@@ -169,6 +177,7 @@ class MissionRunner:
             leader_shared=self._shared,
             obstacle=self._obstacle,
             start_requested=self._start,
+            takeover_requested=self._takeover,
             shutdown_requested=self._shutdown,
             command_results=results,
             operator=operator,

@@ -127,6 +127,9 @@ class MissionInputs:
     #: The depth guard's latest reading (None: nothing near, or the guard is off).
     obstacle: ObstacleAhead | None = None
     start_requested: bool = False
+    #: The start came from an operator (``companion start``), not from ``service.auto_start``: only such a
+    #: start takes over a vehicle that is already flying.
+    takeover_requested: bool = False
     shutdown_requested: bool = False
     command_results: tuple[CommandResult, ...] = ()
     #: A one-shot operator request, delivered on one step only.
@@ -138,6 +141,9 @@ class MissionState(StrEnum):
 
     WAIT_LINK = "wait_link"
     PREFLIGHT = "preflight"
+    #: The vehicle was already flying when the service came up: watched and reported, never commanded,
+    #: until an explicit start (or ``mission.resume_in_air``).
+    OBSERVE = "observe"
     ARMING = "arming"
     TAKEOFF = "takeoff"
     ACQUIRE = "acquire"
@@ -164,6 +170,8 @@ class Reason(StrEnum):
     START_REQUESTED = "mission start requested"
     PREFLIGHT_OK = "preflight checks passed"
     ALREADY_FLYING = "vehicle already armed and in air"
+    AIRBORNE_NOT_STARTED = "vehicle in air: observing until companion start"
+    LANDED_WHILE_OBSERVED = "vehicle landed while observed"
     ARMED = "armed"
     ARM_FAILED = "arming refused"
     TAKEOFF_DONE = "takeoff altitude reached"
@@ -210,6 +218,7 @@ REASON_SEVERITY: dict[Reason, Severity] = {
     Reason.MODE_CHANGED_EXTERNALLY: Severity.WARNING,
     Reason.PX4_MODE_REFUSED: Severity.ERROR,
     Reason.SHUTDOWN_REQUESTED: Severity.NOTICE,
+    Reason.AIRBORNE_NOT_STARTED: Severity.WARNING,
     Reason.OPERATOR_LAND: Severity.NOTICE,
     Reason.OPERATOR_HOLD: Severity.NOTICE,
 }

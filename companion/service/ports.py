@@ -97,8 +97,12 @@ class MissionPort(Protocol):
         """Fly until the mission is over: after a shutdown request, once safe; raises on link failure."""
         ...
 
-    def request_start(self) -> None:
-        """Start the mission (arm, take off, acquire, follow) once preflight passes."""
+    def request_start(self, *, takeover: bool = True) -> None:
+        """Start the mission (arm, take off, acquire, follow) once preflight passes.
+
+        ``takeover``: an operator's start, which also takes a vehicle found already flying; the service's
+        ``auto_start`` passes False (it arms and takes off from the ground only).
+        """
         ...
 
     def request_shutdown(self) -> None:
@@ -106,7 +110,10 @@ class MissionPort(Protocol):
         ...
 
     def request_command(self, name: str, offset_cam_m: Vec3T | None = None) -> str:
-        """An operator command (``land``, ``hold``, ``set_offset``); returns what was done, in words."""
+        """An operator command (``land``, ``hold``, ``set_offset``) through the mission machine's checks.
+
+        Returns what was done or why it was refused, in one line.
+        """
         ...
 
 

@@ -1,6 +1,7 @@
 """The local status endpoint: a Unix socket (mode 0660) that answers one JSON line per request.
 
-Protocol: the client sends one request word and a newline (``status`` or ``health``); the server answers
+Protocol: the client sends one request and a newline (``status``, ``health``, ``start``, or ``command`` with
+its words, e.g. ``command set_offset 0 0 6``); the server answers
 with one JSON object and a newline, then closes. The socket's mode and its directory's group decide who
 may ask (the unit makes ``/run/wingman`` owned by the service's group).
 """
@@ -28,6 +29,8 @@ _MAX_REQUEST_BYTES = 256
 _REQUEST_TIMEOUT_S = 2.0
 
 Handler = Callable[[], Mapping[str, Any]]
+#: A request with words after its name (``command set_offset 0 0 6``): gets those words.
+CommandHandler = Callable[[list[str]], Mapping[str, Any]]
 
 
 class ServiceNotRunningError(CompanionError):
@@ -45,9 +48,15 @@ class StatusSocketError(CompanionError):
 class StatusServer:
     """Serves snapshots from ``handlers`` (request word -> function returning a JSON-able mapping)."""
 
-    def __init__(self, path: Path, handlers: Mapping[str, Handler]) -> None:
+    def __init__(
+        self,
+        path: Path,
+        handlers: Mapping[str, Handler],
+        commands: Mapping[str, CommandHandler] | None = None,
+    ) -> None:
         self.path = path
         self._handlers = dict(handlers)
+        self._commands = dict(commands or {})
         self._server: asyncio.Server | None = None
         self.requests_served = 0
 
@@ -80,15 +89,20 @@ class StatusServer:
         try:
             async with asyncio.timeout(_REQUEST_TIMEOUT_S):
                 line = await reader.readline()
-            request = line[:_MAX_REQUEST_BYTES].decode("utf-8", "replace").strip() or "status"
-            handler = self._handlers.get(request)
-            if handler is None:
-                reply: Mapping[str, Any] = {
-                    "error": f"unknown request {request!r}",
-                    "known": sorted(self._handlers),
-                }
-            else:
+            words = line[:_MAX_REQUEST_BYTES].decode("utf-8", "replace").split() or ["status"]
+            request, args = words[0], words[1:]
+            handler = self._handlers.get(request) if not args else None
+            command = self._commands.get(request)
+            reply: Mapping[str, Any]
+            if handler is not None:
                 reply = handler()
+            elif command is not None:
+                reply = command(args)
+            else:
+                reply = {
+                    "error": f"unknown request {' '.join(words)!r}",
+                    "known": sorted([*self._handlers, *self._commands]),
+                }
             writer.write(json.dumps(reply, default=_json_default).encode() + b"\n")
             async with asyncio.timeout(_REQUEST_TIMEOUT_S):
                 await writer.drain()

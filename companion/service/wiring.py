@@ -20,10 +20,6 @@ from companion.app import Parts, PartsContext, PartsFactory
 from companion.clock import Clock, MonotonicClock
 from companion.config import Config
 from companion.errors import CompanionError, NotBuiltError
-from companion.frames import quat_from_euler
-from companion.mission.formation import Slot
-from companion.mission.machine import MissionMachine
-from companion.mission.runner import MissionRunner
 from companion.mission.types import (
     MissionInputs,
     SharedLeaderPosition,
@@ -31,6 +27,7 @@ from companion.mission.types import (
     Transition,
 )
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import (
@@ -103,33 +100,36 @@ def vehicle_summary(v: VehicleState, now_s: float) -> VehicleSummary:
 
 
 class FlightAdapter:
-    """Flight's :class:`MissionRunner` and :class:`VehicleLink` behind the service's ``MissionPort``."""
+    """The :class:`FlightCore` (mission, runner, perception glue) behind the service's ``MissionPort``."""
 
     def __init__(
-        self, cfg: Config, link: VehicleLink, clock: Clock, wall_time_s: Callable[[], float] = time.time
+        self,
+        cfg: Config,
+        link: VehicleLink,
+        clock: Clock,
+        stage: DetectStage | None = None,
+        wall_time_s: Callable[[], float] = time.time,
     ) -> None:
         self.cfg = cfg
         self.link = link
         self.clock = clock
         self._wall_time_s = wall_time_s
-        self.machine = MissionMachine(cfg)
-        self.runner = MissionRunner(
+        self.core = FlightCore(
+            cfg,
             link,
-            self.machine,
             clock,
-            rate_hz=cfg.link.setpoint_rate_hz,
-            command_timeout_s=cfg.link.command_timeout_s,
+            stage if stage is not None else DetectStage(_no_detection),
             on_transition=self._on_transition,
             on_step=self._on_step,
         )
+        self.machine = self.core.machine
+        self.runner = self.core.runner
         self._on_change: Callable[[StateChange], None] | None = None
         self._last: Transition | None = None
         self._entered_s = clock.now_s()
         self._last_step_s: float | None = None
         self._last_output: StepOutput | None = None
-        self._track: Any = None
         self._origin = OriginTracker()
-        self._operator: asyncio.Queue[str] = asyncio.Queue(maxsize=8)
         self.leader_positions_used = 0
 
     # ---- MissionPort ----------------------------------------------------------------------------------
@@ -142,7 +142,7 @@ class FlightAdapter:
         v = self.link.snapshot()
         tr = self._last
         leader = None
-        track = self._track
+        track = self.core.track
         if track is not None and track.estimate is not None:
             est = track.estimate
             cov = est.cov_ned_m2
@@ -173,43 +173,25 @@ class FlightAdapter:
         )
 
     async def run(self) -> None:
-        async with asyncio.TaskGroup() as tg:
-            ops = tg.create_task(self._operator_commands(), name="companion.mission.operator")
-            try:
-                await self.runner.run()
-            finally:
-                ops.cancel()
+        await self.core.run()
 
-    def request_start(self) -> None:
-        self.runner.request_start()
+    def request_start(self, *, takeover: bool = True) -> None:
+        self.core.request_start(takeover=takeover)
 
     def request_shutdown(self) -> None:
-        self.runner.request_shutdown()
+        self.core.request_shutdown()
 
     def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        if name == "set_offset":
-            assert offset_cam_m is not None  # noqa: S101 (the verifier guarantees it)
-            if offset_cam_m[2] < self.cfg.safety.min_separation_m:
-                return (
-                    f"set_offset refused: forward offset below safety.min_separation_m ({offset_cam_m[2]} m)"
-                )
-            self.machine.law.slot = Slot.from_offset_cam(offset_cam_m)
-            log.warning("operator: formation offset now %s m (camera frame)", offset_cam_m)
-            return f"formation offset now {list(offset_cam_m)} m"
-        try:
-            self._operator.put_nowait(name)
-        except asyncio.QueueFull:
-            return f"{name} refused: operator commands backed up"
-        return f"{name} requested: PX4 takes over from the companion"
+        """Land, hold or set_offset through the mission machine's checks; the one-line reply."""
+        reply = self.core.request_command(name, offset_cam_m)
+        (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
+        return reply
 
     # ---- inputs from the other parts ------------------------------------------------------------------
 
-    def submit_track(self, track: Any) -> None:
-        """Every tracker output: kept for the status, and handed to the mission when there is an estimate."""
-        self._track = track
-        est = track.leader_estimate()
-        if est is not None:
-            self.runner.submit_leader(est)
+    def on_frame(self, frame: RgbdFrame, result: DetectorResult) -> Any:
+        """Every detector result: to the tracker and the mission (the flight core); the track state."""
+        return self.core.on_frame(frame, result)
 
     def on_leader_position(self, msg: LeaderPositionMsg) -> None:
         """A leader position from MQTT, placed in the follower's local NED frame."""
@@ -222,7 +204,7 @@ class FlightAdapter:
             return  # no GPS fix seen yet: the frame is unknown
         age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
         p = origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m)
-        self.runner.submit_leader_shared(SharedLeaderPosition(stamp_s=self.clock.now_s() - age_s, p_ned_m=p))
+        self.core.submit_leader_shared(SharedLeaderPosition(stamp_s=self.clock.now_s() - age_s, p_ned_m=p))
         self.leader_positions_used += 1
 
     # ---- internals ------------------------------------------------------------------------------------
@@ -249,34 +231,15 @@ class FlightAdapter:
         self._last_step_s = self.clock.now_s()
         self._last_output = out
 
-    async def _operator_commands(self) -> None:
+    async def feed_telemetry(self) -> None:
+        """The follower's attitude and velocity into perception's histories, polled on the link's clock."""
         while True:
-            name = await self._operator.get()
-            try:
-                if name == "land":
-                    await self.link.land()
-                elif name == "hold":
-                    await self.link.hold()
-                log.warning("operator: %s sent to PX4", name)
-            except CompanionError as exc:
-                log.error("operator: %s failed: %s", name, exc)
-
-    async def feed_attitude(self, history: Any, velocity: Any = None) -> None:
-        """Copy each new attitude (and velocity) sample from telemetry into perception's histories.
-
-        Same clock as the frames. The velocity is the follower's own, for the tracker's ego-motion.
-        """
-        last_stamp_s = NEVER_S
-        last_v_stamp_s = NEVER_S
-        while True:
-            v = self.link.snapshot()
-            if v.attitude_stamp_s > last_stamp_s:
-                last_stamp_s = v.attitude_stamp_s
-                history.push(last_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad))
-            if velocity is not None and v.velocity_stamp_s > last_v_stamp_s:
-                last_v_stamp_s = v.velocity_stamp_s
-                velocity.push(last_v_stamp_s, v.v_ned_m_s)
+            self.core.feed_telemetry()
             await asyncio.sleep(_ATTITUDE_POLL_S)
+
+
+def _no_detection(frame: RgbdFrame) -> DetectorResult:
+    raise AssertionError("this flight adapter was built without a detector")  # pragma: no cover
 
 
 class LinkGcs:
@@ -321,9 +284,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             raise NotBuiltError("run: not built yet: waiting on " + ", ".join(missing))
         # Cheapest to fail first: the model (exit 2), then the camera (exit 3), then the link.
         stage = await asyncio.to_thread(load_detect, cfg)  # reads and checks the weights: off the loop
-        pipeline_mod: Any = importlib.import_module("companion.perception.pipeline")
         sources_mod: Any = importlib.import_module("companion.perception.sources")
-        pipeline = pipeline_mod.PerceptionPipeline.from_config(cfg)
         source: Any = sources_mod.open_source(cfg.camera, clock=ctx.clock)
         # The RealSense source already stamps on arrival, our clock; "source" stamps are on it already too.
         if cfg.camera.source != "realsense" and cfg.camera.stamps == "mapped":
@@ -332,15 +293,14 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
 
         from companion.vehicle.mavsdk_link import MavsdkVehicleLink  # noqa: PLC0415 (mavsdk: heavy)
 
-        link = await stack.enter_async_context(MavsdkVehicleLink(cfg.link, clock))
-        flight = FlightAdapter(cfg, link, clock)
+        link = await stack.enter_async_context(
+            MavsdkVehicleLink(cfg.link, clock, leader_system_id=cfg.leader.mavlink_system_id)
+        )
+        flight = FlightAdapter(cfg, link, clock, stage)
 
         def process(frame: RgbdFrame, result: DetectorResult) -> Any:
             t0_s = time.perf_counter()
-            track = pipeline.process(frame, result.detections)
-            stage.after_track(track)
-            flight.submit_track(track)
-            flight.runner.submit_obstacle(pipeline.obstacle(frame, track))
+            track = flight.on_frame(frame, result)
             if on_frame is not None:
                 on_frame(frame, result, track, (time.perf_counter() - t0_s) * 1e3)
             return track
@@ -355,8 +315,9 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             on_leader_position=flight.on_leader_position,
             background={
                 "companion.vehicle": link.run,
-                "companion.attitude": lambda: flight.feed_attitude(pipeline.attitude, pipeline.velocity),
+                "companion.attitude": flight.feed_telemetry,
             },
+            link_ready=link.wait_ready,
         )
 
     return open_parts
@@ -386,10 +347,19 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
     from companion.vehicle.mavsdk_link import MavsdkVehicleLink  # noqa: PLC0415 (mavsdk: heavy)
 
     clock = MonotonicClock()
-    # A health check reads PX4's offboard-loss action and never changes it.
-    link_cfg = cfg.link.model_copy(update={"offboard_loss_action": "autopilot"})
+    # A health check reads PX4's offboard-loss action and never changes it; it judges the link's autopilots
+    # (only the leader's: refused) within its own time.
+    link_cfg = cfg.link.model_copy(
+        update={
+            "offboard_loss_action": "autopilot",
+            "connect_timeout_s": min(cfg.link.connect_timeout_s, timeout_s / 2),
+        }
+    )
     try:
-        async with MavsdkVehicleLink(link_cfg, clock) as link, asyncio.TaskGroup() as tg:
+        async with (
+            MavsdkVehicleLink(link_cfg, clock, leader_system_id=cfg.leader.mavlink_system_id) as link,
+            asyncio.TaskGroup() as tg,
+        ):
             task = tg.create_task(link.run(), name="companion.health.link")
             try:
                 async with asyncio.timeout(timeout_s):
@@ -404,9 +374,12 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
             finally:
                 task.cancel()
             v = link.snapshot()
-    except CompanionError as exc:
+    except (CompanionError, ExceptionGroup) as exc:
+        err = exc if isinstance(exc, CompanionError) else _companion_error(exc)
+        if err is None:
+            raise
         return [
-            CheckResult("autopilot", False, str(exc)),
+            CheckResult("autopilot", False, str(err)),
             CheckResult("gps", False, "unknown (no autopilot)"),
         ]
     if not v.connected:
@@ -427,3 +400,15 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
             f"fix type {v.gps_fix_type}, {v.gps_satellites} satellites",
         ),
     ]
+
+
+def _companion_error(eg: BaseExceptionGroup[Any]) -> CompanionError | None:
+    """The first of our own errors in a TaskGroup's group (the link's refusal of the leader)."""
+    for exc in eg.exceptions:
+        if isinstance(exc, CompanionError):
+            return exc
+        if isinstance(exc, BaseExceptionGroup):
+            found = _companion_error(exc)
+            if found is not None:
+                return found
+    return None

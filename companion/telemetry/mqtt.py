@@ -405,8 +405,12 @@ class MqttReporter:
             return
         self.commands_accepted += 1
         result = self._on_command(cmd)
-        log.info("MQTT: command %s: %s", cmd.name.value, result)
-        self.event("command", result, "notice", cmd=cmd.name.value, nonce=cmd.nonce)
+        refused = " refused: " in result
+        (log.warning if refused else log.info)("MQTT: command %s: %s", cmd.name.value, result)
+        if refused:
+            self.event("command_refused", result, "warning", cmd=cmd.name.value, nonce=cmd.nonce)
+        else:
+            self.event("command", result, "notice", cmd=cmd.name.value, nonce=cmd.nonce)
 
 
 async def _call(awaitable: Awaitable[T]) -> T:

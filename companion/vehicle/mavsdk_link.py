@@ -49,9 +49,10 @@ from mavsdk.plugins.server_utility import ServerUtility, StatusTextType
 
 from companion.clock import Clock
 from companion.config import LinkConfig
-from companion.errors import CommandRejectedError, LinkLostError
+from companion.errors import CommandRejectedError, LinkLostError, WrongVehicleError
 from companion.vehicle import failsafe
 from companion.vehicle.boottime import BootClockMap
+from companion.vehicle.identity import choose_autopilot
 from companion.vehicle.types import (
     AttitudeSetpoint,
     ExternalPosition,
@@ -76,6 +77,7 @@ _EST_POS_VEL_FLAGS = 2 | 8
 _GUARD_PERIOD_S = 0.05
 _START_ATTEMPTS = 3
 _DISCOVERY_LOG_EVERY_S = 10.0
+_DISCOVERY_POLL_S = 0.2
 #: A MAVSDK "_async" start that holds the loop longer than this is reported (it should return at once).
 _BLOCKING_WARN_S = 0.02
 
@@ -118,9 +120,13 @@ def _result_name(exc: MavsdkError) -> str:
 class MavsdkVehicleLink:
     """The autopilot over MAVSDK 4. See the module docstring for the lifecycle and the quirks handled."""
 
-    def __init__(self, cfg: LinkConfig, clock: Clock) -> None:
+    def __init__(self, cfg: LinkConfig, clock: Clock, *, leader_system_id: int | None = None) -> None:
         self.cfg = cfg
         self.clock = clock
+        #: Never flown, whatever ``cfg.system_id`` says (the config refuses that too).
+        self.leader_system_id = leader_system_id
+        #: The autopilot's system id once found.
+        self.system_id: int | None = None
         self._sdk: Mavsdk | None = None
         #: Attitude is stamped when the autopilot sampled it (see vehicle/boottime.py).
         self._boot_clock = BootClockMap()
@@ -221,16 +227,40 @@ class MavsdkVehicleLink:
         await self._ready.wait()
 
     async def _discover(self) -> Any:
+        """The autopilot this service flies (``link.system_id``), never the leader's; see vehicle/identity.py.
+
+        Raises :class:`WrongVehicleError` when, for ``connect_timeout_s`` after the first autopilot was heard,
+        only other systems (the leader) are on the link.
+        """
         assert self._sdk is not None, "use MavsdkVehicleLink as an async context manager"  # noqa: S101
-        waited_s = 0.0
+        first_heard_s: float | None = None
+        last_log_s = -math.inf
         while True:
-            system = await self._sdk.first_autopilot(timeout_s=self.cfg.connect_timeout_s)
-            if system is not None:
-                log.info("vehicle link: autopilot found (sysid %d)", await system.get_system_id())
-                return system
-            waited_s += self.cfg.connect_timeout_s
-            if waited_s % _DISCOVERY_LOG_EVERY_S < self.cfg.connect_timeout_s:
-                log.warning("vehicle link: no autopilot on %s after %.0f s", self.cfg.url, waited_s)
+            heard: dict[int, Any] = {}
+            for system in await self._sdk.get_systems():
+                if await system.has_autopilot():
+                    heard[await system.get_system_id()] = system
+            now_s = self.clock.now_s()
+            if heard and first_heard_s is None:
+                first_heard_s = now_s
+            verdict = choose_autopilot(
+                heard,
+                self.cfg.system_id,
+                leader=self.leader_system_id,
+                listened_s=0.0 if first_heard_s is None else now_s - first_heard_s,
+                patience_s=self.cfg.connect_timeout_s,
+                url=self.cfg.url,
+            )
+            if verdict.system_id is not None:
+                log.info("vehicle link: flying autopilot system %d on %s", verdict.system_id, self.cfg.url)
+                self.system_id = verdict.system_id
+                return heard[verdict.system_id]
+            if verdict.refusal is not None:
+                raise WrongVehicleError(verdict.refusal)
+            if now_s - last_log_s >= _DISCOVERY_LOG_EVERY_S:
+                last_log_s = now_s
+                (log.info if first_heard_s is None else log.warning)("vehicle link: %s", verdict.waiting)
+            await asyncio.sleep(_DISCOVERY_POLL_S)
 
     # ------------------------------------------------------------------ telemetry
     async def _each(self, stream: AsyncIterator[T], handle: Callable[[T], None]) -> None:

@@ -77,6 +77,21 @@ async def test_status_server_roundtrip_mode_and_cleanup(tmp_path: Path) -> None:
         query_status(path)
 
 
+async def test_status_server_passes_a_commands_words_to_its_handler(tmp_path: Path) -> None:
+    path = tmp_path / "s.sock"
+    seen: list[list[str]] = []
+
+    def command(args: list[str]) -> dict[str, object]:
+        seen.append(args)
+        return {"ok": True}
+
+    async with StatusServer(path, {"status": lambda: {"ok": True}}, commands={"command": command}):
+        assert (await asyncio.to_thread(query_status, path, "command set_offset 0 0 6"))["ok"] is True
+        unknown = await asyncio.to_thread(query_status, path, "status now")
+        assert unknown["error"] == "unknown request 'status now'"
+    assert seen == [["set_offset", "0", "0", "6"]]
+
+
 async def test_status_server_replaces_a_dead_socket(tmp_path: Path) -> None:
     path = tmp_path / "status.sock"
     dead = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)

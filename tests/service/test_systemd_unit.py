@@ -70,7 +70,7 @@ def test_unit_has_the_required_directives() -> None:
     assert one["NotifyAccess"] == "main"
     assert float(one["WatchdogSec"]) > 0
     assert one["Restart"] == "on-failure"
-    assert one["RestartPreventExitStatus"] == "2"
+    assert one["RestartPreventExitStatus"].split() == ["2", "4"]
     assert one["User"] == "wingman"
     assert one["Group"] == "wingman"
     for key in ("NoNewPrivileges", "ProtectHome", "PrivateTmp"):

@@ -112,7 +112,9 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
                 await asyncio.sleep(0.05)
             snap: dict[str, Any] = await asyncio.to_thread(query_status, Path(cfg.status.socket_path))
             assert flight.request_command("set_offset", (0.0, 0.0, 1.0)).startswith("set_offset refused")
-            assert flight.request_command("set_offset", (0.5, 0.0, 6.0)).startswith("formation offset now")
+            assert flight.request_command("set_offset", (0.5, 0.0, 6.0)).startswith(
+                "slot set to (0.5, 0.0, 6.0)"
+            )
             svc.request_stop("SIGTERM")
             code = await task
             feeder.cancel()

@@ -159,6 +159,8 @@ class Harness:
         self.outputs: list[StepOutput] = []
         self.transitions: list[Transition] = []
         self.start = False
+        #: The start came from an operator (may take a vehicle already flying).
+        self.takeover = False
         self.shutdown = False
         #: None: no tracker output at all; "fresh": a fresh estimate each step with ``status``; "frozen":
         #: the last estimate keeps being offered (a stalled pipeline).
@@ -213,7 +215,8 @@ class Harness:
             obstacle=None
             if self.obstacle is None
             else ObstacleAhead(stamp_s=self.now_s - self.obstacle_age_s, p_ned_rel_m=self.obstacle),
-            start_requested=self.start,
+            start_requested=self.start or self.takeover,
+            takeover_requested=self.takeover,
             shutdown_requested=self.shutdown,
             command_results=tuple(self.results),
             operator=self.operator,

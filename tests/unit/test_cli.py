@@ -43,7 +43,29 @@ def test_help_does_not_import_heavy_modules(repo_root: Path) -> None:
 def test_check_config_ok(repo_root: Path) -> None:
     r = run("-m", "companion", "check-config", "config/wingman.toml", cwd=repo_root)
     assert r.returncode == 0, r.stderr
-    assert 'url = "udpin://0.0.0.0:14540"' in r.stdout
+    assert 'url = "udpin://0.0.0.0:14541"' in r.stdout
+    assert "system_id = 2" in r.stdout
+
+
+def test_check_config_refuses_a_missing_or_corrupt_model(tmp_path: Path, repo_root: Path) -> None:
+    for name in ("leader_detector.pt", "leader_detector.onnx", "leader_detector.sha256"):
+        (tmp_path / name).write_bytes((repo_root / "models" / name).read_bytes())
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[detector]\nmodel_path = "{tmp_path / "leader_detector.pt"}"\n')
+    assert run("-m", "companion", "check-config", str(cfg), cwd=repo_root).returncode == 0
+    with (tmp_path / "leader_detector.onnx").open("ab") as f:
+        f.write(b"\0")  # the file the ONNX runtime would load is corrupt
+    r = run("-m", "companion", "check-config", str(cfg), cwd=repo_root)
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1
+    assert "detector.model_path: model file" in r.stderr
+    assert "does not match its checksum" in r.stderr
+    (tmp_path / "leader_detector.pt").unlink()
+    r = run("-m", "companion", "check-config", str(cfg), cwd=repo_root)
+    assert r.returncode == 2
+    assert r.stderr.strip().endswith(
+        f"detector.model_path: model file not found: {tmp_path}/leader_detector.pt"
+    )
 
 
 def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> None:

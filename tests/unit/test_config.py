@@ -100,3 +100,34 @@ def test_a_guard_range_beyond_its_maximum_is_one_clear_line(tmp_path: Path) -> N
         load_config(p, environ={})
     (line,) = exc.value.problems
     assert "depth_guard_max_range_m must be >= depth_guard_range_m" in line
+
+
+def test_the_leaders_system_id_is_refused_for_the_link(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text("[link]\nsystem_id = 1\n[leader]\nmavlink_system_id = 1\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(p, environ={})
+    assert exc.value.problems == [
+        "link.system_id: 1 is the leader's (leader.mavlink_system_id); the service never commands the leader"
+    ]
+
+
+@pytest.mark.parametrize(
+    "url",
+    ["udp://0.0.0.0:14541", "udpin://0.0.0.0", "udpin://:14541", "udpin://h:99999", "serial://ttyTHS1", "x"],
+)
+def test_a_malformed_link_url_is_one_line(tmp_path: Path, url: str) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text(f'[link]\nurl = "{url}"\n')
+    with pytest.raises(ConfigError) as exc:
+        load_config(p, environ={})
+    (line,) = exc.value.problems
+    assert line.startswith("link.url: ")
+
+
+@pytest.mark.parametrize(
+    "url",
+    ["udpin://0.0.0.0:14541", "udpout://10.0.0.2:14550", "serial:///dev/ttyTHS1:921600", "tcpout://h:5760"],
+)
+def test_well_formed_link_urls_pass(url: str) -> None:
+    assert Config.model_validate({"link": {"url": url}}).link.url == url

@@ -105,21 +105,84 @@ def test_first_offboard_setpoint_comes_with_the_start_command() -> None:
     assert CommandKind.START_OFFBOARD in [c.kind for c in out.commands]
 
 
-def test_already_flying_companion_restart_skips_takeoff() -> None:
+def test_a_service_restarted_in_the_air_observes_and_commands_nothing() -> None:
     ap = FakeAutopilot()
     ap.fly()
     h = Harness(ap=ap)
+    h.start = True  # service.auto_start: a ground start, never a takeover
+    h.leader_mode = "fresh"
+    outs = h.run(20.0)
+    assert h.state == S.OBSERVE
+    assert h.has(S.OBSERVE, R.AIRBORNE_NOT_STARTED)
+    assert ap.sent == []
+    assert all(o.setpoint is None and o.external_position is None for o in outs)
+    assert h.machine.operator_refusal(OperatorCommand.LAND) is not None
+    h.operator = OperatorCommand.LAND
+    h.run(1.0)
+    assert h.state == S.OBSERVE
+    assert ap.sent == []
+
+
+def test_an_operator_start_takes_over_an_airborne_vehicle() -> None:
+    ap = FakeAutopilot()
+    ap.fly()
+    h = Harness(ap=ap)
+    h.run(3.0)
+    assert h.state == S.OBSERVE
+    h.takeover = True
     h.run(6.0)
     assert h.has(S.ACQUIRE, R.ALREADY_FLYING)
     assert CommandKind.ARM not in [c.kind for c in ap.sent]
 
 
-def test_already_flying_without_gps_lands() -> None:
+def test_resume_in_air_takes_over_without_a_start() -> None:
+    ap = FakeAutopilot()
+    ap.fly()
+    h = Harness(Config.model_validate({"mission": {"resume_in_air": True}}), ap=ap)
+    h.run(6.0)
+    assert h.has(S.ACQUIRE, R.ALREADY_FLYING)
+    assert not h.has(S.OBSERVE, R.AIRBORNE_NOT_STARTED)
+
+
+def test_an_observed_vehicle_that_lands_is_back_in_preflight_without_a_stale_start() -> None:
+    ap = FakeAutopilot()
+    ap.fly()
+    h = Harness(ap=ap)
+    h.start = True
+    h.run(2.0)
+    assert h.state == S.OBSERVE
+    ap.armed = False
+    ap.landed = LandedState.ON_GROUND
+    h.run(2.0)
+    assert h.has(S.PREFLIGHT, R.LANDED_WHILE_OBSERVED)
+    h.run(5.0)
+    assert h.state == S.PREFLIGHT  # the start that came before the landing is spent
+    assert CommandKind.ARM not in [c.kind for c in ap.sent]
+
+
+def test_already_flying_without_gps_lands_once_started() -> None:
     ap = FakeAutopilot(gps_fix=0, position_valid=False)
     ap.fly()
     h = Harness(ap=ap)
     h.run(1.0)
+    assert h.state == S.OBSERVE
+    h.takeover = True
+    h.run(1.0)
     assert h.has(S.CONTROLLED_LANDING, R.ALREADY_FLYING)
+
+
+def test_operator_hold_without_gps_is_refused_by_the_machine() -> None:
+    h = Harness()
+    h.start = True
+    h.leader_mode = "fresh"
+    h.to_follow()
+    assert h.machine.operator_refusal(OperatorCommand.HOLD) is None
+    h.lose_gps()
+    h.run(2.0)
+    assert h.machine.operator_refusal(OperatorCommand.HOLD) == (
+        "hold needs GPS (PX4 cannot hold without a position); land instead"
+    )
+    assert h.machine.operator_refusal(OperatorCommand.LAND) is None
 
 
 def test_arm_refused_three_times_gives_up() -> None:

@@ -147,6 +147,7 @@ async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
             following.set()
 
     runner = MissionRunner(link, MissionMachine(cfg), clock, rate_hz=50.0, on_transition=on_transition)
+    runner.request_start()  # an operator's start: takes the vehicle already in the air
     stop = asyncio.Event()
 
     async def slow_land() -> None:
@@ -176,9 +177,14 @@ async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
 def test_request_command_replies() -> None:
     clock = MonotonicClock()
     runner = MissionRunner(RecordingLink(FakeAutopilot(), clock), MissionMachine(Config()), clock)
+    # On the ground the companion flies nothing: land and hold are the autopilot's, not ours.
+    assert runner.request_command("land") == (
+        "land refused: the companion is not flying the vehicle (state wait_link)"
+    )
+    runner.machine.state = MissionState.FOLLOW
     assert runner.request_command("land") == "land requested"
-    assert runner.request_command("hold").startswith("refused: hold needs GPS")
-    assert runner.request_command("dance").startswith("refused: unknown")
+    assert runner.request_command("hold").startswith("hold refused: hold needs GPS")
+    assert runner.request_command("dance") == "dance refused: unknown command"
     assert runner.request_command("set_offset", (0.0, 0.0, 6.0)) == "slot set to (0.0, 0.0, 6.0)"
-    assert runner.request_command("set_offset", (0.0, 0.0, 1.0)).startswith("refused:")
-    assert runner.request_command("set_offset").startswith("refused:")
+    assert runner.request_command("set_offset", (0.0, 0.0, 1.0)).startswith("set_offset refused: slot 1.0 m")
+    assert runner.request_command("set_offset").startswith("set_offset refused:")

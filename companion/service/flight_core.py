@@ -1,0 +1,112 @@
+"""``FlightCore``: from a frame, telemetry and operator commands to setpoints, once for every harness.
+
+The service (:mod:`companion.service.wiring`, MAVSDK over UDP or serial, wall clock) and the lockstep
+evaluation harness (:mod:`companion.evaluation.lockstep`, MAVLink message objects, simulated clock) both fly
+this class; they differ only in the clock and the link they hand it and in how often they call it:
+
+* :meth:`on_frame` for every detector result (pose, tracker, the detector's feedback, the mission's leader
+  estimate and the depth guard's reading);
+* :meth:`feed_telemetry` whenever telemetry may have moved (the follower's attitude and velocity into
+  perception's histories, on the frames' clock);
+* :meth:`request_command` for every operator command (CLI, MQTT): always through the mission machine's
+  checks, never straight to the autopilot.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from companion.clock import Clock
+from companion.config import Config
+from companion.frames import quat_from_euler
+from companion.mission.machine import MissionMachine
+from companion.mission.runner import MissionRunner
+from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
+from companion.perception.pipeline import PerceptionPipeline
+from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.vehicle.link import VehicleLink
+from companion.vehicle.types import NEVER_S
+
+
+class FlightCore:
+    """The mission, its runner and perception after the detector, glued as the service flies them.
+
+    Args:
+        cfg: the service config.
+        link: the autopilot (``MavsdkVehicleLink`` in the service, ``MessageVehicleLink`` in lockstep).
+        clock: the clock the link, the frames and the mission share.
+        stage: the detection step (its ``after_track`` feedback is called here).
+        on_transition: every mission transition, once.
+        on_step: every control tick's inputs and output.
+    """
+
+    def __init__(
+        self,
+        cfg: Config,
+        link: VehicleLink,
+        clock: Clock,
+        stage: DetectStage,
+        *,
+        on_transition: Callable[[Transition], None] | None = None,
+        on_step: Callable[[MissionInputs, StepOutput], None] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.link = link
+        self.stage = stage
+        self.machine = MissionMachine(cfg)
+        self.runner = MissionRunner(
+            link,
+            self.machine,
+            clock,
+            rate_hz=cfg.link.setpoint_rate_hz,
+            command_timeout_s=cfg.link.command_timeout_s,
+            on_transition=on_transition,
+            on_step=on_step,
+        )
+        self.pipeline = PerceptionPipeline.from_config(cfg)
+        #: The tracker's latest output (for the status endpoint).
+        self.track: Any = None
+        self._attitude_stamp_s = NEVER_S
+        self._velocity_stamp_s = NEVER_S
+
+    def on_frame(self, frame: RgbdFrame, result: DetectorResult) -> Any:
+        """One detector result through pose and tracker to the mission; returns the tracker's state."""
+        track = self.pipeline.process(frame, result.detections)
+        self.stage.after_track(track)
+        self.track = track
+        est = track.leader_estimate()
+        if est is not None:
+            self.runner.submit_leader(est)
+        self.runner.submit_obstacle(self.pipeline.obstacle(frame, track))
+        return track
+
+    def feed_telemetry(self) -> None:
+        """Copy each new attitude and velocity sample from the link into perception's histories."""
+        v = self.link.snapshot()
+        if v.attitude_stamp_s > self._attitude_stamp_s:
+            self._attitude_stamp_s = v.attitude_stamp_s
+            self.pipeline.attitude.push(
+                v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)
+            )
+        if v.velocity_stamp_s > self._velocity_stamp_s:
+            self._velocity_stamp_s = v.velocity_stamp_s
+            self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
+
+    def submit_leader_shared(self, position: SharedLeaderPosition) -> None:
+        self.runner.submit_leader_shared(position)
+
+    def request_start(self, *, takeover: bool = True) -> None:
+        """See :meth:`MissionRunner.request_start`."""
+        self.runner.request_start(takeover=takeover)
+
+    def request_shutdown(self) -> None:
+        self.runner.request_shutdown()
+
+    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
+        """An operator command through the mission machine's checks; the one-line reply."""
+        return self.runner.request_command(name, offset_cam_m)
+
+    async def run(self) -> None:
+        """The mission until its shutdown action is under way."""
+        await self.runner.run()
