@@ -369,14 +369,17 @@ class MavsdkVehicleLink:
     async def _configure_failsafe(self) -> None:
         """Set PX4's offboard-loss action (``link.offboard_loss_action``) and read back what it is.
 
-        A refusal is one warning line, never an error: the flight goes on with PX4's own setting.
+        Written only when it differs, so a service restarted over a flying vehicle that it only observes
+        sends it nothing but reads. A refusal is one warning line, never an error: the flight goes on with
+        PX4's own setting.
         """
         wanted = failsafe.wanted_value(self.cfg.offboard_loss_action)
         try:
             async with asyncio.timeout(self.cfg.command_timeout_s * 2):
-                if wanted is not None:
-                    await self._param.set_param_int(failsafe.PARAM, wanted)
                 value = int(await self._param.get_param_int(failsafe.PARAM))
+                if wanted is not None and value != wanted:
+                    await self._param.set_param_int(failsafe.PARAM, wanted)
+                    value = int(await self._param.get_param_int(failsafe.PARAM))
         except (MavsdkError, TimeoutError) as exc:
             log.warning(
                 "vehicle link: %s", failsafe.not_applied(self.cfg.offboard_loss_action, str(exc) or "timeout")

@@ -94,6 +94,9 @@ class Mux:
     #: (time, custom_mode) of each vehicle's autopilot HEARTBEATs, by system id.
     modes: dict[int, list[tuple[float, int]]] = field(default_factory=dict)
     hostile_datagrams: int = 0
+    #: Datagrams from the service, and those of them that held no whole message (never forwarded).
+    service_datagrams: int = 0
+    unparsed_datagrams: int = 0
     _sides: dict[str, _Side] = field(default_factory=dict)
     _client: _Client | None = None
     _up: Any = None
@@ -117,6 +120,9 @@ class Mux:
             msgs = self._up.parse_buffer(data) or []
         except mavlink2.MAVError:
             msgs = []
+        self.service_datagrams += 1
+        if not msgs:
+            self.unparsed_datagrams += 1
         now = time.monotonic()
         targets: set[int] = set()
         for m in msgs:

@@ -28,6 +28,7 @@ import signal
 import socket
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -266,6 +267,9 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
                 "messages_from_the_service": len(mux.sent),
                 "control_to_system_2": len(mux.control_to(2)),
                 "hostile_datagrams": mux.hostile_datagrams,
+                "service_datagrams": mux.service_datagrams,
+                "unparsed_datagrams": mux.unparsed_datagrams,
+                "by_type": dict(Counter(s.msg.get_type() for s in mux.sent)),
             }
         )
     )
