@@ -483,6 +483,7 @@ class FollowerService:
                 "formation_error_ned_m": snap.formation_error_ned_m,
             },
             "link": {
+                "system_id": v.system_id,
                 "connected": v.connected,
                 "heartbeat_age_s": _r(v.heartbeat_age_s),
                 "armed": v.armed,
@@ -495,7 +496,17 @@ class FollowerService:
                 "satellites": v.gps_satellites,
                 "position_valid": v.position_valid,
             },
-            "position": {"p_ned_m": v.p_ned_m, "v_ned_m_s": v.v_ned_m_s, "yaw_deg": _r(v.yaw_deg)},
+            "position": {
+                "p_ned_m": v.p_ned_m,
+                "v_ned_m_s": v.v_ned_m_s,
+                "yaw_deg": _r(v.yaw_deg),
+                #: Height above home, m (up positive).
+                "altitude_m": _r(-v.p_ned_m[2]) if v.p_ned_m is not None else None,
+            },
+            "battery": {
+                "remaining_frac": _r(v.battery_remaining_frac),
+                "voltage_v": _r(v.battery_voltage_v),
+            },
             "leader": leader,
             "latency_ms": self.latency.summary(),
             "frames": self.frames(),

@@ -43,10 +43,28 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     s = sub.add_parser("serve", help="run N vehicles over MAVLink/UDP in real time (Ctrl-C stops)")
-    s.add_argument("--config", type=Path, default=Path("config/sitl.toml"))
+    s.add_argument(
+        "--config",
+        type=Path,
+        default=Path("config/sitl.toml"),
+        help="simulator config (default: %(default)s)",
+    )
     s.add_argument("--speed", type=float, default=None, help="speed factor (overrides the config)")
-    s.add_argument("--scenario", type=Path, default=None, help="scenario TOML (leader path, faults)")
+    s.add_argument(
+        "--scenario",
+        default=None,
+        help="a scenario name (looked up in the config's folder, scenarios/NAME.toml) or a TOML path",
+    )
     s.add_argument("--seed", type=int, default=None, help="random seed (default: scenario's, else config's)")
+    s.add_argument(
+        "--camera",
+        type=Path,
+        default=Path("/run/wingman/camera.sock"),
+        metavar="SOCKET",
+        help="the follower's rendered RGB-D camera on this Unix socket (default: %(default)s, the service's "
+        "camera.path)",
+    )
+    s.add_argument("--no-camera", action="store_true", help="no camera (MAVLink only)")
     s.add_argument(
         "--component",
         action="append",

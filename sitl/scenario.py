@@ -297,8 +297,21 @@ def load_scenario(path: Path) -> Scenario:
 
 
 def find_scenario(name_or_path: str, scenario_dir: Path) -> Path:
-    """A scenario name (``straight``) or a path -> the file path."""
+    """A scenario name (``straight``, or a variant's) or a path -> the file path.
+
+    Names are looked up in ``scenario_dir`` and its ``variants`` folder; an unknown one is a one-line
+    :class:`ConfigError` that lists the known names.
+    """
     p = Path(name_or_path)
     if p.suffix == ".toml" or p.exists():
         return p
-    return scenario_dir / f"{name_or_path}.toml"
+    for candidate in (
+        scenario_dir / f"{name_or_path}.toml",
+        scenario_dir / "variants" / f"{name_or_path}.toml",
+    ):
+        if candidate.exists():
+            return candidate
+    known = sorted(
+        q.stem for q in [*scenario_dir.glob("*.toml"), *(scenario_dir / "variants").glob("*.toml")]
+    )
+    raise ConfigError(name_or_path, [f"no such scenario in {scenario_dir} (known: {', '.join(known)})"])

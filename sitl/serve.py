@@ -33,6 +33,7 @@ import time
 from collections import Counter
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, cast
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -42,7 +43,7 @@ from companion.logs import setup_logging
 from sitl.config import SitlConfig, load_sitl_config
 from sitl.dynamics import VehicleTruth
 from sitl.links import MessageLink
-from sitl.scenario import Scenario, load_scenario
+from sitl.scenario import Scenario, find_scenario, load_scenario
 from sitl.world import LINK_API, LINK_GCS, World
 
 log = logging.getLogger(__name__)
@@ -110,6 +111,9 @@ class UdpLink(asyncio.DatagramProtocol):
         self._packer = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=1)
         self._peers: dict[tuple[str, int], float] = {}
         self.counters: Counter[str] = Counter()
+        #: The same vehicle's GCS link: what the companion says for the ground station is passed on there,
+        #: as PX4 forwards its onboard link (MAV_x_FORWARD), so QGroundControl shows the service's texts.
+        self.forward_to: UdpLink | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = cast(asyncio.DatagramTransport, transport)
@@ -142,6 +146,8 @@ class UdpLink(asyncio.DatagramProtocol):
                 continue  # our own echo (a client relaying everything back)
             good += 1
             self.link.send(msg, src_system, src_component)
+            if self.forward_to is not None and src_component != 1 and msg.get_type() in FORWARDED_TO_GCS:
+                self.forward_to.send_raw(msg.get_msgbuf())
         if good:
             self.counters["messages_in"] += good
             self._peers[(str(addr[0]), int(addr[1]))] = time.monotonic()
@@ -150,6 +156,14 @@ class UdpLink(asyncio.DatagramProtocol):
                 del self._peers[oldest]
         elif not msgs:
             self.counters["bad_datagrams"] += 1
+
+    def send_raw(self, frame: bytes) -> None:
+        """A frame from another system or component, passed on unchanged (MAVLink forwarding)."""
+        if self.transport is None:
+            return
+        for addr in self.destinations():
+            self.transport.sendto(frame, addr)
+        self.counters["forwarded_out"] += 1
 
     def destinations(self) -> list[tuple[str, int]]:
         now = time.monotonic()
@@ -187,6 +201,8 @@ class UdpLink(asyncio.DatagramProtocol):
                 sendto(bytes(chunk), addr)
 
 
+#: What a companion computer sends for the ground station, passed from a vehicle's API link to its GCS link.
+FORWARDED_TO_GCS = frozenset({"STATUSTEXT", "ONBOARD_COMPUTER_STATUS"})
 _MAGIC_V2 = 0xFD
 _MAGIC_V1 = 0xFE
 
@@ -294,6 +310,11 @@ class Server:
                     f"cannot bind UDP {ep.bind[0]}:{ep.bind[1]} ({ep.vehicle} {ep.kind}): {exc.strerror}"
                 ) from None
             self.udp.append(proto)
+        by_name = {(p.label): p for p in self.udp}
+        for proto in self.udp:
+            vehicle, _, kind = proto.label.partition("/")
+            if kind == "api":
+                proto.forward_to = by_name.get(f"{vehicle}/gcs")
 
     def _close(self) -> None:
         for proto in self.udp:
@@ -422,12 +443,18 @@ def main(args: argparse.Namespace) -> int:
     """Entry point of ``sitl serve``."""
     setup_logging(args.log_format, args.log_level)
     cfg = load_sitl_config(args.config)
-    scenario = load_scenario(args.scenario) if args.scenario is not None else None
+    scenario = None
+    if args.scenario is not None:
+        scenario = load_scenario(find_scenario(str(args.scenario), Path(args.config).parent / "scenarios"))
     speed = args.speed if args.speed is not None else cfg.world.speed_factor
     if not (math.isfinite(speed) and 0 < speed <= 100):
         raise ConfigError("--speed", [f"must be in (0, 100] (got {speed})"])
     specs = list(cfg.serve.components) + list(getattr(args, "component", None) or [])
     components = [load_component(s) for s in specs]
+    if not getattr(args, "no_camera", True):
+        from sitl.render.server import make_camera_component  # noqa: PLC0415 (renderer: heavy)
+
+        components.append(make_camera_component(args.camera))
     server = Server(
         cfg, scenario, speed_factor=speed, seed=getattr(args, "seed", None), components=components
     )

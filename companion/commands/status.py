@@ -111,9 +111,23 @@ def render_status(s: dict[str, Any]) -> str:
         )
     )
     rows.append(("state", f"{m.get('state')}  ({m.get('reason')}; {_fmt(m.get('state_age_s'))} s)"))
+    err = m.get("formation_error_ned_m")
+    if err is not None:
+        norm = sum(c * c for c in err) ** 0.5
+        rows.append(("formation", f"error {norm:.2f} m from the slot, NED {_fmt(err)} m"))
+    pos, bat = s.get("position") or {}, s.get("battery") or {}
+    rows.append(
+        (
+            "flight",
+            f"altitude {_fmt(pos.get('altitude_m'))} m, battery "
+            + (f"{100 * bat['remaining_frac']:.0f} %" if bat.get("remaining_frac") is not None else "-")
+            + (f" ({bat['voltage_v']:.1f} V)" if bat.get("voltage_v") is not None else ""),
+        )
+    )
     rows.append(
         (
             "link",
+            f"system {link.get('system_id') if link.get('system_id') is not None else '?'}, "
             f"{'up' if link.get('connected') else 'DOWN'}, "
             f"heartbeat {_fmt(link.get('heartbeat_age_s'))} s ago, "
             f"{link.get('flight_mode')}, {'armed' if link.get('armed') else 'disarmed'}, "

@@ -149,7 +149,8 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
         RUN_ENV: str(settings_path),
         **sitl_environment(cfg, ports, base_vehicles),
     }
-    args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--config", str(SITL_BASE_CONFIG)]
+    args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--no-camera"]
+    args += ["--config", str(SITL_BASE_CONFIG)]
     args += ["--scenario", str(scenario_file), "--speed", repr(options.speed), "--seed", str(seed)]
     args += ["--component", COMPONENT]
     sim = Child(args, env, work_dir / "sitl.log")

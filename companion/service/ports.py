@@ -35,6 +35,11 @@ class VehicleSummary:
     lat_deg: float | None = None
     lon_deg: float | None = None
     alt_amsl_m: float | None = None
+    #: The autopilot's MAVLink system id once the link has chosen it (``link.system_id``).
+    system_id: int | None = None
+    #: Battery charge left, 0..1, and voltage, V (None until reported).
+    battery_remaining_frac: float | None = None
+    battery_voltage_v: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

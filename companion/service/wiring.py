@@ -74,7 +74,7 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def vehicle_summary(v: VehicleState, now_s: float) -> VehicleSummary:
+def vehicle_summary(v: VehicleState, now_s: float, system_id: int | None = None) -> VehicleSummary:
     """The link's snapshot as the status endpoint shows it."""
     has_local = v.local_position_stamp_s > NEVER_S
     has_global = v.global_position_stamp_s > NEVER_S
@@ -96,6 +96,9 @@ def vehicle_summary(v: VehicleState, now_s: float) -> VehicleSummary:
         lat_deg=_finite(v.lat_deg) if has_global else None,
         lon_deg=_finite(v.lon_deg) if has_global else None,
         alt_amsl_m=_finite(v.alt_amsl_m) if has_global else None,
+        system_id=system_id,
+        battery_remaining_frac=_finite(v.battery_remaining_frac),
+        battery_voltage_v=_finite(v.battery_voltage_v),
     )
 
 
@@ -167,7 +170,7 @@ class FlightAdapter:
             detail=tr.detail if tr is not None else "",
             state_age_s=now_s - self._entered_s,
             last_step_s=self._last_step_s,
-            vehicle=vehicle_summary(v, now_s),
+            vehicle=vehicle_summary(v, now_s, getattr(self.link, "system_id", None)),
             leader=leader,
             formation_error_ned_m=out.formation_error_ned_m if out is not None else None,
         )

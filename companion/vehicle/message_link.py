@@ -192,6 +192,8 @@ class MessageVehicleLink:
         self.clock = clock
         self.cfg = cfg
         self.target_system = target_system
+        #: The autopilot flown (the same name the MAVSDK link uses for its chosen system).
+        self.system_id = target_system
         self.own_system = target_system
         self._state = VehicleState()
         self._pending: list[_Pending] = []

@@ -74,7 +74,7 @@ class SimProcess:
         run_dir.mkdir()
         # `python -m` puts the cwd first on sys.path: run from a directory holding only the sitl package.
         (run_dir / "sitl").symlink_to(src / "sitl")
-        args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--component"]
+        args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--no-camera", "--component"]
         args += ["tests.flight.truth_component:serve_truth"]
         args += (
             ["--config", str(src / "config" / "sitl.toml")] if (src / "config" / "sitl.toml").exists() else []

@@ -105,7 +105,7 @@ def sitl_serve(
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     env.update(ports.env())
     env.update(extra_env or {})
-    cmd = [sys.executable, "-m", "sitl", "serve", "--speed", str(speed)]
+    cmd = [sys.executable, "-m", "sitl", "serve", "--no-camera", "--speed", str(speed)]
     cmd += ["--config", str(config or REPO / "config" / "sitl.toml")]
     if scenario is not None:
         cmd += ["--scenario", str(scenario)]

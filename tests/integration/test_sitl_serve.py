@@ -51,7 +51,7 @@ def test_a_taken_port_is_a_clear_error() -> None:
         env_ports = sim.ports.env()
         env = {**os.environ, **env_ports, "PYTHONPATH": str(REPO)}
         r = subprocess.run(
-            [sys.executable, "-m", "sitl", "serve"],
+            [sys.executable, "-m", "sitl", "serve", "--no-camera"],
             cwd=REPO,
             env=env,
             capture_output=True,

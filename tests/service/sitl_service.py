@@ -66,6 +66,7 @@ def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Child:
         "--log-level",
         "INFO",
         "serve",
+        "--no-camera",
         "--config",
         str(REPO / "config/sitl.toml"),
     ]
@@ -132,6 +133,8 @@ class GcsObserver(asyncio.DatagramProtocol):
     landed_state: int | None = None
     relative_alt_m: float | None = None
     seen: dict[str, int] = field(default_factory=dict)
+    #: STATUSTEXTs from the follower's companion computer, forwarded by its autopilot.
+    companion_texts: list[str] = field(default_factory=list)
     _parser: Any = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -148,6 +151,8 @@ class GcsObserver(asyncio.DatagramProtocol):
                 continue
             kind = m.get_type()
             self.seen[kind] = self.seen.get(kind, 0) + 1
+            if kind == "STATUSTEXT" and m.get_srcComponent() != 1:
+                self.companion_texts.append(m.text)
             if kind == "HEARTBEAT" and m.get_srcComponent() == 1:
                 self.armed = bool(m.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
             elif kind == "EXTENDED_SYS_STATE":

@@ -153,7 +153,7 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
         env = service_env(tmp_path, ports, cam, broker.port, key)
         try:
             sim.start()
-            gcs_transport, _ = await open_gcs(ports.gcs_remote)
+            gcs_transport, gcs = await open_gcs(ports.gcs_remote)
             mux = await open_mux(ports.api_remote, ports.follower_api, ports.client)
             async with asyncio.TaskGroup() as tg:
                 tasks = [
@@ -258,6 +258,8 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
         == "hold refused: hold needs GPS (PX4 cannot hold without a position); land instead"
     )
     assert mux.hostile_datagrams > 20
+    # The service's STATUSTEXTs reach the ground station's port, forwarded as PX4 forwards its onboard link.
+    assert "WM follow: leader acquired" in gcs.companion_texts, gcs.companion_texts
     # Nothing that changes what a vehicle does went to the leader or the spoofed system 3.
     strays = mux.control_not_to(2)
     assert strays == [], [(s.target_system, s.msg.get_type()) for s in strays]

@@ -1,0 +1,46 @@
+"""``companion status``: the operator's one screen."""
+
+from __future__ import annotations
+
+from companion.commands.status import render_status
+
+
+def test_status_shows_system_id_altitude_battery_and_formation_error() -> None:
+    text = render_status(
+        {
+            "vehicle_id": "follower1",
+            "version": "0.1.0",
+            "pid": 1,
+            "uptime_s": 12.0,
+            "mission": {
+                "state": "follow",
+                "reason": "leader acquired",
+                "state_age_s": 3.0,
+                "formation_error_ned_m": [0.3, 0.4, 0.0],
+            },
+            "link": {
+                "system_id": 2,
+                "connected": True,
+                "heartbeat_age_s": 0.1,
+                "flight_mode": "offboard",
+                "armed": True,
+                "in_air": True,
+                "offboard_loss_failsafe": "Hold",
+            },
+            "gps": {"fix_type": 3, "satellites": 12, "position_valid": True},
+            "position": {"altitude_m": 5.04},
+            "battery": {"remaining_frac": 0.815, "voltage_v": 15.62},
+        }
+    )
+    rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
+    assert rows["formation"].startswith("error 0.50 m from the slot")
+    assert rows["flight"] == "altitude 5.04 m, battery 82 % (15.6 V)"
+    assert rows["link"].startswith("system 2, up, ")
+
+
+def test_status_without_telemetry_says_so() -> None:
+    text = render_status({"mission": {"state": "wait_link"}, "link": {}, "gps": {}})
+    rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
+    assert rows["flight"] == "altitude - m, battery -"
+    assert rows["link"].startswith("system ?, DOWN")
+    assert "formation" not in rows
