@@ -11,6 +11,7 @@ them is taken on this machine.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import os
 import re
@@ -32,6 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 PAGE = REPO / "docs" / "fly-in-the-simulator.md"
 _BLOCK = re.compile(r"```sh\n(.*?)```", re.DOTALL)
 _TERMINAL = re.compile(r"#\s*terminal \d+ \(keeps running\)")
+_ASSIGNMENT = re.compile(r"[A-Z_][A-Z0-9_]*=\S*")
 
 
 def page_blocks(text: str) -> list[tuple[bool, list[str]]]:
@@ -125,15 +127,28 @@ def test_the_simulator_page_runs_as_written(tmp_path: Path) -> None:
         for background, commands in blocks:
             for cmd in commands:
                 if background:
+                    words = cmd.split(" ")
+                    assigned = dict(
+                        w.split("=", 1) for w in itertools.takewhile(_ASSIGNMENT.fullmatch, words)
+                    )
+                    rest = " ".join(words[len(assigned) :])
                     child = Child(
-                        ["bash", "-c", f"exec {cmd}"], env, tmp_path / f"bg{len(procs)}.log", cwd=clone
+                        ["bash", "-c", f"exec {rest}"],
+                        {**env, **assigned},
+                        tmp_path / f"bg{len(procs)}.log",
+                        cwd=clone,
                     )
                     procs.append(child)
                     child.start()
                     ready = {"sitl serve": "camera server on", "companion run": "service ready"}
                     marker = next((m for k, m in ready.items() if k in cmd), None)
                     if marker is not None:
-                        until(lambda c=child, m=marker: m in c.log(), 150, marker, logs)  # type: ignore[misc]
+                        until(
+                            lambda c=child, m=marker: m in c.log() or not c.running,  # type: ignore[misc]
+                            150,
+                            marker,
+                            logs,
+                        )
                     else:
                         time.sleep(1.0)
                     assert child.running, logs()
