@@ -170,7 +170,7 @@ class Reason(StrEnum):
     START_REQUESTED = "mission start requested"
     PREFLIGHT_OK = "preflight checks passed"
     ALREADY_FLYING = "vehicle already armed and in air"
-    AIRBORNE_NOT_STARTED = "vehicle in air: observing until companion start"
+    AIRBORNE_NOT_STARTED = "in air: waiting for companion start"
     LANDED_WHILE_OBSERVED = "vehicle landed while observed"
     ARMED = "armed"
     ARM_FAILED = "arming refused"

@@ -150,6 +150,16 @@ class MavsdkVehicleLink:
         mavsdk_log.setLevel(self.cfg.mavsdk_log_level)
         log_subscribe(_route_mavsdk_log)  # before Mavsdk(): it logs its version on construction
         cfg = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+        if self.cfg.system_id:
+            # A companion computer speaks as its autopilot's system (component 195). MAVSDK's default, 1,
+            # is the leader's in a formation: every message would claim to come from the leader.
+            cfg.system_id = self.cfg.system_id
+        else:
+            log.warning(
+                "vehicle link: link.system_id = 0: this service's own MAVLink id stays MAVSDK's default "
+                "(system %d); set link.system_id to the follower's",
+                cfg.system_id,
+            )
         self._sdk = Mavsdk(cfg)
         try:
             await self._sdk.add_any_connection(self.cfg.url)

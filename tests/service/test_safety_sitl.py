@@ -258,11 +258,6 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
         == "hold refused: hold needs GPS (PX4 cannot hold without a position); land instead"
     )
     assert mux.hostile_datagrams > 20
-    # The service's STATUSTEXTs reach the ground station's port, forwarded as PX4 forwards its onboard link.
-    assert "WM follow: leader acquired" in gcs.companion_texts, gcs.companion_texts
-    # Nothing that changes what a vehicle does went to the leader or the spoofed system 3.
-    strays = mux.control_not_to(2)
-    assert strays == [], [(s.target_system, s.msg.get_type()) for s in strays]
     print(
         json.dumps(
             {
@@ -272,6 +267,12 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
                 "service_datagrams": mux.service_datagrams,
                 "unparsed_datagrams": mux.unparsed_datagrams,
                 "by_type": dict(Counter(s.msg.get_type() for s in mux.sent)),
+                "sources": sorted({(s.msg.get_srcSystem(), s.msg.get_srcComponent()) for s in mux.sent}),
             }
         )
     )
+    # The service's STATUSTEXTs reach the ground station's port, forwarded as PX4 forwards its onboard link.
+    assert "WM follow: leader acquired" in gcs.companion_texts, gcs.companion_texts
+    # Nothing that changes what a vehicle does went to the leader or the spoofed system 3.
+    strays = mux.control_not_to(2)
+    assert strays == [], [(s.target_system, s.msg.get_type()) for s in strays]
