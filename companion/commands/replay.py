@@ -22,14 +22,15 @@ def register(sub: Any) -> None:
     """Add this module's commands to the ``companion`` subparsers."""
     p = sub.add_parser("replay", help="run perception on a recording and write per-frame estimates")
     add_config_arg(p)
-    p.add_argument("--source", required=True, help="file:PATH (folder or .bag)")
+    p.add_argument("--source", required=True, help="file:PATH: a folder recording, a RealSense .bag or .db3")
     p.add_argument("--out", default=None, help="CSV of per-frame estimates and errors")
     p.add_argument("--json", default=None, help="also write the summary to this JSON file")
     p.add_argument(
         "--detector",
-        choices=("model", "truth"),
-        default="model",
-        help="model: the configured detector; truth: ground-truth boxes (isolates pose + tracker)",
+        choices=("network", "truth"),
+        default="network",
+        help="network: the configured detector (default); truth: the recording's ground-truth boxes "
+        "(isolates pose + tracker), as in companion sim",
     )
     p.add_argument("--box-jitter-px", type=float, default=1.0, help="truth detector: box edge noise, px")
     p.add_argument("--miss-rate", type=float, default=0.0, help="truth detector: fraction of frames missed")
@@ -39,7 +40,7 @@ def register(sub: Any) -> None:
     r = sub.add_parser("record", help="record any frame source to the folder format (or a .bag)")
     add_config_arg(r)
     r.add_argument("--source", required=True, help="sim | realsense | file:PATH")
-    r.add_argument("--out", required=True, help="output folder, or a file ending in .bag")
+    r.add_argument("--out", required=True, help="output folder, or a RealSense file ending in .bag")
     r.add_argument("--frames", type=int, default=0, help="stop after N frames (0: until Ctrl-C/end)")
     r.add_argument("--format", choices=("png", "jpg"), default="png", help="folder colour images")
     r.set_defaults(handler=_record)
@@ -74,8 +75,8 @@ def _record(args: argparse.Namespace) -> int:
     from companion.perception.replay import run_record
 
     cfg = load(args)
-    n = asyncio.run(
+    result = asyncio.run(
         run_record(cfg, args.source, Path(args.out), max_frames=args.frames, image_format=args.format)
     )
-    print(f"recorded {n} frames to {args.out}", file=sys.stderr)
-    return 0 if n else 1
+    print(result.line(Path(args.out)), file=sys.stderr)
+    return 0 if result.frames else 1

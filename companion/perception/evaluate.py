@@ -55,7 +55,10 @@ class Summary:
     """Accuracy and coverage over a replay."""
 
     frames: int = 0
+    #: Frames whose track was usable (confirmed or coasting), with or without ground truth.
+    frames_tracked: int = 0
     frames_with_truth: int = 0
+    #: Frames with ground truth and a usable track (the errors are over these).
     frames_usable: int = 0
     errors: list[FrameError] = field(default_factory=list)
     stage_ms: dict[str, list[float]] = field(default_factory=dict)
@@ -98,6 +101,7 @@ class Summary:
         pos, brg, _, _, n = self.rmse_in(0.0, math.inf)
         return {
             "frames": self.frames,
+            "frames_tracked": self.frames_tracked,
             "frames_with_truth": self.frames_with_truth,
             "frames_usable": self.frames_usable,
             "coverage": self.frames_usable / self.frames_with_truth if self.frames_with_truth else math.nan,
@@ -113,8 +117,8 @@ class Summary:
     def lines(self) -> list[str]:
         """A human-readable table."""
         out = [
-            f"frames {self.frames}, with truth {self.frames_with_truth}, "
-            f"tracked (usable) {self.frames_usable}",
+            f"frames {self.frames}, tracked {self.frames_tracked} (confirmed or coasting), "
+            f"with ground truth {self.frames_with_truth}, tracked with ground truth {self.frames_usable}",
             "rmse: tracker output vs truth (camera frame); raw: this frame's pose measurement; paper: depth"
             " = median of a 5x5 patch at the box centre, unfiltered (paper n: frames where it had depth)",
             f"{'range m':>10} {'n':>6} {'rmse m':>8} {'bearing deg':>12} {'raw m':>8} {'paper m':>8}"

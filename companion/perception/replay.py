@@ -12,11 +12,13 @@ some (a .bag has no place for it).
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import importlib
 import io
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +39,9 @@ from companion.perception.pose import back_project
 from companion.perception.sources import open_source, parse_source
 from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+
+#: Frames waiting for the writer (about 2 MB each at 640 x 480): a few seconds of a slow disk.
+RECORD_QUEUE_FRAMES = 90
 
 CSV_FIELDS = [
     "seq",
@@ -110,6 +115,8 @@ def evaluate_frame(
         status=state.status.value,
         track_id=str(state.track_id),
     )
+    if state.usable:
+        summary.frames_tracked += 1
     m = state.measurement
     if m is not None:
         row.update(
@@ -218,10 +225,35 @@ async def run_replay(
     return summary
 
 
+@dataclass(frozen=True, slots=True)
+class RecordResult:
+    """What ``record`` kept: frames written, and frames the source numbered but never delivered."""
+
+    frames: int
+    #: Gaps in the source's frame numbers: the camera (or the simulator's server, when the reader lags)
+    #: dropped them before they reached the recorder.
+    skipped_by_source: int
+    largest_gap_s: float
+
+    def line(self, out: Path) -> str:
+        """One line for the operator."""
+        if not self.skipped_by_source:
+            return f"recorded {self.frames} frames to {out}, none skipped"
+        return (
+            f"recorded {self.frames} frames to {out}; the source skipped {self.skipped_by_source} "
+            f"(gaps in its frame numbers, longest {self.largest_gap_s:.2f} s): the camera dropped them "
+            "before they were read"
+        )
+
+
 async def run_record(
     cfg: Config, source_spec: str, out: Path, *, max_frames: int = 0, image_format: str = "png"
-) -> int:
-    """Copy frames from a source to a folder recording (or a RealSense .bag); returns the count."""
+) -> RecordResult:
+    """Copy frames from a source to a folder recording (or a RealSense .bag).
+
+    The source is read by one task and frames are written by a worker thread behind a bounded queue, so
+    a slow disk or PNG encoder never stalls the reading (a live source drops what is not read).
+    """
     from companion.perception.record import FolderRecorder  # noqa: PLC0415
     from companion.perception.sources.bag import RealSenseBagWriter  # noqa: PLC0415
 
@@ -231,16 +263,32 @@ async def run_record(
         writer = RealSenseBagWriter(out, fps=round(cfg.camera.fps))
     else:
         writer = FolderRecorder(out, image_format=image_format)
-    n = 0
+    queue: asyncio.Queue[RgbdFrame | None] = asyncio.Queue(maxsize=RECORD_QUEUE_FRAMES)
+    n = skipped = 0
+    largest_gap_s = 0.0
+
+    async def write_all() -> None:
+        while (frame := await queue.get()) is not None:
+            await asyncio.to_thread(writer.write, frame)
+
     with writer:
-        async with open_source(camera) as src:
+        async with open_source(camera) as src, asyncio.TaskGroup() as tg:
+            tg.create_task(write_all(), name="companion.record.writer")
             # A folder's own attitude.csv travels with it (truth-derived attitude is rebuilt on read).
             if isinstance(writer, FolderRecorder) and (Path(camera.path) / "attitude.csv").is_file():
                 for stamp_s, q in getattr(src, "attitude", []):
                     writer.write_attitude(stamp_s, q)
-            async for frame in src:
-                writer.write(frame)
-                n += 1
-                if max_frames and n >= max_frames:
-                    break
-    return n
+            prev: RgbdFrame | None = None
+            try:
+                async for frame in src:
+                    if prev is not None and frame.seq > prev.seq + 1:
+                        skipped += frame.seq - prev.seq - 1
+                        largest_gap_s = max(largest_gap_s, frame.stamp_s - prev.stamp_s)
+                    prev = frame
+                    await queue.put(frame)
+                    n += 1
+                    if max_frames and n >= max_frames:
+                        break
+            finally:
+                await queue.put(None)
+    return RecordResult(n, skipped, largest_gap_s)

@@ -245,9 +245,14 @@ class MavsdkVehicleLink:
         assert self._sdk is not None, "use MavsdkVehicleLink as an async context manager"  # noqa: S101
         first_heard_s: float | None = None
         last_log_s = -math.inf
+        systems: list[Any] = []
         while True:
+            # One wrapper per discovered system, fetched again only when a new system appears: each
+            # get_systems() call makes new wrappers, and the one flown must be the one its plugins use.
+            if await self._sdk.system_count() != len(systems):
+                systems = await self._sdk.get_systems()
             heard: dict[int, Any] = {}
-            for system in await self._sdk.get_systems():
+            for system in systems:
                 if await system.has_autopilot():
                     heard[await system.get_system_id()] = system
             now_s = self.clock.now_s()

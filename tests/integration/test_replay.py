@@ -49,6 +49,10 @@ def test_replay_writes_estimates_and_errors(
     summary = json.loads(js.read_text())
     assert summary["frames"] == N
     assert summary["frames_usable"] >= N - 2
+    # The summary counts what the CSV says: every confirmed or coasting row is a tracked frame.
+    tracked = sum(r["status"] in ("confirmed", "coasting") for r in got)
+    assert summary["frames_tracked"] == tracked
+    assert f"tracked {tracked} (confirmed or coasting)" in table
     # Synthetic D435 noise, truthful boxes with 1 px jitter: well inside the bars.
     assert summary["bands"][0]["rmse_m"] < 0.10
     assert summary["bearing_rmse_deg"] < 0.5
@@ -78,3 +82,29 @@ def test_record_then_replay_round_trips(recording: Path, tmp_path: Path, repo_ro
         == 0
     )
     assert [r["seq"] for r in rows(c)] == [r["seq"] for r in ra]
+
+
+def test_record_reports_the_frames_its_source_skipped(
+    tmp_path: Path, repo_root: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    gappy = tmp_path / "gappy"
+    frames = sequence_frames(8)
+    with FolderRecorder(gappy) as rec:
+        for frame in frames[:3] + frames[5:]:  # frames 3 and 4 never reached the recorder
+            rec.write(frame)
+    copy = tmp_path / "copy"
+    cfg = str(repo_root / "config/wingman.toml")
+    assert main(["record", "--config", cfg, "--source", f"file:{gappy}", "--out", str(copy)]) == 0
+    gap_s = frames[5].stamp_s - frames[2].stamp_s
+
+    def said(out: Path) -> str:
+        return (
+            f"recorded 6 frames to {out}; the source skipped 2 (gaps in its frame numbers, longest "
+            f"{gap_s:.2f} s): the camera dropped them before they were read"
+        )
+
+    assert capsys.readouterr().err.strip().splitlines()[-1] == said(copy)
+    # The copy keeps the source's frame numbers, so a second copy reports the same gap.
+    again = tmp_path / "again"
+    assert main(["record", "--config", cfg, "--source", f"file:{copy}", "--out", str(again)]) == 0
+    assert capsys.readouterr().err.strip().splitlines()[-1] == said(again)

@@ -1,6 +1,8 @@
 from __future__ import annotations
 
+import asyncio
 import itertools
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -216,3 +218,58 @@ async def test_bag_source_loops_with_increasing_stamps(tmp_path: Path) -> None:
     assert all(b > a for a, b in itertools.pairwise(stamps))
     assert len({f.seq for f in out}) == 7
     assert np.array_equal(out[3].rgb, frames[0].rgb)
+
+
+REPO = Path(__file__).resolve().parents[2]
+SDK_DB3 = REPO / "tests" / "fixtures" / "realsense_sdk.db3"
+
+
+def _expected_sdk_frames() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    sys.path.insert(0, str(REPO / "tests" / "fixtures"))
+    try:
+        import make_realsense_db3 as maker
+    finally:
+        sys.path.pop(0)
+    colours = [maker.colour(i) for i in range(maker.FRAMES)]
+    depths = [maker.depth_mm(i).astype(np.float32) / 1000.0 for i in range(maker.FRAMES)]
+    return colours, depths
+
+
+def _check_sdk_recording(frames: list[RgbdFrame]) -> None:
+    colours, depths = _expected_sdk_frames()
+    assert [f.seq for f in frames] == list(range(len(colours)))
+    assert all(b.stamp_s > a.stamp_s for a, b in itertools.pairwise(frames))
+    for f, rgb, depth_m in zip(frames, colours, depths, strict=True):
+        assert np.array_equal(f.rgb, rgb)  # RGB order kept through the SDK's PNG
+        assert np.allclose(f.depth_m, depth_m, atol=1e-6)
+        assert f.intrinsics == Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)
+
+
+async def test_a_recording_made_by_the_realsense_sdk_replays() -> None:
+    # tests/fixtures/realsense_sdk.db3 was written by pyrealsense2's own recorder (rosbag2, SDK 2.59).
+    frames = await read_all(open_source(parse_source(f"file:{SDK_DB3}", CameraConfig())))
+    _check_sdk_recording(frames)
+
+
+async def test_the_sdk_recorder_today_writes_what_the_source_reads(tmp_path: Path) -> None:
+    pytest.importorskip("pyrealsense2")
+    out = tmp_path / "fresh.db3"
+    r = await asyncio.to_thread(
+        subprocess.run,
+        [sys.executable, str(REPO / "tests" / "fixtures" / "make_realsense_db3.py"), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert r.returncode == 0, r.stderr
+    _check_sdk_recording(await read_all(BagSource(out)))
+
+
+async def test_a_corrupt_db3_is_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.db3"
+    bad.write_bytes(b"not sqlite at all" * 100)
+    with pytest.raises(CameraError) as exc:
+        await read_all(BagSource(bad))
+    assert str(exc.value).startswith(f"bag source: {bad} is not a readable rosbag2 file")
+    assert "\n" not in str(exc.value)

@@ -1,6 +1,7 @@
-"""RealSense ``.bag`` recordings: read them as a frame source, and write them (tests, conversions).
+"""RealSense recordings as a frame source (ROS1 ``.bag`` and rosbag2 ``.db3``), and ``.bag`` writing.
 
-The RealSense SDK records a ROS1 bag with one topic family per stream (file format version 3)::
+The SDK's current rosbag2 format is read by :mod:`companion.perception.sources.rosbag2`. Older SDKs
+record a ROS1 bag with one topic family per stream (file format version 3)::
 
     /file_version                                         std_msgs/UInt32 (3)
     /device_0/info, /device_0/sensor_<s>/info             diagnostic_msgs/KeyValue (Name, ...)
@@ -37,8 +38,10 @@ from numpy.typing import NDArray
 from companion.clock import Clock
 from companion.errors import CameraError
 from companion.frames import Mat3, R_from_quat, Vec3
+from companion.perception.sources import rosbag2
 from companion.perception.sources._pacing import Pacer
 from companion.perception.sources.file import depth_to_u16
+from companion.perception.sources.rosbag2 import Db3Image, Db3Recording
 from companion.perception.types import DepthImage, Intrinsics, RgbdFrame, RgbImage
 
 FILE_VERSION = 3
@@ -203,6 +206,28 @@ def _read_layout(reader: Any, ts: Any, path: Path) -> _StreamLayout:
     )
 
 
+def _db3_layout(rec: Db3Recording) -> _StreamLayout:
+    """The layout of a rosbag2 recording, in the terms of a ROS1 one (extrinsics: reference -> stream)."""
+    d, c = rec.stream("Depth"), rec.stream("Color")
+    eye = (np.eye(3), np.zeros(3))
+    R_d, t_d = d.get("tf", eye)
+    R_c, t_c = c.get("tf", eye)
+    R_cd = R_c @ R_d.T
+    t_cd = t_c - R_cd @ t_d
+    aligned = d["intr"] == c["intr"] and np.allclose(R_cd, np.eye(3), atol=1e-9) and np.allclose(t_cd, 0.0)
+    fps = min(d.get("fps", 30.0) or 30.0, c.get("fps", 30.0) or 30.0)
+    return _StreamLayout(
+        depth_topic=str(d["data_name"]),
+        color_topic=str(c["data_name"]),
+        depth_intr=d["intr"],
+        color_intr=c["intr"],
+        depth_scale_m=rec.depth_units_m,
+        R_color_depth=None if aligned else R_cd,
+        t_color_depth_m=None if aligned else t_cd,
+        pair_tolerance_s=0.5 / fps,
+    )
+
+
 class BagSource:
     """Plays a RealSense ``.bag`` as a :class:`FrameSource` (see the module docstring).
 
@@ -218,6 +243,7 @@ class BagSource:
         self._pacer = Pacer(realtime=realtime, clock=clock)
         self._reader: Any = None
         self._ts: Any = None
+        self._db3: Db3Recording | None = None
         self.layout: _StreamLayout | None = None
 
     @property
@@ -233,6 +259,15 @@ class BagSource:
             ) from None
         if not self.path.is_file():
             raise CameraError(f"bag source: {self.path} does not exist")
+        if self.path.suffix.lower() == ".db3":
+            db3 = Db3Recording(self.path)
+            try:
+                self.layout = _db3_layout(db3)
+            except BaseException:
+                db3.close()
+                raise
+            self._db3 = db3
+            return
         self._ts = _typestore()
         reader = Reader(self.path)
         try:
@@ -259,23 +294,37 @@ class BagSource:
         if self._reader is not None:
             self._reader.close()
             self._reader = None
+        if self._db3 is not None:
+            self._db3.close()
+            self._db3 = None
 
     def __aiter__(self) -> AsyncIterator[RgbdFrame]:
         return self._frames()
 
-    def _pairs(self) -> Iterator[tuple[Any, Any]]:
-        """(colour, depth) messages, each colour with the depth nearest in time within tolerance."""
+    def _images(self) -> Iterator[tuple[bool, float, Any]]:
+        """(is colour, stamp, message) for every depth and colour image, in recording order."""
         layout, reader, ts = self.layout, self._reader, self._ts
+        if self._db3 is not None:
+            for is_color, img in self._db3.images():
+                yield is_color, img.stamp_s, img
+            return
         if layout is None or reader is None:
             raise CameraError("bag source: iterated before it was opened (use `async with`)")
         conns = [c for c in reader.connections if c.topic in (layout.depth_topic, layout.color_topic)]
+        for conn, _t, raw in reader.messages(connections=conns):
+            msg = ts.deserialize_ros1(raw, conn.msgtype)
+            yield conn.topic == layout.color_topic, _stamp_s(msg.header), msg
+
+    def _pairs(self) -> Iterator[tuple[Any, Any]]:
+        """(colour, depth) messages, each colour with the depth nearest in time within tolerance."""
+        layout = self.layout
+        if layout is None:
+            raise CameraError("bag source: iterated before it was opened (use `async with`)")
         pending: deque[tuple[float, Any]] = deque()
         prev: tuple[float, Any] | None = None
         tol = layout.pair_tolerance_s
-        for conn, _t, raw in reader.messages(connections=conns):
-            msg = ts.deserialize_ros1(raw, conn.msgtype)
-            stamp = _stamp_s(msg.header)
-            if conn.topic == layout.color_topic:
+        for is_color, stamp, msg in self._images():
+            if is_color:
                 pending.append((stamp, msg))
                 continue
             while pending and pending[0][0] <= stamp:
@@ -294,18 +343,21 @@ class BagSource:
         layout = self.layout
         if layout is None:
             raise CameraError("bag source: iterated before it was opened (use `async with`)")
-        rgb = decode_rgb(color)
-        depth_m = decode_depth_units(depth).astype(np.float32) * np.float32(layout.depth_scale_m)
+        if isinstance(color, Db3Image):
+            rgb, units = rosbag2.decode_color(color), rosbag2.decode_depth_units(depth)
+            stamp_s, seq = color.stamp_s, color.seq
+        else:
+            rgb, units = decode_rgb(color), decode_depth_units(depth)
+            stamp_s, seq = _stamp_s(color.header), int(color.header.seq)
+        depth_m = units.astype(np.float32) * np.float32(layout.depth_scale_m)
         if layout.R_color_depth is not None and layout.t_color_depth_m is not None:
             depth_m = align_depth_to_color(
                 depth_m, layout.depth_intr, layout.color_intr, layout.R_color_depth, layout.t_color_depth_m
             )
         intr = layout.color_intr
         if rgb.shape[:2] != (intr.height_px, intr.width_px) or depth_m.shape != rgb.shape[:2]:
-            raise CameraError(
-                f"bag source: image sizes disagree with camera_info at frame {color.header.seq}"
-            )
-        return RgbdFrame(rgb, depth_m, intr, _stamp_s(color.header) + stamp_shift_s, int(color.header.seq))
+            raise CameraError(f"bag source: image sizes disagree with camera_info at frame {seq}")
+        return RgbdFrame(rgb, depth_m, intr, stamp_s + stamp_shift_s, seq)
 
     async def _frames(self) -> AsyncIterator[RgbdFrame]:
         shift_s = 0.0
