@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
+from matplotlib.patches import Circle, Rectangle
 from numpy.typing import NDArray
 
 from companion.evaluation.log import F64, FlightLog
@@ -47,10 +47,60 @@ def _shade_gps_loss(ax: Axes, log: FlightLog) -> None:
         ax.axvspan(log.t_s[start], log.t_s[stop - 1], color="tab:red", alpha=0.12, lw=0)
 
 
+#: Mission states drawn as bands behind time plots (others are left unshaded).
+STATE_COLOURS = {
+    "takeoff": "#d9d9d9",
+    "acquire": "#c6dbef",
+    "follow": "#e5f5e0",
+    "follow_vision": "#fdd0a2",
+    "reacquire": "#fcbba1",
+    "hover": "#dadaeb",
+    "controlled_landing": "#fa9fb5",
+    "px4_hold": "#bdbdbd",
+    "px4_land": "#969696",
+}
+
+
+def _runs(values: Sequence[str]) -> list[tuple[int, int, str]]:
+    """(first, last index, value) of each run of equal values."""
+    out: list[tuple[int, int, str]] = []
+    start = 0
+    for i in range(1, len(values) + 1):
+        if i == len(values) or values[i] != values[start]:
+            out.append((start, i - 1, values[start]))
+            start = i
+    return out
+
+
+def _state_bands(ax: Axes, log: FlightLog) -> None:
+    """The mission's states as coloured bands, labelled once each in the legend."""
+    labelled: set[str] = set()
+    for first, last, state in _runs(log.state):
+        colour = STATE_COLOURS.get(state)
+        if colour is None:
+            continue
+        label = None if state in labelled else state
+        labelled.add(state)
+        ax.axvspan(log.t_s[first], log.t_s[last], color=colour, alpha=0.7, lw=0, label=label, zorder=0)
+
+
+def slot_error_body(log: FlightLog, offset_cam_m: Sequence[float]) -> F64:
+    """N x 2: the follower's error from its slot, forward and right of its heading (m)."""
+    err = log.p_ned_follower_m - desired_follower_ned(log, offset_cam_m)
+    c, s = np.cos(log.yaw_follower_rad), np.sin(log.yaw_follower_rad)
+    forward = c * err[:, 0] + s * err[:, 1]
+    right = -s * err[:, 0] + c * err[:, 1]
+    return np.stack([forward, right], axis=1)
+
+
 def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path, title: str) -> None:
-    """Top-down view (east right, north up) of both vehicles and the desired slot."""
-    fig = Figure(figsize=(7, 6), dpi=110)
-    ax = fig.subplots()
+    """Left: both vehicles from above (east right, north up). Right: the follower's offset from its slot.
+
+    Over a 150 m path a 0.3 m deviation is invisible at equal aspect, so the right panel draws the error
+    itself, in the follower's heading frame (forward up, right to the right), coloured by time.
+    """
+    fig = Figure(figsize=(12, 5.5), dpi=110)
+    ax, dev = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.25, 1.0]})
     slot = desired_follower_ned(log, offset_cam_m)
     sel = log.formation
     ax.plot(log.p_ned_leader_m[:, 1], log.p_ned_leader_m[:, 0], color="tab:blue", lw=1.6, label="leader")
@@ -71,45 +121,96 @@ def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path,
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
+
+    err = slot_error_body(log, offset_cam_m)[sel]
+    t = log.t_s[sel]
+    if err.size:
+        pts = dev.scatter(err[:, 1], err[:, 0], c=t, s=4, cmap="viridis", lw=0)
+        fig.colorbar(pts, ax=dev, label="sim time (s)", fraction=0.046, pad=0.04)
+        lost = ~log.gps_ok[sel]
+        if lost.any():
+            dev.scatter(err[lost, 1], err[lost, 0], s=14, facecolors="none", edgecolors="tab:red", lw=0.4,
+                        label="follower GPS lost")  # fmt: skip
+        reach = float(np.max(np.hypot(err[:, 0], err[:, 1])))
+        lim = max(0.3, 1.15 * reach)
+        dev.set_xlim(-lim, lim)
+        dev.set_ylim(-lim, lim)
+        circle = Circle((0.0, 0.0), reach, fill=False, ec="tab:gray", ls=":", lw=1.0)
+        dev.add_patch(circle)
+        dev.text(0.0, reach, f" max {reach:.2f} m", fontsize=8, color="tab:gray", va="bottom")
+    dev.axhline(0.0, color="k", lw=0.6)
+    dev.axvline(0.0, color="k", lw=0.6)
+    dev.set_aspect("equal")
+    dev.set_xlabel("right of the slot (m)")
+    dev.set_ylabel("ahead of the slot (m)")
+    dev.grid(alpha=0.3)
+    if (~log.gps_ok[sel]).any():
+        dev.legend(loc="lower right", fontsize=8)
+    dev.set_title("follower minus slot, in formation (heading frame)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
 
 
 def plot_errors(log: FlightLog, offset_cam_m: Sequence[float], path: Path, title: str) -> None:
-    """Formation error and relative-position estimate error over time, GPS loss shaded."""
+    """Formation error and the relative-position estimate's error over time, on the mission's states."""
     slot = desired_follower_ned(log, offset_cam_m)
     form = np.linalg.norm(log.p_ned_follower_m - slot, axis=1)
     form[~log.formation] = np.nan
     rel_true = log.p_ned_leader_m - log.p_ned_follower_m
     est = np.linalg.norm(log.rel_ned_est_m - rel_true, axis=1)
-    fig = Figure(figsize=(9, 4), dpi=110)
+    fig = Figure(figsize=(10, 4.5), dpi=110)
     ax = fig.subplots()
-    ax.plot(log.t_s, form, color="tab:orange", lw=1.2, label="formation error (m)")
-    ax.plot(log.t_s, est, color="tab:green", lw=1.0, alpha=0.8, label="relative position estimate error (m)")
-    _shade_gps_loss(ax, log)
+    _state_bands(ax, log)
+    ax.plot(log.t_s, form, color="tab:orange", lw=1.3, label="formation error: |follower - slot| (m)")
+    ax.plot(log.t_s, est, color="tab:green", lw=1.0, alpha=0.85, label="estimate error: |est - true| (m)")
+    lost = ~log.gps_ok
+    if lost.any():
+        first = int(np.argmax(lost))
+        ax.axvline(log.t_s[first], color="tab:red", lw=1.2, ls="--", label="follower GPS lost")
+    finite = np.concatenate([form[np.isfinite(form)], est[np.isfinite(est)]])
+    top = float(np.max(finite)) if finite.size else 1.0
+    ax.set_ylim(0.0, 1.08 * max(top, 0.1))  # never clipped: the largest error sets the scale
     ax.set_xlabel("sim time (s)")
     ax.set_ylabel("error (m)")
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", fontsize=8)
-    ax.set_title(title + " (red: follower GPS lost)" if (~log.gps_ok).any() else title)
+    ax.legend(loc="upper left", fontsize=7, ncol=3)
+    ax.set_title(f"{title} (bands: mission state)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
 
 
 def plot_estimate_vs_truth(log: FlightLog, path: Path, title: str) -> None:
-    """Leader-minus-follower position per NED axis: the service's estimate against the truth."""
+    """The leader's position relative to the follower, per NED axis: the tracker's estimate against truth.
+
+    Truth is the simulator's (leader minus follower); the estimate is what the service's tracker held at
+    each control tick, brought to that instant. Gaps: no estimate (before acquisition, after a loss).
+    """
     rel_true = log.p_ned_leader_m - log.p_ned_follower_m
-    fig = Figure(figsize=(9, 6.5), dpi=110)
-    axes = fig.subplots(3, 1, sharex=True)
-    for i, (ax, name) in enumerate(zip(axes, ("north", "east", "down"), strict=True)):
-        ax.plot(log.t_s, rel_true[:, i], color="k", lw=1.0, label="truth")
-        ax.plot(log.t_s, log.rel_ned_est_m[:, i], color="tab:green", lw=1.0, alpha=0.85, label="estimate")
-        _shade_gps_loss(ax, log)
+    err = log.rel_ned_est_m - rel_true
+    fig = Figure(figsize=(10, 8), dpi=110)
+    axes = fig.subplots(4, 1, sharex=True, gridspec_kw={"height_ratios": [1, 1, 1, 1.1]})
+    for i, (ax, name) in enumerate(zip(axes[:3], ("north", "east", "down"), strict=True)):
+        if i == 0:
+            _state_bands(ax, log)
+        ax.plot(log.t_s, rel_true[:, i], color="k", lw=1.0, label="truth (simulator)")
+        ax.plot(log.t_s, log.rel_ned_est_m[:, i], color="tab:green", lw=1.0, alpha=0.85,
+                label="estimate (tracker)")  # fmt: skip
         ax.set_ylabel(f"{name} (m)")
         ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title(title)
+    axes[0].legend(loc="upper right", fontsize=7, ncol=4)
+    colours = ("tab:blue", "tab:orange", "tab:purple")
+    for i, (name, colour) in enumerate(zip(("north", "east", "down"), colours, strict=True)):
+        axes[3].plot(log.t_s, err[:, i], color=colour, lw=0.9, label=f"{name} error")
+    lost = ~log.gps_ok
+    if lost.any():
+        for ax in axes:
+            ax.axvline(log.t_s[int(np.argmax(lost))], color="tab:red", lw=1.0, ls="--")
+    axes[3].axhline(0.0, color="k", lw=0.6)
+    axes[3].set_ylabel("estimate - truth (m)")
+    axes[3].legend(loc="upper right", fontsize=7, ncol=3)
+    axes[3].grid(alpha=0.3)
+    axes[0].set_title(f"{title}: leader relative to the follower, NED (red dashes: GPS lost)", fontsize=10)
     axes[-1].set_xlabel("sim time (s)")
     fig.tight_layout()
     fig.savefig(path)
@@ -129,7 +230,15 @@ def plot_camera_strip(snapshots: Sequence[Snapshot], path: Path, title: str) -> 
             x0, y0, x1, y1 = snap.box_xyxy_px
             ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="lime", lw=1.5))
             if snap.score is not None:
-                ax.text(x0, y0 - 4, f"{snap.score:.2f}", color="lime", fontsize=7)
+                ax.text(
+                    x0,
+                    y0 - 6,
+                    f"{snap.score:.2f}",
+                    color="black",
+                    fontsize=9,
+                    fontweight="bold",
+                    bbox={"facecolor": "lime", "edgecolor": "none", "pad": 1.5, "alpha": 0.9},
+                )
         ax.set_title(f"t = {snap.t_s:.1f} s", fontsize=8)
         ax.axis("off")
     for ax in axes[0][len(snapshots) :]:
