@@ -1,6 +1,7 @@
 """``companion``: the command-line edge: parse arguments, load config, set up logging, map errors to exits.
 
-Exit codes: 0 ok, 1 failure or unhealthy, 2 bad usage/config/model or not built yet, 3 camera or link failure.
+Exit codes: 0 ok, 1 failure or unhealthy, 2 bad usage/config/model or not built yet, 3 camera or link failure,
+4 a link that carries only autopilots this service must not fly.
 """
 
 from __future__ import annotations
@@ -30,12 +31,39 @@ def build_parser() -> argparse.ArgumentParser:
         description="Wingman: vision-based leader-follower companion service for PX4.",
     )
     parser.add_argument("--version", action="version", version=f"wingman {__version__}")
-    parser.add_argument("--log-format", choices=("human", "json"), default=None, help="override the config")
-    parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"), default=None)
+    parser.add_argument(
+        "--log-format",
+        choices=("human", "json"),
+        default=None,
+        help="log lines as text or JSON (overrides the config)",
+    )
+    parser.add_argument(
+        "--log-level",
+        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+        default=None,
+        help="least severe log level shown (overrides the config)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"companion.commands.{name}").register(sub)
+    describe_commands(parser)
     return parser
+
+
+def describe_commands(parser: argparse.ArgumentParser) -> None:
+    """Give every (sub)command without a description its one-line help as one.
+
+    So ``companion CMD --help`` says what the command does, not only its options.
+    """
+    for action in parser._actions:
+        if not isinstance(action, argparse._SubParsersAction):
+            continue
+        helps = {a.dest: a.help for a in action._choices_actions}
+        for name, sub in action.choices.items():
+            if not sub.description and helps.get(name):
+                text = str(helps[name])
+                sub.description = text[0].upper() + text[1:] + ("" if text.endswith(".") else ".")
+            describe_commands(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -38,8 +38,15 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``sitl`` argument parser."""
     parser = argparse.ArgumentParser(prog="sitl", description="Wingman's PX4-compatible JSBSim simulator.")
     parser.add_argument("--version", action="version", version=f"wingman-sitl {__version__}")
-    parser.add_argument("--log-format", choices=("human", "json"), default="human")
-    parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"), default="INFO")
+    parser.add_argument(
+        "--log-format", choices=("human", "json"), default="human", help="log lines as text or JSON"
+    )
+    parser.add_argument(
+        "--log-level",
+        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+        default="INFO",
+        help="least severe log level shown (default INFO)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     s = sub.add_parser("serve", help="run N vehicles over MAVLink/UDP in real time (Ctrl-C stops)")
@@ -75,9 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(handler=_lazy("sitl.serve", "main", "serve"))
 
     d = sub.add_parser("dataset", help="render a detector dataset with YOLO labels and COCO json")
-    d.add_argument("--out", type=Path, required=True)
-    d.add_argument("--count", type=int, required=True)
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--out", type=Path, required=True, help="new dataset folder")
+    d.add_argument("--count", type=int, required=True, help="frames to render")
+    d.add_argument("--seed", type=int, default=0, help="random seed of the scenes (default 0)")
     d.add_argument("--seq-len", type=int, default=6, help="frames per sequence (splits are by sequence)")
     d.add_argument(
         "--profile",
@@ -91,30 +98,43 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser(
         "dataset-merge", help="join `sitl dataset` folders into one by symbolic links (splits kept)"
     )
-    m.add_argument("--out", type=Path, required=True)
+    m.add_argument("--out", type=Path, required=True, help="new merged dataset folder")
     m.add_argument("sources", type=Path, nargs="+", help="dataset folders (their names must differ)")
     m.set_defaults(handler=_lazy("sitl.dataset", "main_merge", "dataset-merge"))
 
     c = sub.add_parser(
         "contact-sheet", help="PNG of 16 random dataset frames with boxes and false-colour depth"
     )
-    c.add_argument("--data", type=Path, required=True)
-    c.add_argument("--out", type=Path, default=Path("runs/contact-sheet.png"))
-    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--data", type=Path, required=True, help="a `sitl dataset` folder")
+    c.add_argument("--out", type=Path, default=Path("runs/contact-sheet.png"), help="PNG to write")
+    c.add_argument("--seed", type=int, default=0, help="which random frames (default 0)")
     c.add_argument("--tile-px", type=int, default=320, help="width of each colour/depth tile")
     c.set_defaults(handler=_lazy("sitl.dataset", "main_contact_sheet", "contact-sheet"))
 
     b = sub.add_parser("bench", help="lockstep real-time factor for 2 vehicles, without rendering")
-    b.add_argument("--json", type=Path, default=None)
+    b.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     b.add_argument("--sim-s", type=float, default=60.0, help="sim seconds per run (default 60)")
     b.add_argument("--repeats", type=int, default=3, help="runs; the median is reported (default 3)")
     b.set_defaults(handler=_lazy("sitl.bench", "main", "bench"))
 
     r = sub.add_parser("bench-render", help="rendered RGB-D frames per second at 640x480 with noise")
-    r.add_argument("--json", type=Path, default=None)
-    r.add_argument("--frames", type=int, default=300)
+    r.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
+    r.add_argument("--frames", type=int, default=300, help="frames to render (default 300)")
     r.set_defaults(handler=_lazy("sitl.render.bench", "main", "bench-render"))
+    _describe(parser)
     return parser
+
+
+def _describe(parser: argparse.ArgumentParser) -> None:
+    """Every (sub)command without a description gets its one-line help as one."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help for a in action._choices_actions}
+            for name, sub in action.choices.items():
+                if not sub.description and helps.get(name):
+                    text = str(helps[name])
+                    sub.description = text[0].upper() + text[1:] + ("" if text.endswith(".") else ".")
+                _describe(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
