@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion import __version__
+from companion import __version__, compat
 from companion.clock import Clock
 from companion.config import Config
 from companion.service.gcs import OnboardStatusBuilder
@@ -187,7 +187,7 @@ class FollowerService:
                 self.health.register(MQTT, critical=False)
             parts.mission.set_on_change(self._on_change)
             try:
-                async with asyncio.TaskGroup() as tg:
+                async with compat.TaskGroup() as tg:
                     for name, loop in parts.background.items():
                         tg.create_task(_run_background(name, loop), name=name)
                     tg.create_task(self._run_mission(parts.mission), name="companion.mission")
@@ -203,8 +203,11 @@ class FollowerService:
                     tg.create_task(self._watchdog(), name="companion.watchdog")
                     tg.create_task(self._lifecycle(parts.mission), name="companion.lifecycle")
                     tg.create_task(self._ready(parts), name="companion.ready")
-            except* _Finished:
-                pass
+            except compat.BaseExceptionGroup as group:
+                # The mission's end ends the group; anything else that failed with it is re-raised.
+                _, rest = group.split(_Finished)
+                if rest is not None:
+                    raise rest from None
         log.info("service stopped (exit %d)", self.exit_code)
         return self.exit_code
 
@@ -292,7 +295,7 @@ class FollowerService:
             self.mqtt.event("shutdown", f"{self._stop_reason}: {action}", "notice", action=action)
         mission.request_shutdown()
         try:
-            async with asyncio.timeout(timeout_s):
+            async with compat.timeout(timeout_s):
                 await self._mission_done.wait()
         except TimeoutError:
             snap = mission.snapshot()
@@ -365,7 +368,7 @@ class FollowerService:
             await asyncio.sleep(interval_s)
 
     async def _gcs(self, gcs: GcsPort) -> None:
-        async with asyncio.TaskGroup() as tg:
+        async with compat.TaskGroup() as tg:
             tg.create_task(self._statustext_sender(gcs), name="companion.gcs.statustext")
             if self.cfg.service.onboard_status_rate_hz > 0:
                 tg.create_task(self._onboard_sender(gcs), name="companion.gcs.onboard")

@@ -8,13 +8,13 @@ Overrides use double underscores between levels and TOML literals as values, e.g
 from __future__ import annotations
 
 import os
-import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from companion.compat import tomllib
 from companion.errors import ConfigError
 
 SCHEMA_VERSION = 1

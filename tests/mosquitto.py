@@ -11,9 +11,11 @@ import subprocess
 import time
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import aiomqtt
+
+from companion.compat import Self
 
 
 def free_tcp_port() -> int:

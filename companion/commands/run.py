@@ -13,6 +13,7 @@ import threading
 import time
 from typing import Any
 
+from companion import compat
 from companion.commands._common import add_config_arg, load
 from companion.config import Config
 from companion.errors import CompanionError
@@ -41,7 +42,7 @@ def _run(args: argparse.Namespace) -> int:
     guard = ExitGuard()
     try:
         code = asyncio.run(_serve(cfg, notify, creds, guard))
-    except BaseExceptionGroup as eg:
+    except compat.BaseExceptionGroup as eg:
         guard.arm(TEARDOWN_GRACE_S, 1, "teardown after an error")
         raise _first_companion_error(eg) or eg from None
     guard.arm(TEARDOWN_GRACE_S, code, "teardown")
@@ -110,12 +111,12 @@ class ExitGuard:
         os._exit(code)
 
 
-def _first_companion_error(eg: BaseExceptionGroup[Any]) -> CompanionError | None:
+def _first_companion_error(eg: compat.BaseExceptionGroup[Any]) -> CompanionError | None:
     """The first of our own errors inside a TaskGroup's group (the CLI maps it to an exit code)."""
     for exc in eg.exceptions:
         if isinstance(exc, CompanionError):
             return exc
-        if isinstance(exc, BaseExceptionGroup):
+        if isinstance(exc, compat.BaseExceptionGroup):
             found = _first_companion_error(exc)
             if found is not None:
                 return found

@@ -59,13 +59,13 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from enum import StrEnum
 from functools import cached_property
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
 from numpy.typing import NDArray
 
+from companion.compat import StrEnum
 from companion.config import TrackerConfig
 from companion.frames import Mat3, Vec3
 from companion.mission.types import LeaderEstimate

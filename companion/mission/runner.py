@@ -14,6 +14,7 @@ import asyncio
 import logging
 from collections.abc import Callable
 
+from companion import compat
 from companion.clock import Clock
 from companion.errors import CommandRejectedError, CompanionError, LinkLostError
 from companion.mission.machine import MissionMachine
@@ -146,7 +147,7 @@ class MissionRunner:
     # ------------------------------------------------------------------ loop
     async def run(self) -> None:
         """Control loop plus command executor, until a requested shutdown is complete."""
-        async with asyncio.TaskGroup() as tg:
+        async with compat.TaskGroup() as tg:
             executor = tg.create_task(self._execute_commands(), name="companion.mission.commands")
             try:
                 await self._control_loop()
@@ -236,7 +237,7 @@ class MissionRunner:
     async def _execute(self, cmd: Command) -> CommandResult:
         log.info("mission: command %s", cmd.kind.value)
         try:
-            async with asyncio.timeout(self.command_timeout_s * COMMAND_GRACE_FACTOR):
+            async with compat.timeout(self.command_timeout_s * COMMAND_GRACE_FACTOR):
                 await self._dispatch(cmd)
         except CommandRejectedError as exc:
             log.warning("mission: %s refused: %s", cmd.kind.value, exc.result)

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import StrEnum
 
+from companion.compat import StrEnum
 from companion.vehicle.types import ExternalPosition, Setpoint, Severity, Vec3T, VehicleState
 
 

@@ -11,12 +11,12 @@ import io
 import json
 from pathlib import Path
 from types import TracebackType
-from typing import Self
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.compat import Self
 from companion.errors import CompanionError
 from companion.perception.sources.file import (
     ATTITUDE_FILE,

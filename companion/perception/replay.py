@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from companion import compat
 from companion.config import Config
 from companion.errors import ModelError
 from companion.estimation.tracker import TrackState
@@ -272,7 +273,7 @@ async def run_record(
             await asyncio.to_thread(writer.write, frame)
 
     with writer:
-        async with open_source(camera) as src, asyncio.TaskGroup() as tg:
+        async with open_source(camera) as src, compat.TaskGroup() as tg:
             tg.create_task(write_all(), name="companion.record.writer")
             # A folder's own attitude.csv travels with it (truth-derived attitude is rebuilt on read).
             if isinstance(writer, FolderRecorder) and (Path(camera.path) / "attitude.csv").is_file():

@@ -8,11 +8,12 @@ from __future__ import annotations
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, Protocol, Self
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.compat import Self
 from companion.frames import Mat3, Vec3
 
 RgbImage = NDArray[np.uint8]  # H x W x 3, RGB order (not OpenCV's BGR)

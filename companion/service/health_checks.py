@@ -21,6 +21,7 @@ from typing import Any
 import aiomqtt
 import numpy as np
 
+from companion import compat
 from companion.config import Config, load_config
 from companion.errors import CompanionError
 from companion.service.status import ServiceNotRunningError, query_status
@@ -135,16 +136,18 @@ async def check_broker(cfg: Config, timeout_s: float = 3.0) -> CheckResult:
         return CheckResult("broker", False, str(exc))
     m = cfg.mqtt
     try:
-        async with asyncio.timeout(timeout_s):
-            async with aiomqtt.Client(
+        async with (
+            compat.timeout(timeout_s),
+            aiomqtt.Client(
                 m.host,
                 m.port,
                 username=m.username or None,
                 password=creds.password,
                 tls_context=creds.tls_context,
                 identifier=f"wingman-{cfg.vehicle_id}-health",
-            ):
-                pass
+            ),
+        ):
+            pass
     except (aiomqtt.MqttError, OSError, TimeoutError) as exc:
         return CheckResult("broker", False, f"{m.host}:{m.port}: {exc or 'timed out'}")
     return CheckResult("broker", True, f"{m.host}:{m.port} accepted the connection")

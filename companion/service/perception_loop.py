@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
+from companion import compat
 from companion.clock import Clock
 from companion.perception.types import DetectorResult, FrameSource, RgbdFrame
 from companion.service.health import HealthBoard
@@ -101,7 +102,7 @@ class PerceptionLoop(Generic[T]):
         frames: Latest[_Arrival] = Latest()  # fresh per run: a restart never sees a closed mailbox
         self._frames = frames
         try:
-            async with asyncio.TaskGroup() as tg:
+            async with compat.TaskGroup() as tg:
                 tg.create_task(self._pump(frames), name="companion.perception.camera")
                 tg.create_task(self._work(frames), name="companion.perception.detector")
         finally:

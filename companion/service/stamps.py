@@ -20,9 +20,9 @@ import dataclasses
 from collections import deque
 from collections.abc import AsyncIterator
 from types import TracebackType
-from typing import Self
 
 from companion.clock import Clock
+from companion.compat import Self
 from companion.perception.types import FrameSource, RgbdFrame
 
 

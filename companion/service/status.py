@@ -18,8 +18,10 @@ import stat
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
+from companion import compat
+from companion.compat import Self
 from companion.errors import CompanionError
 
 log = logging.getLogger(__name__)
@@ -79,7 +81,7 @@ class StatusServer:
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(1.0):
+                async with compat.timeout(1.0):
                     await self._server.wait_closed()
             self._server = None
         with contextlib.suppress(FileNotFoundError):
@@ -87,7 +89,7 @@ class StatusServer:
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
-            async with asyncio.timeout(_REQUEST_TIMEOUT_S):
+            async with compat.timeout(_REQUEST_TIMEOUT_S):
                 line = await reader.readline()
             words = line[:_MAX_REQUEST_BYTES].decode("utf-8", "replace").split() or ["status"]
             request, args = words[0], words[1:]
@@ -104,7 +106,7 @@ class StatusServer:
                     "known": sorted([*self._handlers, *self._commands]),
                 }
             writer.write(json.dumps(reply, default=_json_default).encode() + b"\n")
-            async with asyncio.timeout(_REQUEST_TIMEOUT_S):
+            async with compat.timeout(_REQUEST_TIMEOUT_S):
                 await writer.drain()
             self.requests_served += 1
         except (TimeoutError, ConnectionError) as exc:
@@ -112,7 +114,7 @@ class StatusServer:
         finally:
             writer.close()
             with contextlib.suppress(TimeoutError, ConnectionError):
-                async with asyncio.timeout(1.0):
+                async with compat.timeout(1.0):
                     await writer.wait_closed()
 
 

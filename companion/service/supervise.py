@@ -11,6 +11,7 @@ import logging
 import random
 from collections.abc import Awaitable, Callable
 
+from companion import compat
 from companion.clock import Clock
 from companion.service.health import HealthBoard
 
@@ -100,6 +101,6 @@ async def supervise(
 
 def describe(exc: BaseException) -> str:
     """``Type: message``, with the leaves of an exception group (a TaskGroup's) instead of the group."""
-    if isinstance(exc, BaseExceptionGroup):
+    if isinstance(exc, compat.BaseExceptionGroup):
         return "; ".join(describe(e) for e in exc.exceptions)
     return f"{type(exc).__name__}: {exc}"

@@ -12,7 +12,8 @@ import socket
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+
+from companion.compat import Self
 
 log = logging.getLogger(__name__)
 

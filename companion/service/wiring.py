@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from companion import compat
 from companion.app import Parts, PartsContext, PartsFactory
 from companion.clock import Clock, MonotonicClock
 from companion.config import Config
@@ -361,11 +362,11 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
     try:
         async with (
             MavsdkVehicleLink(link_cfg, clock, leader_system_id=cfg.leader.mavlink_system_id) as link,
-            asyncio.TaskGroup() as tg,
+            compat.TaskGroup() as tg,
         ):
             task = tg.create_task(link.run(), name="companion.health.link")
             try:
-                async with asyncio.timeout(timeout_s):
+                async with compat.timeout(timeout_s):
                     await link.wait_ready()
                     for _ in range(30):  # GPS_RAW_INT comes at 1-5 Hz: give it up to 3 s
                         s = link.snapshot()
@@ -377,7 +378,7 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
             finally:
                 task.cancel()
             v = link.snapshot()
-    except (CompanionError, ExceptionGroup) as exc:
+    except (CompanionError, compat.ExceptionGroup) as exc:
         err = exc if isinstance(exc, CompanionError) else _companion_error(exc)
         if err is None:
             raise
@@ -405,12 +406,12 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
     ]
 
 
-def _companion_error(eg: BaseExceptionGroup[Any]) -> CompanionError | None:
+def _companion_error(eg: compat.BaseExceptionGroup[Any]) -> CompanionError | None:
     """The first of our own errors in a TaskGroup's group (the link's refusal of the leader)."""
     for exc in eg.exceptions:
         if isinstance(exc, CompanionError):
             return exc
-        if isinstance(exc, BaseExceptionGroup):
+        if isinstance(exc, compat.BaseExceptionGroup):
             found = _companion_error(exc)
             if found is not None:
                 return found

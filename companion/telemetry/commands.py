@@ -17,8 +17,10 @@ import json
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
-from enum import Enum, StrEnum
+from enum import Enum
 from typing import Any
+
+from companion.compat import StrEnum
 
 #: A shorter key is guessable; 32 random bytes is what the docs tell operators to generate.
 MIN_KEY_BYTES = 16

@@ -22,6 +22,7 @@ from typing import Any, TypeVar
 import aiomqtt
 from pydantic import ValidationError
 
+from companion import compat
 from companion.clock import Clock
 from companion.config import MqttConfig
 from companion.errors import ConfigError
@@ -221,7 +222,7 @@ class MqttReporter:
 
     async def run(self) -> None:
         """Sample and publish until cancelled."""
-        async with asyncio.TaskGroup() as tg:
+        async with compat.TaskGroup() as tg:
             tg.create_task(
                 self._sample(self.cfg.state_rate_hz, self._tick_state), name="companion.mqtt.state"
             )
@@ -241,7 +242,7 @@ class MqttReporter:
             self._push_state(self._sources.state())
             self._push(self.topics.state, offline_state(self._vehicle_id, reason), qos=1, retain=True)
         try:
-            async with asyncio.timeout(timeout_s):
+            async with compat.timeout(timeout_s):
                 await self._drained.wait()
         except TimeoutError:
             log.warning("MQTT: %d message(s) not delivered at stop", len(self.outbox))
@@ -286,8 +287,8 @@ class MqttReporter:
             attempts += 1
             try:
                 await self._connect_and_serve()
-            except* (aiomqtt.MqttError, OSError, TimeoutError) as eg:
-                exc = eg.exceptions[0]
+            except (aiomqtt.MqttError, OSError, TimeoutError, compat.BaseExceptionGroup) as raised:
+                exc = _connection_error(raised)
                 if self._session_started:
                     self._offline_since_s = self._clock.now_s()
                     log.warning(
@@ -308,7 +309,7 @@ class MqttReporter:
     async def _connect_and_serve(self) -> None:
         client = self._client()
         async with contextlib.AsyncExitStack() as stack:
-            async with asyncio.timeout(_CONNECT_TIMEOUT_S):
+            async with compat.timeout(_CONNECT_TIMEOUT_S):
                 await stack.enter_async_context(client)
             self._session_started = True
             self.connected = True
@@ -357,7 +358,7 @@ class MqttReporter:
         if self._on_leader_position is not None:
             await _call(client.subscribe(self.cfg.leader_topic, qos=0))
         self.subscribed = True
-        async with asyncio.TaskGroup() as tg:
+        async with compat.TaskGroup() as tg:
             tg.create_task(self._drain(client), name="companion.mqtt.publish")
             tg.create_task(self._receive(client), name="companion.mqtt.receive")
 
@@ -411,6 +412,22 @@ class MqttReporter:
             self.event("command_refused", result, "warning", cmd=cmd.name.value, nonce=cmd.nonce)
         else:
             self.event("command", result, "notice", cmd=cmd.name.value, nonce=cmd.nonce)
+
+
+_CONNECTION_ERRORS = (aiomqtt.MqttError, OSError, TimeoutError)
+
+
+def _connection_error(raised: BaseException) -> BaseException:
+    """The connection error in ``raised`` (alone or in a task group's group); anything else re-raised."""
+    if not isinstance(raised, compat.BaseExceptionGroup):
+        return raised
+    match, rest = raised.split(_CONNECTION_ERRORS)
+    if rest is not None or match is None:
+        raise raised
+    first: BaseException = match.exceptions[0]
+    while isinstance(first, compat.BaseExceptionGroup):
+        first = first.exceptions[0]
+    return first
 
 
 async def _call(awaitable: Awaitable[T]) -> T:

@@ -3,7 +3,7 @@
 The only module that imports mavsdk. Lifecycle::
 
     async with MavsdkVehicleLink(cfg.link, clock) as link:      # MAVSDK instance + UDP/serial connection
-        async with asyncio.TaskGroup() as tg:
+        async with compat.TaskGroup() as tg:
             tg.create_task(link.run(), name="companion.vehicle")  # discovery, telemetry, setpoint guard
             ...                                                   # snapshot() / commands from the mission
 
@@ -35,7 +35,7 @@ import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import replace
 from types import TracebackType
-from typing import Any, Self, TypeVar
+from typing import Any, TypeVar
 
 from mavsdk import LogLevel, log_subscribe, log_unsubscribe
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
@@ -47,7 +47,9 @@ from mavsdk.plugins.mocap import AngleBody, Covariance, Mocap, PositionBody, Vis
 from mavsdk.plugins.offboard import Attitude, Offboard, OffboardResult, VelocityBodyYawspeed, VelocityNedYaw
 from mavsdk.plugins.server_utility import ServerUtility, StatusTextType
 
+from companion import compat
 from companion.clock import Clock
+from companion.compat import Self
 from companion.config import LinkConfig
 from companion.errors import CommandRejectedError, LinkLostError, WrongVehicleError
 from companion.vehicle import failsafe
@@ -225,7 +227,7 @@ class MavsdkVehicleLink:
                 self._direct.subscribe_message("ESTIMATOR_STATUS"), self._on_estimator_status
             ),
         }
-        async with asyncio.TaskGroup() as tg:
+        async with compat.TaskGroup() as tg:
             for name, factory in streams.items():
                 tg.create_task(factory(), name=f"companion.vehicle.{name}")
             tg.create_task(self._setpoint_guard(), name="companion.vehicle.setpoint_guard")
@@ -372,7 +374,7 @@ class MavsdkVehicleLink:
     async def _read_hover_thrust(self) -> None:
         """PX4's MPC_THR_HOVER, to start the attitude law's thrust from; absent is fine."""
         try:
-            async with asyncio.timeout(self.cfg.command_timeout_s):
+            async with compat.timeout(self.cfg.command_timeout_s):
                 value = float(await self._param.get_param_float("MPC_THR_HOVER"))
         except (MavsdkError, TimeoutError) as exc:
             log.info("vehicle link: MPC_THR_HOVER not readable (%s); using the configured default", exc)
@@ -390,7 +392,7 @@ class MavsdkVehicleLink:
         """
         wanted = failsafe.wanted_value(self.cfg.offboard_loss_action)
         try:
-            async with asyncio.timeout(self.cfg.command_timeout_s * 2):
+            async with compat.timeout(self.cfg.command_timeout_s * 2):
                 value = int(await self._param.get_param_int(failsafe.PARAM))
                 if wanted is not None and value != wanted:
                     await self._param.set_param_int(failsafe.PARAM, wanted)
@@ -432,7 +434,7 @@ class MavsdkVehicleLink:
         if blocked_s > _BLOCKING_WARN_S:
             log.warning("vehicle link: MAVSDK %s blocked the event loop for %.3f s", what, blocked_s)
         try:
-            async with asyncio.timeout(self.cfg.command_timeout_s * 2):
+            async with compat.timeout(self.cfg.command_timeout_s * 2):
                 result = await fut
         except TimeoutError:
             raise CommandRejectedError(what, "TIMEOUT") from None
@@ -454,7 +456,7 @@ class MavsdkVehicleLink:
         try:
             # A parameter write: MAVSDK's "_async" variant of it blocks the calling thread through its
             # retries, so it goes to a worker thread (it always ends: MAVSDK times the write out itself).
-            async with asyncio.timeout(self.cfg.command_timeout_s * 4):
+            async with compat.timeout(self.cfg.command_timeout_s * 4):
                 await asyncio.to_thread(action.set_takeoff_altitude, float(altitude_m))
         except (MavsdkError, TimeoutError) as exc:
             why = _result_name(exc) if isinstance(exc, MavsdkError) else "TIMEOUT"

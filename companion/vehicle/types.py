@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import StrEnum
+
+from companion.compat import StrEnum
 
 NEVER_S = -math.inf
 """The stamp of a telemetry group that has never been received."""

@@ -15,6 +15,7 @@ from typing import Any
 import aiomqtt
 import pytest
 
+from companion import compat
 from companion.app import FollowerService, Parts, PartsContext
 from companion.clock import MonotonicClock
 from companion.config import Config
@@ -190,7 +191,7 @@ async def test_stop_request_lands_then_exits_zero(
     mission = ScriptedMission(clock)
     svc, gcs = make_service(tmp_path, mission, path)
     sock = Path(svc.cfg.status.socket_path)
-    async with asyncio.TaskGroup() as tg:
+    async with compat.TaskGroup() as tg:
         task = tg.create_task(svc.run())
         await wait_until(lambda: mission.state == "follow" and exists(sock))
         await asyncio.sleep(0.5)
@@ -237,7 +238,7 @@ async def test_stop_request_lands_then_exits_zero(
 async def test_safe_action_that_never_completes_exits_one(tmp_path: Path) -> None:
     mission = ScriptedMission(MonotonicClock(), land_s=60.0)
     svc, _ = make_service(tmp_path, mission, None, service={"shutdown_timeout_s": 0.5})
-    async with asyncio.TaskGroup() as tg:
+    async with compat.TaskGroup() as tg:
         task = tg.create_task(svc.run())
         await wait_until(lambda: mission.state == "follow")
         svc.request_stop("SIGINT")
@@ -248,7 +249,7 @@ async def test_safe_action_that_never_completes_exits_one(tmp_path: Path) -> Non
 async def test_mission_failure_propagates_and_socket_is_removed(tmp_path: Path) -> None:
     mission = ScriptedMission(MonotonicClock(), fail_after_s=0.3)
     svc, _ = make_service(tmp_path, mission, None)
-    with pytest.raises(ExceptionGroup) as eg:
+    with pytest.raises(compat.ExceptionGroup) as eg:
         await svc.run()
     assert eg.group_contains(LinkLostError)
     assert not exists(svc.cfg.status.socket_path)
@@ -260,7 +261,7 @@ async def test_watchdog_withheld_when_the_mission_hangs(
     path, rx = notify_socket
     mission = ScriptedMission(MonotonicClock())
     svc, _ = make_service(tmp_path, mission, path)
-    async with asyncio.TaskGroup() as tg:
+    async with compat.TaskGroup() as tg:
         task = tg.create_task(svc.run())
         await wait_until(lambda: mission.state == "follow")
         await asyncio.sleep(0.5)
@@ -309,7 +310,7 @@ async def test_mqtt_telemetry_and_commands_through_the_service(tmp_path: Path) -
                     assert isinstance(m.payload, bytes)
                     got.append((str(m.topic).rsplit("/", 1)[1], json.loads(m.payload)))
 
-        async with asyncio.TaskGroup() as tg:
+        async with compat.TaskGroup() as tg:
             col = tg.create_task(collect())
             task = tg.create_task(svc.run())
             await wait_until(lambda: any(t == "pose" for t, _ in got) and any(t == "health" for t, _ in got))

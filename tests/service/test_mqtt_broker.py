@@ -16,6 +16,7 @@ from typing import Any
 import aiomqtt
 import pytest
 
+from companion import compat
 from companion.clock import MonotonicClock
 from companion.config import MqttConfig
 from companion.telemetry.commands import Command, sign_command
@@ -71,7 +72,7 @@ def make_cfg(port: int, **kw: Any) -> MqttConfig:
 
 @contextlib.asynccontextmanager
 async def running(reporter: MqttReporter, collector: Collector) -> AsyncIterator[None]:
-    async with asyncio.TaskGroup() as tg:
+    async with compat.TaskGroup() as tg:
         ct = tg.create_task(collector.run(), name="test.collector")
         await asyncio.wait_for(collector.subscribed.wait(), 5)
         rt = tg.create_task(reporter.run(), name="test.reporter")
@@ -116,7 +117,7 @@ async def test_publishes_state_pose_health_and_events(broker: Mosquitto) -> None
     # The state is retained: a newcomer gets the last one at once.
     async with aiomqtt.Client("127.0.0.1", broker.port) as late:
         await late.subscribe("wingman/f1/state", qos=1)
-        async with asyncio.timeout(3):
+        async with compat.timeout(3):
             msg = await anext(aiter(late.messages))
     assert msg.retain
     assert json.loads(msg.payload)["online"] is False
@@ -216,7 +217,7 @@ async def test_last_will_marks_a_killed_service_offline(broker: Mosquitto, repo_
     try:
         async with aiomqtt.Client("127.0.0.1", broker.port) as c:
             await c.subscribe("wingman/f9/state", qos=1)
-            async with asyncio.timeout(20):
+            async with compat.timeout(20):
                 async for m in c.messages:
                     assert isinstance(m.payload, bytes)
                     p = json.loads(m.payload)

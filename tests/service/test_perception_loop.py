@@ -7,11 +7,12 @@ import threading
 import time
 from collections.abc import AsyncIterator
 from types import TracebackType
-from typing import Self
 
 import numpy as np
 
+from companion import compat
 from companion.clock import MonotonicClock
+from companion.compat import Self
 from companion.perception.types import (
     Detection,
     DetectorResult,
@@ -95,7 +96,7 @@ async def test_one_inference_in_flight_and_stale_frames_dropped() -> None:
         latency=latency,
         health=health,
     )
-    async with asyncio.timeout(20):
+    async with compat.timeout(20):
         await loop.run()
     loop.close()
     c = loop.counters()

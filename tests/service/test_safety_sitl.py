@@ -36,6 +36,7 @@ from typing import Any
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
+from companion import compat
 from companion.evaluation.procs import Child
 from companion.service.status import ServiceNotRunningError, query_status
 from companion.telemetry.commands import sign_command
@@ -155,7 +156,7 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
             sim.start()
             gcs_transport, gcs = await open_gcs(ports.gcs_remote)
             mux = await open_mux(ports.api_remote, ports.follower_api, ports.client)
-            async with asyncio.TaskGroup() as tg:
+            async with compat.TaskGroup() as tg:
                 tasks = [
                     tg.create_task(collector.run(), name="test.collector"),
                     tg.create_task(read_notify(), name="test.notify"),

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from companion import compat
 from companion.clock import ManualClock
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
@@ -47,7 +48,7 @@ async def test_latest_take_waits_and_close_wakes() -> None:
         await asyncio.sleep(0.01)
         box.close()
 
-    async with asyncio.TaskGroup() as tg:
+    async with compat.TaskGroup() as tg:
         tg.create_task(later())
         assert await box.take() == "frame"
         with pytest.raises(MailboxClosedError):
@@ -60,7 +61,7 @@ async def test_latest_observers_see_newer_values() -> None:
     seq, v = await box.wait_newer(0)
     assert (seq, v) == (1, 1)
     with pytest.raises(TimeoutError):
-        async with asyncio.timeout(0.02):
+        async with compat.timeout(0.02):
             await box.wait_newer(seq)
     assert box.peek() == 1
 
@@ -232,7 +233,8 @@ def test_stamp_mapper_keeps_relative_timing_and_follows_slips() -> None:
 def test_describe_flattens_task_group_errors() -> None:
     from companion.service.supervise import describe
 
-    eg = ExceptionGroup(
-        "unhandled errors in a TaskGroup", [ValueError("bad frame"), ExceptionGroup("x", [KeyError("k")])]
+    eg = compat.ExceptionGroup(
+        "unhandled errors in a TaskGroup",
+        [ValueError("bad frame"), compat.ExceptionGroup("x", [KeyError("k")])],
     )
     assert describe(eg) == "ValueError: bad frame; KeyError: 'k'"

@@ -25,6 +25,7 @@ from typing import Any
 
 import pytest
 
+from companion import compat
 from companion.service.status import ServiceNotRunningError, query_status
 from tests.flight.wiretap import WireTap, open_wiretap
 from tests.mosquitto import Collector, Mosquitto
@@ -109,7 +110,7 @@ async def test_service_flies_reports_survives_a_broker_restart_and_lands_on_sigt
                 while True:
                     datagrams.append((await loop.sock_recv(notify, 4096)).decode())
 
-            async with asyncio.TaskGroup() as tg:
+            async with compat.TaskGroup() as tg:
                 collecting = tg.create_task(collector.run(), name="test.collector")
                 notifying = tg.create_task(read_notify(), name="test.notify")
                 await asyncio.wait_for(collector.subscribed.wait(), 10)

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from companion import compat
 from companion.app import FollowerService, Parts, PartsContext
 from companion.clock import MonotonicClock
 from companion.config import Config, MountConfig
@@ -103,7 +104,7 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
 
     with SystemdNotifier(NotifyConfig()) as notifier:
         svc = FollowerService(cfg, open_parts, clock=clock, wall_time_s=time.time, notifier=notifier)
-        async with asyncio.timeout(30), asyncio.TaskGroup() as tg:
+        async with compat.timeout(30), compat.TaskGroup() as tg:
             feeder = tg.create_task(feed())
             task = tg.create_task(svc.run())
             for _ in range(400):

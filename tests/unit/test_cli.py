@@ -79,6 +79,7 @@ def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> N
     assert lines[1] == f"companion: {p}: mqtt.portt: unknown key"
 
 
+@pytest.mark.lab
 def test_sim_without_weights_says_so_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The network detector is the default; with no weights nothing starts and one line says why."""
     missing = tmp_path / "none" / "leader_detector.pt"
@@ -112,6 +113,7 @@ def test_sitl_lazy_handler_reports_missing_module(capsys: pytest.CaptureFixture[
     assert capsys.readouterr().err.strip() == "sitl thing: not built yet"
 
 
+@pytest.mark.lab
 def test_sim_all_prints_the_paper_table(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

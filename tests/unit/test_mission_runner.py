@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 
+from companion import compat
 from companion.clock import MonotonicClock
 from companion.config import Config, MissionConfig
 from companion.errors import CommandRejectedError
@@ -109,13 +110,12 @@ async def test_runner_flies_to_follow_streams_every_tick_and_exits_on_shutdown()
         await asyncio.sleep(0.5)
         runner.request_shutdown()
 
-    async with asyncio.timeout(10):
-        async with asyncio.TaskGroup() as tg:
-            feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
-            tg.create_task(pilot(), name="test.pilot")
-            await runner.run()
-            stop.set()
-            await feeder
+    async with compat.timeout(10), compat.TaskGroup() as tg:
+        feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
+        tg.create_task(pilot(), name="test.pilot")
+        await runner.run()
+        stop.set()
+        await feeder
 
     assert [e.reason.name for e in events][:5] == [
         "LINK_UP",
@@ -165,13 +165,12 @@ async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
         assert len(link.setpoints) - n0 >= 15
         runner.request_shutdown()
 
-    async with asyncio.timeout(10):
-        async with asyncio.TaskGroup() as tg:
-            feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
-            tg.create_task(scenario(), name="test.scenario")
-            await runner.run()
-            stop.set()
-            await feeder
+    async with compat.timeout(10), compat.TaskGroup() as tg:
+        feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
+        tg.create_task(scenario(), name="test.scenario")
+        await runner.run()
+        stop.set()
+        await feeder
 
 
 def test_request_command_replies() -> None:

@@ -29,13 +29,14 @@ from collections.abc import AsyncIterator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.clock import Clock
+from companion.compat import Self
 from companion.errors import CameraError
 from companion.frames import Mat3, R_from_quat, Vec3
 from companion.perception.sources import rosbag2

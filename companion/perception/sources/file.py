@@ -24,13 +24,14 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.clock import Clock
+from companion.compat import Self
 from companion.errors import CameraError
 from companion.perception.sources._pacing import Pacer
 from companion.perception.types import DepthImage, GroundTruth, Intrinsics, RgbdFrame, RgbImage

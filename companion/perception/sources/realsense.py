@@ -13,10 +13,11 @@ import asyncio
 import time
 from collections.abc import AsyncIterator
 from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 
+from companion.compat import Self
 from companion.config import CameraConfig
 from companion.errors import CameraError
 from companion.perception.types import Intrinsics, RgbdFrame

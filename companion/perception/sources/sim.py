@@ -24,12 +24,14 @@ import struct
 from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, Self
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion import compat
 from companion.clock import Clock
+from companion.compat import Self
 from companion.config import CameraConfig
 from companion.errors import CameraError
 from companion.perception.types import GroundTruth, Intrinsics, RgbdFrame
@@ -152,7 +154,7 @@ class SimFrameSource:
     async def __aenter__(self) -> Self:
         path = self.socket_path
         try:
-            async with asyncio.timeout(self.connect_timeout_s):
+            async with compat.timeout(self.connect_timeout_s):
                 self._reader, self._writer = await asyncio.open_unix_connection(str(path))
         except (FileNotFoundError, ConnectionRefusedError) as exc:
             raise CameraError(
@@ -173,7 +175,7 @@ class SimFrameSource:
         if self._writer is not None:
             self._writer.close()
             try:
-                async with asyncio.timeout(1.0):
+                async with compat.timeout(1.0):
                     await self._writer.wait_closed()
             except (TimeoutError, ConnectionError):
                 pass
