@@ -287,7 +287,7 @@ class MqttReporter:
             attempts += 1
             try:
                 await self._connect_and_serve()
-            except (aiomqtt.MqttError, OSError, TimeoutError, compat.BaseExceptionGroup) as raised:
+            except (*_CONNECTION_ERRORS, compat.BaseExceptionGroup) as raised:
                 exc = _connection_error(raised)
                 if self._session_started:
                     self._offline_since_s = self._clock.now_s()
@@ -414,7 +414,8 @@ class MqttReporter:
             self.event("command", result, "notice", cmd=cmd.name.value, nonce=cmd.nonce)
 
 
-_CONNECTION_ERRORS = (aiomqtt.MqttError, OSError, TimeoutError)
+#: asyncio.TimeoutError is TimeoutError from Python 3.11 on; on 3.10 aiomqtt's wait_for raises the former.
+_CONNECTION_ERRORS = (aiomqtt.MqttError, OSError, TimeoutError, asyncio.TimeoutError)
 
 
 def _connection_error(raised: BaseException) -> BaseException:
