@@ -75,7 +75,8 @@ def _runs(values: Sequence[str]) -> list[tuple[int, int, str]]:
 def _state_bands(ax: Axes, log: FlightLog) -> None:
     """The mission's states as coloured bands, labelled once each in the legend."""
     labelled: set[str] = set()
-    for first, last, state in _runs(log.state):
+    for first, last, name in _runs(log.state):
+        state = name.lower()  # the log keeps MissionState names (FOLLOW), the legend their values
         colour = STATE_COLOURS.get(state)
         if colour is None:
             continue
@@ -126,12 +127,14 @@ def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path,
     err = slot_error_body(log, offset_cam_m)[sel]
     t = log.t_s[sel]
     if err.size:
-        pts = dev.scatter(err[:, 1], err[:, 0], c=t, s=4, cmap="viridis", lw=0)
-        fig.colorbar(pts, ax=dev, label="sim time (s)", fraction=0.046, pad=0.04)
         lost = ~log.gps_ok[sel]
+        lo, hi = float(t.min()), float(t.max())
+        pts = dev.scatter(err[~lost, 1], err[~lost, 0], c=t[~lost], s=4, cmap="viridis", vmin=lo, vmax=hi,
+                          lw=0, label="GPS good")  # fmt: skip
         if lost.any():
-            dev.scatter(err[lost, 1], err[lost, 0], s=14, facecolors="none", edgecolors="tab:red", lw=0.4,
-                        label="follower GPS lost")  # fmt: skip
+            dev.scatter(err[lost, 1], err[lost, 0], c=t[lost], s=9, cmap="viridis", vmin=lo, vmax=hi,
+                        marker="^", lw=0, label="follower GPS lost")  # fmt: skip
+        fig.colorbar(pts, ax=dev, label="sim time (s)", fraction=0.046, pad=0.04)
         reach = float(np.max(np.hypot(err[:, 0], err[:, 1])))
         lim = max(0.3, 1.15 * reach)
         dev.set_xlim(-lim, lim)

@@ -17,7 +17,7 @@ def _log() -> FlightLog:
     follower = leader - np.array([5.0, 0.0, 0.0])
     follower[:, 1] += 0.2  # 0.2 m right of the slot (heading north)
     follower[300:, 0] -= 1.3  # a 1.3 m lag late in the run: must not be clipped
-    states = ["takeoff"] * 50 + ["follow"] * 200 + ["follow_vision"] * 150
+    states = ["TAKEOFF"] * 50 + ["FOLLOW"] * 200 + ["FOLLOW_VISION"] * 150  # as the log keeps them
     gps_ok = np.ones(n, dtype=bool)
     gps_ok[250:] = False
     return FlightLog(
@@ -26,7 +26,7 @@ def _log() -> FlightLog:
         p_ned_leader_m=leader,
         yaw_follower_rad=np.zeros(n),
         rel_ned_est_m=leader - follower + 0.05,
-        formation=np.array([s != "takeoff" for s in states]),
+        formation=np.array([s != "TAKEOFF" for s in states]),
         gps_ok=gps_ok,
         state=states,
         v_ned_follower_m_s=np.tile([2.0, 0.0, 0.0], (n, 1)),
@@ -50,3 +50,14 @@ def test_every_plot_is_written(tmp_path: Path) -> None:
     assert names == ["plots/trajectories.png", "plots/errors.png", "plots/estimate_vs_truth.png"]
     for name in names:
         assert (tmp_path / name).stat().st_size > 10_000
+
+
+def test_the_mission_states_are_drawn_as_labelled_bands() -> None:
+    from matplotlib.figure import Figure
+
+    from companion.evaluation.plots import _state_bands
+
+    ax = Figure().subplots()
+    _state_bands(ax, _log())
+    labels = [p.get_label() for p in ax.patches]
+    assert labels == ["takeoff", "follow", "follow_vision"]
