@@ -15,8 +15,10 @@ Ray is optional (``pip install '.[cluster]'``) and imported only here, when a ca
 from __future__ import annotations
 
 import logging
+import os
 import tempfile
 import time
+import traceback
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -54,8 +56,24 @@ class RayOptions:
     local_env: Mapping[str, str] = field(default_factory=dict)
 
 
+class RunFailedError(Exception):
+    """A run raised on its worker: ``TypeName: message`` on the first line, then the traceback.
+
+    Carried as text because not every exception survives pickling back to the driver (one whose
+    ``__init__`` takes other arguments than its message, as :class:`ConfigError`'s does, does not).
+    """
+
+
 def run_seed(spec: RunSpec) -> dict[str, bytes]:
     """One run, on a worker: flown in a scratch folder; the folder's files (relative path -> bytes)."""
+    try:
+        return _run_seed(spec)
+    except Exception as exc:
+        first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), "(no message)")
+        raise RunFailedError(f"{type(exc).__name__}: {first}\n{traceback.format_exc()}") from None
+
+
+def _run_seed(spec: RunSpec) -> dict[str, bytes]:
     with tempfile.TemporaryDirectory(prefix="wingman-run-") as tmp:
         folder = Path(tmp) / spec.out_dir.name
         folder.mkdir()
@@ -77,7 +95,8 @@ def error_line(exc: BaseException) -> str:
     cause = getattr(exc, "cause", None)
     err = cause if isinstance(cause, BaseException) else exc
     lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-    return f"{type(err).__name__}: {lines[0] if lines else '(no message)'}"
+    first = lines[0] if lines else "(no message)"
+    return first if isinstance(err, RunFailedError) else f"{type(err).__name__}: {first}"
 
 
 def write_run_files(out_dir: Path, files: Mapping[str, bytes]) -> None:
@@ -93,7 +112,14 @@ def write_run_files(out_dir: Path, files: Mapping[str, bytes]) -> None:
         tmp.replace(target)
 
 
-def _import_ray() -> Any:
+#: Ray's switch for a single machine (its default on macOS and Windows): every Ray process binds and
+#: advertises 127.0.0.1 instead of the routable address. Read when ``ray`` is imported.
+LOOPBACK_ENV = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+
+
+def _import_ray(*, loopback: bool) -> Any:
+    if loopback:
+        os.environ.update(LOOPBACK_ENV)  # before the import, and inherited by the processes Ray starts
     try:
         import ray  # noqa: PLC0415 (optional: the cluster extra)
     except ImportError:
@@ -114,8 +140,7 @@ def _init(ray: Any, options: RayOptions) -> None:
     if options.address is None:
         if options.local_env:
             runtime_env["env_vars"] = dict(options.local_env)
-        # A single-node Ray that advertises the loopback address only (its gRPC servers still listen on
-        # every interface: Ray's choice, guarded by its token authentication).
+        # A single-node Ray on the loopback address only (LOOPBACK_ENV): nothing else can reach it.
         ray.init(
             address="local",
             num_cpus=max(1, options.local_cpus),
@@ -148,7 +173,7 @@ def run_campaign(
         return write_campaign_summary(
             already_done, out_dir, failed=[], wall_s=0.0, executor="ray", resumed=len(already_done)
         )
-    ray = _import_ray()
+    ray = _import_ray(loopback=options.address is None)
     out_dir.mkdir(parents=True, exist_ok=True)
     for s in specs:
         s.out_dir.mkdir(parents=True, exist_ok=True)
