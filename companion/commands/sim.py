@@ -50,12 +50,40 @@ def register(sub: Any) -> None:
         help="override a service config key for these runs (TOML value), e.g. formation.kp_xy=1.5",
     )
     p.add_argument("--no-plots", action="store_true", help="write the report without plots")
+    p.add_argument(
+        "--executor",
+        choices=("local", "ray"),
+        default="local",
+        help="--seeds on this machine's process pool (local, default) or as Ray tasks (ray: pip install "
+        "'.[cluster]')",
+    )
+    p.add_argument(
+        "--ray-address",
+        default=None,
+        metavar="HOST:PORT",
+        help="join this Ray cluster (default: start a local Ray on 127.0.0.1 with --jobs CPUs)",
+    )
+    p.add_argument(
+        "--ray-ship",
+        action="store_true",
+        help="ship this checkout to the Ray workers (runtime environment working_dir)",
+    )
+    p.add_argument(
+        "--resume", action="store_true", help="--seeds: skip the seeds whose report.json is already in --out"
+    )
     p.add_argument("--progress", choices=("line", "json"), default="line", help=argparse.SUPPRESS)
     p.set_defaults(handler=_sim)
 
 
 def _sim(args: argparse.Namespace) -> int:
-    from companion.evaluation.campaign import RunSpec, parse_seeds, require_weights, run_many, run_one
+    from companion.evaluation.campaign import (
+        RunSpec,
+        parse_seeds,
+        require_weights,
+        run_many,
+        run_one,
+        split_done,
+    )
     from companion.evaluation.report import summary_markdown
     from companion.evaluation.setup import all_scenarios, scenario_path
 
@@ -73,6 +101,10 @@ def _sim(args: argparse.Namespace) -> int:
         **os.environ,
         "PYTHONPATH": os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p),
     }
+    if args.seeds is None and (args.executor != "local" or args.ray_address or args.ray_ship or args.resume):
+        raise SystemExit("companion sim: --executor, --ray-address, --ray-ship and --resume go with --seeds")
+    if args.executor == "ray" and harness != "lockstep":
+        raise SystemExit("companion sim: --executor ray runs the lockstep harness only")
     if args.detector == "network":
         require_weights(tuple(args.set))  # one clear line now, not one per child run
     if args.seeds is not None:
@@ -83,7 +115,23 @@ def _sim(args: argparse.Namespace) -> int:
             RunSpec(args.scenario, s, out / f"seed-{s:03d}", **{**common, "plots": False})
             for s in parse_seeds(args.seeds)
         ]
-        summary = run_many(specs, out, jobs=args.jobs, env=env, stream=sys.stdout, monte_carlo=True)
+        todo, done = split_done(specs, args.resume)
+        if done:
+            print(f"sim: {len(done)} of {len(specs)} seeds already have a report in {out}; running the rest")
+        if args.executor == "ray":
+            from companion.evaluation.ray_executor import RayOptions, run_campaign
+
+            options = RayOptions(
+                address=args.ray_address,
+                local_cpus=args.jobs,
+                ship=args.ray_ship,
+                local_env={"PYTHONPATH": env["PYTHONPATH"]},
+            )
+            summary = run_campaign(todo, out, options=options, stream=sys.stderr, already_done=done)
+        else:
+            summary = run_many(
+                todo, out, jobs=args.jobs, env=env, stream=sys.stdout, monte_carlo=True, already_done=done
+            )
         print(f"sim: {summary['runs']} runs, outcomes {summary['outcomes']}; {out / 'summary.md'}")
         return 0
     if args.scenario == "all":

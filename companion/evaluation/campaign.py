@@ -3,6 +3,9 @@
 * :func:`run_one` flies one scenario (real path by default, or lockstep) and writes its report and plots.
 * :func:`run_many` runs several single runs as child processes (``companion sim`` itself), ``jobs`` at a
   time, shows one progress line for all of them, and writes ``summary.json`` / ``summary.md``.
+* :mod:`companion.evaluation.ray_executor` runs a seeded campaign as Ray tasks instead (``--executor ray``);
+  both executors share the summary (:func:`campaign_summary`), ``--resume`` (:func:`split_done`) and the
+  progress text (:func:`progress_text`).
 
 A child reports progress as JSON lines on its stdout (``--progress json``); everything else it says goes
 to its log file in its own output folder.
@@ -17,7 +20,7 @@ import math
 import sys
 import time
 import tomllib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TextIO
@@ -193,31 +196,45 @@ class _Child:
     wall_s: float = 0.0
 
 
+def eta_s(done: int, total: int, elapsed_s: float) -> float | None:
+    """Seconds left at the throughput so far (None before the first run ends)."""
+    if done <= 0 or total <= done:
+        return None if done <= 0 else 0.0
+    return elapsed_s / done * (total - done)
+
+
+def clock_text(seconds: float) -> str:
+    """``m:ss`` (``h:mm:ss`` past an hour)."""
+    whole = max(0, round(seconds))
+    h, rest = divmod(whole, 3600)
+    m, sec = divmod(rest, 60)
+    return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
+
+
+def progress_text(
+    done: int, failed: int, total: int, running: Sequence[str], elapsed_s: float, *, label: str = "sim"
+) -> str:
+    """One progress line: ``sim: 3/8 done, 1 failed | <running> | 1:02, ETA 1:40``."""
+    eta = eta_s(done, total, elapsed_s)
+    head = f"{label}: {done}/{total} done" + (f", {failed} failed" if failed else "")
+    tail = clock_text(elapsed_s) + (f", ETA {clock_text(eta)}" if eta is not None and done < total else "")
+    return f"{head} | {' | '.join(running) or '-'} | {tail}"
+
+
 @dataclass(slots=True)
-class ProgressLine:
+class StatusLine:
     """One line, rewritten in place on a terminal (new lines elsewhere, at most every 10 s)."""
 
     out: TextIO
-    total: int
     tty: bool = False
     _last_s: float = -math.inf
     _width: int = 0
-    t0_s: float = field(default_factory=time.monotonic)
 
-    def show(self, children: Sequence[_Child], force: bool = False) -> None:
+    def write(self, text: str, force: bool = False) -> None:
         now = time.monotonic()
         if not self.tty and not force and now - self._last_s < 10.0:
             return
         self._last_s = now
-        done = sum(c.done for c in children)
-        running = [
-            f"{c.name} {c.t_s:.0f}/{c.end_s:.0f} s" if math.isfinite(c.end_s) else f"{c.name} starting"
-            for c in children
-            if c.proc is not None and not c.done
-        ]
-        elapsed = now - self.t0_s
-        clock = f"{elapsed // 60:.0f}:{elapsed % 60:02.0f}"
-        text = f"sim: {done}/{self.total} done | {' | '.join(running) or '-'} | {clock}"
         if self.tty:
             pad = max(0, self._width - len(text))
             self.out.write("\r" + text + " " * pad)
@@ -230,6 +247,34 @@ class ProgressLine:
         if self.tty:
             self.out.write("\n")
             self.out.flush()
+
+
+@dataclass(slots=True)
+class ProgressLine:
+    """The child processes' progress: done/total, failures, each running run's sim time, ETA."""
+
+    out: TextIO
+    total: int
+    tty: bool = False
+    t0_s: float = field(default_factory=time.monotonic)
+    _line: StatusLine | None = None
+
+    def show(self, children: Sequence[_Child], force: bool = False) -> None:
+        if self._line is None:
+            self._line = StatusLine(self.out, self.tty)
+        running = [
+            f"{c.name} {c.t_s:.0f}/{c.end_s:.0f} s" if math.isfinite(c.end_s) else f"{c.name} starting"
+            for c in children
+            if c.proc is not None and not c.done
+        ]
+        done = sum(c.done for c in children)
+        failed = sum(c.done and c.rc != 0 for c in children)
+        text = progress_text(done, failed, self.total, running, time.monotonic() - self.t0_s)
+        self._line.write(text, force)
+
+    def close(self) -> None:
+        if self._line is not None:
+            self._line.close()
 
 
 def child_args(spec: RunSpec) -> list[str]:
@@ -248,6 +293,7 @@ def child_args(spec: RunSpec) -> list[str]:
 
 async def _run_child(child: _Child, env: dict[str, str], line: ProgressLine, children: list[_Child]) -> None:
     child.spec.out_dir.mkdir(parents=True, exist_ok=True)
+    (child.spec.out_dir / "report.json").unlink(missing_ok=True)  # a failed rerun leaves no stale report
     child.started_s = time.monotonic()
     with (child.spec.out_dir / "sim.log").open("ab") as err:
         from companion.evaluation.procs import die_with_parent  # noqa: PLC0415
@@ -330,8 +376,12 @@ def run_many(
     env: dict[str, str],
     stream: TextIO,
     monte_carlo: bool,
+    already_done: Sequence[RunSpec] = (),
 ) -> dict[str, Any]:
-    """Run ``specs`` as child processes, ``jobs`` at a time; write and return the summary."""
+    """Run ``specs`` as child processes, ``jobs`` at a time; write and return the summary.
+
+    ``already_done``: a resumed campaign's seeds that have their report already (in the summary, not run).
+    """
     from companion.evaluation.report import write_summary  # noqa: PLC0415
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -351,19 +401,14 @@ def run_many(
         else:
             failed.append(f"{c.name} (exit {c.rc}; see {c.spec.out_dir / 'sim.log'})")
     if monte_carlo:
-        summary = {
-            "scenario": specs[0].scenario if specs else None,
-            "seeds": [s.seed for s in specs],
-            "harness": specs[0].harness if specs else None,
-            "detector": next(iter(reports.values())).get("detector") if reports else None,
-            "formation_duration_s": specs[0].duration_s if specs else None,
-            "wall_s": round(wall_s, 1),
-            "failed": failed,
-            **monte_carlo_summary(reports.values()),
-            "runs_by_seed": {name: {k: r.get(k) for k in _SEED_KEYS} for name, r in reports.items()},
-        }
-        write_json(out_dir / "summary.json", summary)
-        (out_dir / "summary.md").write_text(monte_carlo_markdown(summary))
+        summary = write_campaign_summary(
+            [*already_done, *specs],
+            out_dir,
+            failed=failed,
+            wall_s=wall_s,
+            executor="local",
+            resumed=len(already_done),
+        )
     else:
         write_summary(out_dir, reports)
         summary = {"reports": reports, "failed": failed, "wall_s": round(wall_s, 1)}
@@ -372,6 +417,65 @@ def run_many(
         write_json(out_dir / "timing.json", timing)
     if failed:
         raise SimError("runs without a report: " + "; ".join(failed))
+    return summary
+
+
+def split_done(specs: Sequence[RunSpec], resume: bool) -> tuple[list[RunSpec], list[RunSpec]]:
+    """(to run, already done): with ``resume``, a run whose ``report.json`` exists is done."""
+    if not resume:
+        return list(specs), []
+    done = [s for s in specs if (s.out_dir / "report.json").exists()]
+    return [s for s in specs if s not in done], done
+
+
+def campaign_summary(
+    specs: Sequence[RunSpec],
+    reports: Mapping[str, Mapping[str, Any]],
+    failed: Sequence[str],
+    *,
+    wall_s: float,
+    executor: str,
+    resumed: int = 0,
+) -> dict[str, Any]:
+    """The Monte Carlo summary of a campaign: every seed's report (by folder name) and the failed runs.
+
+    ``wall_s`` is this invocation's; ``resumed`` counts the seeds whose reports an earlier one wrote.
+    """
+    first = specs[0] if specs else None
+    return {
+        "scenario": first.scenario if first else None,
+        "seeds": [s.seed for s in specs],
+        "harness": first.harness if first else None,
+        "detector": next(iter(reports.values())).get("detector") if reports else None,
+        "formation_duration_s": first.duration_s if first else None,
+        "executor": executor,
+        "wall_s": round(wall_s, 1),
+        "resumed": resumed,
+        "failed": list(failed),
+        **monte_carlo_summary(reports.values()),
+        "runs_by_seed": {name: {k: r.get(k) for k in _SEED_KEYS} for name, r in reports.items()},
+    }
+
+
+def write_campaign_summary(
+    specs: Sequence[RunSpec],
+    out_dir: Path,
+    *,
+    failed: Sequence[str],
+    wall_s: float,
+    executor: str,
+    resumed: int = 0,
+) -> dict[str, Any]:
+    """Read every seed's report from its folder, write ``summary.json`` / ``summary.md``; the summary."""
+    specs = sorted(specs, key=lambda s: s.seed)
+    reports: dict[str, dict[str, Any]] = {}
+    for s in specs:
+        p = s.out_dir / "report.json"
+        if p.exists():
+            reports[s.out_dir.name] = json.loads(p.read_text())
+    summary = campaign_summary(specs, reports, failed, wall_s=wall_s, executor=executor, resumed=resumed)
+    write_json(out_dir / "summary.json", summary)
+    (out_dir / "summary.md").write_text(monte_carlo_markdown(summary))
     return summary
 
 
@@ -404,8 +508,12 @@ def monte_carlo_markdown(summary: dict[str, Any]) -> str:
             cells = " | ".join(f"{v[q]:.3f}" if q in v else "n/a" for q in ("min", "p5", "p50", "p95", "max"))
             lines.append(f"| {key} | {cells} |")
     if summary.get("failed"):
-        lines += ["", "Runs without a report: " + ", ".join(summary["failed"])]
-    lines += ["", f"Wall time: {summary['wall_s']:.0f} s."]
+        lines += ["", "Runs without a report: " + "; ".join(summary["failed"])]
+    executor = f" ({summary['executor']} executor)" if summary.get("executor") else ""
+    resumed = (
+        f"; {summary['resumed']} seeds' reports kept from an earlier run" if summary.get("resumed") else ""
+    )
+    lines += ["", f"Wall time: {summary['wall_s']:.0f} s{executor}{resumed}."]
     return "\n".join(lines) + "\n"
 
 
