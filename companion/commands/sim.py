@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--scenario", default="all", help="scenario name (config/scenarios/NAME.toml), a path, or 'all'"
     )
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=int, default=1, help="the run's random seed (default 1)")
     p.add_argument("--seeds", default=None, help="Monte Carlo over seeds, e.g. 1-50 (lockstep harness)")
     p.add_argument("--out", type=Path, default=Path("runs/sim"), help="output folder")
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed factor (real path)")
@@ -150,12 +151,14 @@ def _sim(args: argparse.Namespace) -> int:
     _log_to(out / "sim.log" if args.progress == "json" else None, args)
     spec = RunSpec(args.scenario, args.seed, out, **common)
     end_s: list[float] = [float("nan")]
+    wall0_s = time.monotonic()
 
     def progress(t_s: float) -> None:
         if args.progress == "json":
             print(json.dumps({"t_s": round(t_s, 1), "end_s": end_s[0]}), flush=True)
         else:
-            print(f"\rsim: {spec.scenario} t = {t_s:5.1f} s", end="", flush=True)
+            print(f"\rsim: {spec.scenario} {_progress_line(t_s, end_s[0], time.monotonic() - wall0_s)}",
+                  end="", flush=True)  # fmt: skip
 
     from companion.evaluation.campaign import effective_scenario
 
@@ -180,6 +183,13 @@ def _all_harness(name: str, forced: str | None) -> str:
     if forced is not None:
         return forced
     return "real" if name in PAPER_SCENARIOS else "lockstep"
+
+
+def _progress_line(t_s: float, end_s: float, wall_s: float) -> str:
+    """``sim time / total (percent), elapsed, ETA`` from the run's pace so far."""
+    frac = t_s / end_s if end_s > 0 else 0.0
+    eta = "?" if frac <= 0.02 else f"{wall_s * (1.0 - frac) / frac:.0f} s"
+    return f"t = {t_s:5.1f} / {end_s:.0f} s sim ({100.0 * frac:3.0f} %), {wall_s:.0f} s elapsed, ETA {eta}   "
 
 
 def _fmt(v: float | None) -> str:
