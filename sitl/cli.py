@@ -53,8 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--config",
         type=Path,
-        default=Path("config/sitl.toml"),
-        help="simulator config (default: %(default)s)",
+        default=None,
+        help="simulator config (default: config/sitl.toml of the working folder or of the installed package)",
     )
     s.add_argument("--speed", type=float, default=None, help="speed factor (overrides the config)")
     s.add_argument(

@@ -40,6 +40,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import CompanionError, ConfigError
 from companion.logs import setup_logging
+from companion.shipped import project_root
 from sitl.config import SitlConfig, load_sitl_config
 from sitl.dynamics import VehicleTruth
 from sitl.links import MessageLink
@@ -442,10 +443,11 @@ def load_component(spec: str) -> Component:
 def main(args: argparse.Namespace) -> int:
     """Entry point of ``sitl serve``."""
     setup_logging(args.log_format, args.log_level)
-    cfg = load_sitl_config(args.config)
+    config = args.config if args.config is not None else project_root() / "config" / "sitl.toml"
+    cfg = load_sitl_config(config)
     scenario = None
     if args.scenario is not None:
-        scenario = load_scenario(find_scenario(str(args.scenario), Path(args.config).parent / "scenarios"))
+        scenario = load_scenario(find_scenario(str(args.scenario), Path(config).parent / "scenarios"))
     speed = args.speed if args.speed is not None else cfg.world.speed_factor
     if not (math.isfinite(speed) and 0 < speed <= 100):
         raise ConfigError("--speed", [f"must be in (0, 100] (got {speed})"])

@@ -19,8 +19,10 @@ from pathlib import Path
 from typing import ClassVar, Self
 
 from companion.errors import CompanionError
+from companion.shipped import project_root
 
-REPO = Path(__file__).resolve().parents[2]
+#: Children run here: the folder with config/ and models/ (companion/shipped.py).
+REPO = project_root()
 
 
 class SimRunError(CompanionError):

@@ -20,10 +20,12 @@ from companion.evaluation.metrics import compute_metrics
 from companion.evaluation.plots import write_plots
 from companion.evaluation.report import build_report, write_report
 from companion.perception.types import DetectStage
+from companion.shipped import project_root
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[2]
+#: The folder with config/ and models/ (the working folder, the installed copy or the checkout).
+REPO = project_root()
 SCENARIO_DIR = REPO / "config" / "scenarios"
 #: Scenarios beyond the eight of ``--scenario all`` (issue #6's policy variants).
 VARIANT_DIR = SCENARIO_DIR / "variants"

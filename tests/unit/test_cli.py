@@ -1,12 +1,16 @@
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
+from companion.cli import build_parser as build_companion_parser
 from companion.cli import main as companion_main
+from sitl.cli import build_parser as build_sitl_parser
 from sitl.cli import main as sitl_main
 
 
@@ -143,3 +147,26 @@ def test_sim_all_prints_the_paper_table(
     assert "# Wingman vs the paper" in out
     assert "| Straight line | 0.25 / 0.036 | 2.5 / 0.30 | 0.60 / 0.280 | completed | yes |" in out
     assert out.rstrip().endswith("/*/plots")
+
+
+def _commands(parser: argparse.ArgumentParser, prefix: str) -> list[tuple[str, argparse.ArgumentParser]]:
+    out = [(prefix, parser)]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                out += _commands(sub, f"{prefix} {name}")
+    return out
+
+
+@pytest.mark.parametrize("build", [build_companion_parser, build_sitl_parser], ids=["companion", "sitl"])
+def test_every_command_and_option_says_what_it_does(build: Callable[[], argparse.ArgumentParser]) -> None:
+    silent = []
+    for name, parser in _commands(build(), build().prog):
+        if not parser.description:
+            silent.append(f"{name}: no description")
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction | argparse._HelpAction):
+                continue
+            if not action.help:
+                silent.append(f"{name} {'/'.join(action.option_strings) or action.dest}: no help")
+    assert silent == []
