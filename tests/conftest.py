@@ -14,6 +14,7 @@ if sys.version_info < (3, 11):  # noqa: UP036 (the service side also runs on 3.1
     # evaluation, companion sim) need 3.11, so their tests are not collected there.
     collect_ignore_glob = [
         "evaluation/*",
+        "packaging/*",
         "flight/*",
         "integration/*",
         "render/*",
