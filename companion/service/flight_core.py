@@ -21,10 +21,10 @@ from companion.clock import Clock
 from companion.config import Config
 from companion.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
-from companion.mission.runner import MissionRunner
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
 from companion.vehicle.types import NEVER_S
 

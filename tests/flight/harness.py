@@ -32,7 +32,6 @@ from companion.evaluation.procs import SitlPorts as Ports
 from companion.frames import R_from_quat
 from companion.mission.formation import Slot, ned_to_heading
 from companion.mission.machine import MissionMachine
-from companion.mission.runner import MissionRunner
 from companion.mission.types import (
     LeaderEstimate,
     MissionInputs,
@@ -42,6 +41,7 @@ from companion.mission.types import (
     TrackStatus,
     Transition,
 )
+from companion.service.mission_runner import MissionRunner
 from companion.vehicle.mavsdk_link import MavsdkVehicleLink
 
 from .wiretap import WireTap, open_wiretap

@@ -13,8 +13,8 @@ from companion.clock import MonotonicClock
 from companion.config import Config, MissionConfig
 from companion.errors import CommandRejectedError
 from companion.mission.machine import MissionMachine
-from companion.mission.runner import MissionRunner
 from companion.mission.types import Command, CommandKind, MissionState, Transition
+from companion.service.mission_runner import MissionRunner
 from companion.vehicle.types import ExternalPosition, Setpoint, Severity, VehicleState
 
 from .mission_harness import FakeAutopilot, leader
