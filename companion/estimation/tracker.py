@@ -65,11 +65,9 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from numpy.typing import NDArray
 
-from companion.compat import StrEnum
 from companion.config import TrackerConfig
+from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.frames import Mat3, Vec3
-from companion.mission.types import LeaderEstimate
-from companion.mission.types import TrackStatus as MissionTrackStatus
 from companion.perception.pose import LeaderMeasurement, bearing
 from companion.perception.transform import CameraGeometry, rotate_cov
 
@@ -98,15 +96,6 @@ def _mahalanobis2(y: Vec3, S: Mat3) -> float:
     y0, y1, y2 = float(y[0]), float(y[1]), float(y[2])
     quad = A * y0 * y0 + D * y1 * y1 + F * y2 * y2 + 2.0 * (B * y0 * y1 + C * y0 * y2 + E * y1 * y2)
     return quad / det
-
-
-class TrackStatus(StrEnum):
-    """Where the leader track stands (see the module docstring for the rules)."""
-
-    TENTATIVE = "tentative"
-    CONFIRMED = "confirmed"
-    COASTING = "coasting"
-    LOST = "lost"
 
 
 @dataclass(frozen=True)
@@ -222,7 +211,7 @@ class TrackState:
         p, v, cov, a = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2, est.a_ned_leader_m_s2
         return LeaderEstimate(
             stamp_s=float(self.stamp_s),
-            status=MissionTrackStatus(self.status.value),
+            status=self.status,
             p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
             v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
             last_measurement_s=float(self.last_measurement_s),

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import Config
+from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.frames import Vec3, wrap_pi
 from companion.mission.ego import HOLD_S as EGO_STALE_S
 from companion.mission.ego import EgoMotion
@@ -39,13 +40,11 @@ from companion.mission.types import (
     Command,
     CommandKind,
     CommandResult,
-    LeaderEstimate,
     MissionInputs,
     MissionState,
     OperatorCommand,
     Reason,
     StepOutput,
-    TrackStatus,
     Transition,
     VisionMode,
 )

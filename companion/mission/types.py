@@ -1,68 +1,17 @@
 """The mission's inputs and outputs: plain values, so the machine can be driven by anything.
 
-The tracker, the shared-leader feed and the service convert their own types into these; the mission does not
-depend on their modules.
+The leader's estimate and the depth guard's reading come as estimation's types
+(:mod:`companion.estimation.leader`); the shared-leader feed and the service convert their own types into
+these. The mission depends on no module that produces them.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 from companion.compat import StrEnum
+from companion.estimation.leader import LeaderEstimate, ObstacleAhead
 from companion.vehicle.types import ExternalPosition, Setpoint, Severity, Vec3T, VehicleState
-
-
-class TrackStatus(StrEnum):
-    """The tracker's opinion of its leader track."""
-
-    TENTATIVE = "tentative"
-    CONFIRMED = "confirmed"
-    COASTING = "coasting"
-    LOST = "lost"
-
-
-@dataclass(frozen=True, slots=True)
-class LeaderEstimate:
-    """The tracker's estimate of the leader relative to the follower.
-
-    ``p_ned_rel_m`` is leader minus follower expressed in local NED axes (the follower's attitude applied,
-    never its GPS position), ``v_ned_rel_m_s`` its rate. ``stamp_s`` is when the estimate is valid for and
-    ``last_measurement_s`` when the last detection went into it, both on the service clock.
-    """
-
-    stamp_s: float
-    status: TrackStatus
-    p_ned_rel_m: Vec3T
-    v_ned_rel_m_s: Vec3T
-    last_measurement_s: float
-    #: How long the track has existed, s, and the share of its recent frames (about 1 s) with a detection
-    #: in its gate. Defaults for producers that do not know (a shared or scripted estimate): taken as
-    #: long-lived and always seen.
-    track_age_s: float = math.inf
-    recent_hit_ratio: float = 1.0
-    #: Position covariance diagonal in NED, m^2 (for the external-position fix and logging).
-    var_ned_rel_m2: Vec3T = (0.25, 0.25, 0.25)
-    #: The leader's own acceleration, NED m/s^2, when the tracker estimates it
-    #: (``tracker.leader_accel_filter``).
-    a_ned_leader_m_s2: Vec3T | None = None
-
-    @property
-    def usable(self) -> bool:
-        """Whether the law may fly on it: confirmed, or coasting through a short dropout."""
-        return self.status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)
-
-
-@dataclass(frozen=True, slots=True)
-class ObstacleAhead:
-    """The nearest thing the depth camera sees ahead that is not the tracked leader (the depth guard).
-
-    ``p_ned_rel_m``: its position minus the follower's, NED axes, m, at ``stamp_s`` (service clock).
-    Taken as static by the separation barrier.
-    """
-
-    stamp_s: float
-    p_ned_rel_m: Vec3T
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,15 +17,14 @@ from collections.abc import Callable
 from companion import compat
 from companion.clock import Clock
 from companion.errors import CommandRejectedError, CompanionError, LinkLostError
+from companion.estimation.leader import LeaderEstimate, ObstacleAhead
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     Command,
     CommandKind,
     CommandResult,
-    LeaderEstimate,
     MissionInputs,
     MissionState,
-    ObstacleAhead,
     OperatorCommand,
     SharedLeaderPosition,
     StepOutput,

@@ -21,12 +21,7 @@ from companion.app import Parts, PartsContext, PartsFactory
 from companion.clock import Clock, MonotonicClock
 from companion.config import Config
 from companion.errors import CompanionError, NotBuiltError
-from companion.mission.types import (
-    MissionInputs,
-    SharedLeaderPosition,
-    StepOutput,
-    Transition,
-)
+from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult

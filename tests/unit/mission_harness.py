@@ -12,20 +12,18 @@ from dataclasses import dataclass, field
 
 from companion.clock import ManualClock
 from companion.config import Config
+from companion.estimation.leader import LeaderEstimate, ObstacleAhead, TrackStatus
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     Command,
     CommandKind,
     CommandResult,
-    LeaderEstimate,
     MissionInputs,
     MissionState,
-    ObstacleAhead,
     OperatorCommand,
     Reason,
     SharedLeaderPosition,
     StepOutput,
-    TrackStatus,
     Transition,
 )
 from companion.vehicle.types import FlightMode, LandedState, VehicleState

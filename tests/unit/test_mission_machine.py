@@ -9,15 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import Config, MissionConfig
+from companion.estimation.leader import TrackStatus
 from companion.mission.safety import SafetyLimits, barrier_speed_m_s
-from companion.mission.types import (
-    CommandKind,
-    MissionState,
-    OperatorCommand,
-    Reason,
-    TrackStatus,
-    VisionMode,
-)
+from companion.mission.types import CommandKind, MissionState, OperatorCommand, Reason, VisionMode
 from companion.vehicle.types import (
     AttitudeSetpoint,
     FlightMode,
