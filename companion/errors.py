@@ -58,3 +58,14 @@ class NotBuiltError(CompanionError):
     """A command that exists in the CLI but is not implemented yet."""
 
     exit_code = 2
+
+
+def first_companion_error(group: BaseException) -> CompanionError | None:
+    """The first of our own errors inside a (nested) exception group, such as a TaskGroup's; else None."""
+    for exc in getattr(group, "exceptions", ()):
+        if isinstance(exc, CompanionError):
+            return exc
+        found = first_companion_error(exc)
+        if found is not None:
+            return found
+    return None

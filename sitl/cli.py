@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from companion import __version__
+from companion.cli import describe_commands
 from companion.errors import CompanionError
 
 Handler = Callable[[argparse.Namespace], int]
@@ -121,20 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     r.add_argument("--frames", type=int, default=300, help="frames to render (default 300)")
     r.set_defaults(handler=_lazy("sitl.render.bench", "main", "bench-render"))
-    _describe(parser)
+    describe_commands(parser)
     return parser
-
-
-def _describe(parser: argparse.ArgumentParser) -> None:
-    """Every (sub)command without a description gets its one-line help as one."""
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            helps = {a.dest: a.help for a in action._choices_actions}
-            for name, sub in action.choices.items():
-                if not sub.description and helps.get(name):
-                    text = str(helps[name])
-                    sub.description = text[0].upper() + text[1:] + ("" if text.endswith(".") else ".")
-                _describe(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -16,7 +16,7 @@ from typing import Any
 from companion import compat
 from companion.commands._common import add_config_arg, load
 from companion.config import Config
-from companion.errors import CompanionError
+from companion.errors import first_companion_error
 
 log = logging.getLogger("companion")
 
@@ -44,7 +44,7 @@ def _run(args: argparse.Namespace) -> int:
         code = asyncio.run(_serve(cfg, notify, creds, guard))
     except compat.BaseExceptionGroup as eg:
         guard.arm(TEARDOWN_GRACE_S, 1, "teardown after an error")
-        raise _first_companion_error(eg) or eg from None
+        raise first_companion_error(eg) or eg from None
     guard.arm(TEARDOWN_GRACE_S, code, "teardown")
     return code
 
@@ -109,15 +109,3 @@ class ExitGuard:
         faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
         logging.shutdown()
         os._exit(code)
-
-
-def _first_companion_error(eg: compat.BaseExceptionGroup[Any]) -> CompanionError | None:
-    """The first of our own errors inside a TaskGroup's group (the CLI maps it to an exit code)."""
-    for exc in eg.exceptions:
-        if isinstance(exc, CompanionError):
-            return exc
-        if isinstance(exc, compat.BaseExceptionGroup):
-            found = _first_companion_error(exc)
-            if found is not None:
-                return found
-    return None

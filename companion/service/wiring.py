@@ -20,7 +20,7 @@ from companion import compat
 from companion.app import Parts, PartsContext, PartsFactory
 from companion.clock import Clock, MonotonicClock
 from companion.config import Config
-from companion.errors import CompanionError, NotBuiltError
+from companion.errors import CompanionError, NotBuiltError, first_companion_error
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 from companion.service.flight_core import FlightCore
@@ -374,7 +374,7 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
                 task.cancel()
             v = link.snapshot()
     except (CompanionError, compat.ExceptionGroup) as exc:
-        err = exc if isinstance(exc, CompanionError) else _companion_error(exc)
+        err = exc if isinstance(exc, CompanionError) else first_companion_error(exc)
         if err is None:
             raise
         return [
@@ -399,15 +399,3 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
             f"fix type {v.gps_fix_type}, {v.gps_satellites} satellites",
         ),
     ]
-
-
-def _companion_error(eg: compat.BaseExceptionGroup[Any]) -> CompanionError | None:
-    """The first of our own errors in a TaskGroup's group (the link's refusal of the leader)."""
-    for exc in eg.exceptions:
-        if isinstance(exc, CompanionError):
-            return exc
-        if isinstance(exc, compat.BaseExceptionGroup):
-            found = _companion_error(exc)
-            if found is not None:
-                return found
-    return None
