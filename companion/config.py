@@ -135,7 +135,7 @@ class DetectorConfig(Section):
     #: Network input (px) for the whole frame when there is no window on the leader (acquiring, lost) or the
     #: window found nothing: 640 searches a 640x480 frame at 1:1 instead of the 0.5x of ``input_size_px``.
     #: A quad 7 m away against the horizon was not found at 0.5x in 4 s of re-acquisition and was at 1:1
-    #: (leader-occluded seed 9, docs/evaluation.md "Stop 20"); the search costs ~4x the small input.
+    #: (leader-occluded seed 9); the search costs ~4x the small input.
     search_input_px: int = Field(640, ge=128, le=1280, multiple_of=32)
 
 
@@ -179,10 +179,10 @@ class PoseConfig(Section):
     #: The size is learnt from depth measurements from this fraction of ``depth_max_m`` out to 0.95 of it.
     #: The network's box height barely changes with range (0.333 / 0.330 / 0.329 m apparent at 3-7.5 /
     #: 7.5-10 / 10-12 m on the weave) but swings 5-10 % with the leader's tilt and yaw, so the mean over
-    #: the wider band is the better size: 0.75 (the last 2 s before the cut-off) gave issue 5's 6-12 m
+    #: the wider band is the better size: 0.75 (the last 2 s before the cut-off) gave the 6-12 m
     #: band 0.266 m on the weave and 0.389 m on a fresh render of it, 0.5 gives 0.157 / 0.221 (the arc,
     #: inside 10 m for only 2 s before going out, is unchanged). Exact renderer boxes grow at close range
-    #: and do better at 0.75: check a retrained detector (docs/perception.md "Stop 21").
+    #: and do better at 0.75: check a retrained detector (docs/perception.md).
     size_learn_min_frac: float = Field(0.5, ge=0.0, lt=0.95)
     #: ...but not nearer than this fraction of ``depth_max_m``: a leader that near returns stereo depth
     #: (the D435i noise model's holes are single pixels), so a box with none there is something beyond
@@ -197,7 +197,7 @@ class PoseConfig(Section):
     #: box is searched again for a sparser cluster in front, where its size puts the leader, and takes
     #: it when there is one. A correct box is 1.1-1.5x (a loose one up to ~2x: it keeps its cluster).
     #: leader-occluded seed 7 re-acquired a leader 4.4 m away at the tree's 7.2 m (size ratio 2.0-2.5),
-    #: flew at it and came within 0.57 m (docs/evaluation.md "Stop 20"). 0 turns it off.
+    #: flew at it and came within 0.57 m (measured in lockstep). 0 turns it off.
     size_suspect_ratio: float = Field(1.8, ge=0.0)
 
 
@@ -271,11 +271,11 @@ class FormationConfig(Section):
     #: The same lead on the vertical, s. 0: none. PX4's vertical velocity loop is about twice as fast as the
     #: horizontal (MPC_Z_VEL_P_ACC 4 against MPC_XY_VEL_P_ACC 1.8), and the vertical acceleration estimate
     #: is the noisiest (elevation and the follower's pitch): under link-loss's late attitudes it swung the
-    #: height 0.3-0.6 m (docs/evaluation.md "Stop 21").
+    #: height 0.3-0.6 m (lockstep, seeds 1-4).
     leader_accel_ff_z_s: float = Field(0.0, ge=0.0, le=2.0)
     #: Low-pass time constant of that acceleration estimate (the derivative of the leader's velocity), s.
     #: 0.2 with ff 0.7 (was 0.3 / 0.6) and the lead dropped while coasting: straight lockstep seeds 1-8
-    #: mean max deviation 0.338 -> 0.295 m (docs/evaluation.md "Stop 21").
+    #: mean max deviation 0.338 -> 0.295 m (lockstep).
     leader_accel_tau_s: float = Field(0.2, gt=0.0, le=5.0)
     #: Keep the acceleration lead while the track coasts (no detection). False drops it then: a coasting
     #: estimate's velocity is extrapolated, and the faster lead amplified it (circle seed 3 with tau 0.2 and
@@ -286,15 +286,15 @@ class FormationConfig(Section):
     max_accel_m_s2: float = Field(3.0, gt=0)
     #: How fast the velocity command may change, m/s^2 (a first command that jumped to the full PID output
     #: pitched the vehicle past 40 deg). Faster cuts the leader-start lag but, for every track, lost the
-    #: leader in leader-occluded (8.0: 8 of 8 seeds landed, stop 15), so only a steady track gets the
-    #: faster ``command_slew_steady_m_s2``; this one also bounds the vertical (docs/evaluation.md).
+    #: leader in leader-occluded (8.0: 8 of 8 seeds landed with an earlier detector), so only a steady
+    #: track gets the faster ``command_slew_steady_m_s2``; this one also bounds the vertical.
     command_slew_m_s2: float = Field(3.0, gt=0)
     #: The slew while the track is steady: confirmed and seen in at least ``steady_hit_ratio`` of its
     #: recent frames (``tracker.quality_window_frames``), and the link on time (``steady_link_age_s``),
     #: m/s^2; horizontal only (the vertical keeps ``command_slew_m_s2``). 8.0 against 3.0 (lockstep, mean
-    #: max deviation, seeds 1-4, docs/evaluation.md "Stop 20"): straight 0.416 -> 0.350 m, circle,
+    #: max deviation, seeds 1-4, lockstep): straight 0.416 -> 0.350 m, circle,
     #: gps-loss, figure8 and wind 14-24 % lower. It was off (3.0) while it cost leader-occluded seeds, until
-    #: the detector learnt trees (stop 19) and the whole-frame search went to 1:1 (``search_input_px``).
+    #: the detector learnt trees and the whole-frame search went to 1:1 (``search_input_px``).
     command_slew_steady_m_s2: float = Field(8.0, gt=0)
     #: The attitude's age averaged over ~1 s above this (s) marks the link late: the fast slew waits
     #: ``steady_link_hold_s``. Under link-loss's 30 % loss and 40 ms latency the fast slew swung the height

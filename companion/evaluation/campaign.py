@@ -346,7 +346,7 @@ async def _run_children(
         # Mixed harnesses ('all'): the real-path runs alone, one at a time (they run in real time and must
         # keep their camera and control rates), then the lockstep runs ``jobs`` at a time. A niced lockstep
         # run beside the real path still delayed the follower's start by ~0.25 s on two cores (straight
-        # seed 1: 0.353 m against 0.247 m alone; docs/evaluation.md "Stop 21").
+        # seed 1: 0.353 m against 0.247 m alone; measured with companion sim).
         await lane(real, 1)
         await lane(lockstep, jobs)
     else:

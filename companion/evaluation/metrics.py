@@ -34,7 +34,7 @@ PAPER_ROW_NAMES: Mapping[str, str] = {
     "gps-loss": "Sensor failure (GPS)",
     "visibility": "Visibility stress test",
 }
-#: Issue #8's targets: about 2x better than the paper.
+#: The project's targets: about 2x better than the paper.
 TARGETS: Mapping[str, Mapping[str, float]] = {
     "straight": {
         "relative_position_rmse_m": 0.12,

@@ -6,7 +6,7 @@ Used by both evaluation harnesses; the service never sees any of it. Definitions
   ``crash_tilt_deg`` in the air, or came within ``collision_m`` of the leader (centre to centre).
 * **on the ground**: height of the centre of gravity above its resting height below ``ground_band_m`` and
   slower than ``still_m_s``. A touchdown is the first sample on the ground after having been airborne; its
-  vertical speed is the one reported (issue #6's land policy asks for <= 1 m/s).
+  vertical speed is the one reported (the land policy's bar is <= 1 m/s).
 """
 
 from __future__ import annotations

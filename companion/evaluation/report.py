@@ -150,7 +150,7 @@ def summary_markdown(reports: Mapping[str, Mapping[str, Any]]) -> str:
         "",
         "Paper: XTDrone/Gazebo SITL, YOLOv8 on an RTX 3060. Ours: Wingman SITL (JSBSim, PX4-like autopilot "
         "over MAVLink); the harness and detector of each run are in the second table. Lower is better; "
-        "the targets are issue #8's.",
+        "the targets are the project's, about twice as tight as the paper's.",
         "",
         *_detector_note(reports),
         "| scenario | position RMSE (m) paper / ours | yaw RMSE (deg) paper / ours "

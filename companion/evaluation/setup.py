@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 #: The folder with config/ and models/ (the working folder, the installed copy or the checkout).
 REPO = project_root()
 SCENARIO_DIR = REPO / "config" / "scenarios"
-#: Scenarios beyond the eight of ``--scenario all`` (issue #6's policy variants).
+#: Scenarios beyond the eight of ``--scenario all`` (the GPS-loss and leader-loss policy variants).
 VARIANT_DIR = SCENARIO_DIR / "variants"
 DEFAULT_CONFIG = REPO / "config" / "wingman.toml"
 SITL_CONFIG = REPO / "config" / "sitl.toml"

@@ -364,7 +364,7 @@ class FormationLaw:
         v = clamp_speed(raw, lim)
         if self._v_prev is not None:
             # Horizontal and vertical slew apart: only the horizontal follows the leader's speed changes;
-            # a fast vertical slew swung the height under a lossy link (docs/evaluation.md "Stop 20").
+            # a fast vertical slew swung the height under a lossy link (measured in lockstep).
             step_s = dt if dt > 0.0 else FIRST_SLEW_DT_S
             slew = cfg.command_slew_m_s2 if slew_m_s2 is None else slew_m_s2
             dv = v - self._v_prev

@@ -25,7 +25,7 @@ RANGE_BINS_M: tuple[tuple[float, float], ...] = (
     (10.0, 12.0),
     (12.0, math.inf),
 )
-#: The acceptance bands of issue 5.
+#: The acceptance bands of the pose accuracy targets (m, by range).
 BANDS_M: tuple[tuple[float, float], ...] = ((0.0, 6.0), (6.0, 12.0))
 
 

@@ -384,7 +384,7 @@ class SizeCalibrator:
         """The apparent size of a box found at ``scale`` (the configured prior until enough updates there).
 
         A box found 1:1 is not as tight as one found magnified in the window: learnt from the window's
-        boxes, the size read a 1:1 box's range as a jump (issue 5's far band, docs/perception.md).
+        boxes, the size read a 1:1 box's range as a jump (the 6-12 m band, docs/perception.md).
         """
         stats = self._stats.get(scale_key(scale))
         for w, h in () if stats is None else stats:
