@@ -1,7 +1,8 @@
-"""Builds the real parts (vehicle link, mission runner, frame source, detector, tracker) for the service.
+"""Builds the real parts (vehicle link, frame source, detector, flight core) for the service.
 
-This is the only module of the service that imports the flight and perception packages; it adapts them
-to :mod:`companion.service.ports`. Everything is imported when the service starts, not at import time.
+With :mod:`companion.service.flight_core` (the glue from a frame to a setpoint, shared with the lockstep
+harness) this is where the service meets the flight and perception packages; it adapts them to
+:mod:`companion.service.ports`. The CLI imports it when the service starts, not before.
 """
 
 from __future__ import annotations
