@@ -98,6 +98,7 @@ def sitl_serve(
     extra_env: dict[str, str] | None = None,
     vehicles: int = 2,
     args: list[str] | None = None,
+    camera: Path | None = None,
 ) -> Iterator[SitlProcess]:
     """Start ``python -m sitl serve`` and wait until it says it is running; always stop it."""
     ports = pick_ports(vehicles)
@@ -105,7 +106,8 @@ def sitl_serve(
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     env.update(ports.env())
     env.update(extra_env or {})
-    cmd = [sys.executable, "-m", "sitl", "serve", "--no-camera", "--speed", str(speed)]
+    cmd = [sys.executable, "-m", "sitl", "serve", "--speed", str(speed)]
+    cmd += ["--camera", str(camera)] if camera is not None else ["--no-camera"]
     cmd += ["--config", str(config or REPO / "config" / "sitl.toml")]
     if scenario is not None:
         cmd += ["--scenario", str(scenario)]
