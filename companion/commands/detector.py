@@ -21,9 +21,33 @@ def register(sub: Any) -> None:
     p = sub.add_parser("detector", help="train, evaluate and export the leader detector")
     dsub = p.add_subparsers(dest="detector_command", metavar="ACTION", required=True)
 
-    t = dsub.add_parser("train", help="train on a `sitl dataset` folder (train/val splits)")
+    t = dsub.add_parser(
+        "train", help="train on one or more datasets mixed per batch (`sitl dataset` folders, real frames)"
+    )
     add_config_arg(t)
-    t.add_argument("--data", required=True, help="dataset folder")
+    t.add_argument(
+        "--data",
+        required=True,
+        action="append",
+        metavar="[NAME=]DIR[:WEIGHT]",
+        help="dataset folder, repeatable; WEIGHT is its share of every batch (e.g. real=DIR:0.5)",
+    )
+    t.add_argument(
+        "--arch",
+        choices=("shufflenetv2-fpn", "leadernet"),
+        default="shufflenetv2-fpn",
+        help="network (shufflenetv2-fpn: ShuffleNetV2 0.5x backbone + light FPN)",
+    )
+    t.add_argument(
+        "--backbone", default="", help="pretrained ShuffleNetV2 0.5x state dict (shufflenetv2-fpn only)"
+    )
+    t.add_argument(
+        "--holdout", type=float, default=0.1, help="share of recordings of a flat folder held out to validate"
+    )
+    t.add_argument("--epoch-images", type=int, default=0, help="images per epoch (0: all training images)")
+    t.add_argument(
+        "--augment", choices=("default", "real-camera"), default="real-camera", help="augmentation recipe"
+    )
     t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
     t.add_argument("--epochs", type=int, default=30)
     t.add_argument("--batch-size", type=int, default=32)
@@ -74,13 +98,27 @@ def register(sub: Any) -> None:
 
 def _train(args: argparse.Namespace) -> int:
     load(args)
-    from companion.perception.detector.train import TrainConfig, train
+    from companion.perception.detector.augment import REAL_CAMERA, AugmentConfig
+    from companion.perception.detector.model import ModelSpec, ShuffleDetSpec
+    from companion.perception.detector.train import TrainConfig, parse_source, train
 
     if args.crop > args.input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
         return 2
+    try:
+        sources = tuple(parse_source(d) for d in args.data)
+    except ValueError as exc:
+        print(f"companion detector train: {exc}", file=sys.stderr)
+        return 2
+    single = len(sources) == 1 and sources[0].weight == 1.0 and "=" not in args.data[0]
     cfg = TrainConfig(
-        data=str(args.data),
+        data=sources[0].path if single else "",
+        sources=() if single else sources,
+        holdout_fraction=args.holdout,
+        epoch_images=args.epoch_images,
+        backbone_weights=args.backbone,
+        spec=ShuffleDetSpec() if args.arch == "shufflenetv2-fpn" else ModelSpec(),
+        augment=REAL_CAMERA if args.augment == "real-camera" else AugmentConfig(),
         out=str(args.out),
         epochs=args.epochs,
         batch_size=args.batch_size,
