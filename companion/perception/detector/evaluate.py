@@ -82,10 +82,10 @@ def worst_cases(stats: DetectionStats, conf_threshold: float, n: int) -> tuple[l
                 over = iou[g] >= MATCH_IOU
                 best = float(r.pred_scores[over].max()) if over.any() else 0.0
             misses.append(Case("miss", i, _tuple(box), best))
-        matched_gt = (
-            (box_iou(pb, r.gt_boxes) >= MATCH_IOU).any(1) if len(r.gt_boxes) else np.zeros(len(pb), bool)
-        )
-        for box, score, hit in zip(pb, ps, matched_gt, strict=True):
+        matched_gt: NDArray[np.bool_] = np.zeros(len(pb), bool)
+        if len(r.gt_boxes) and len(pb):
+            matched_gt = np.asarray((box_iou(pb, r.gt_boxes) >= MATCH_IOU).any(1), bool)
+        for box, score, hit in zip(pb, ps, matched_gt.tolist(), strict=True):
             if not hit:
                 fps.append(Case("false positive", i, _tuple(box), float(score)))
     misses.sort(key=lambda c: c.score)

@@ -428,8 +428,8 @@ class LightHead(nn.Module):
         self.stem = SepConv(c, c, k)
         self.box = nn.Conv2d(c, 4 * reg_max, 1)
         self.cls = nn.Conv2d(c, 1, 1)
-        nn.init.constant_(self.cls.bias, math.log(1.0 / (320 / stride) ** 2))
-        nn.init.constant_(self.box.bias, 1.0)
+        nn.init.constant_(self.cls.bias, math.log(1.0 / (320 / stride) ** 2))  # type: ignore[arg-type]
+        nn.init.constant_(self.box.bias, 1.0)  # type: ignore[arg-type]
 
     def forward(self, x: Tensor) -> Tensor:
         y = self.stem(x)
