@@ -82,7 +82,9 @@ def register(sub: Any) -> None:
         help="folder with images/ and labels/ (or a dataset with splits); repeatable, reported per source",
     )
     e.add_argument(
-        "--split", default=None, help="split to evaluate (default: 'test' when the folder has splits)"
+        "--split",
+        default=None,
+        help="split to evaluate (default: 'test' when the folder has splits; folders without splits: all)",
     )
     e.add_argument("--json", default=None, help="write the metrics to this JSON file")
     e.add_argument(
@@ -193,9 +195,12 @@ def _eval(args: argparse.Namespace) -> int:
         if not sep or "/" in name:
             name, rest = "", text
         data = Path(rest)
+        splits = list_splits(data) if data.is_dir() else []
         split = args.split
-        if split is None and data.is_dir() and "test" in list_splits(data):
+        if split is None and "test" in splits:
             split = "test"
+        elif split is not None and data.is_dir() and not splits:
+            split = None  # a flat folder (e.g. real frames): all of its images
         sources.append((name or data.name, data, split))
     try:
         sample_sets = [find_samples(data, split) for _, data, split in sources]
