@@ -454,9 +454,8 @@ def train(
         if not last.exists():
             raise FileNotFoundError(f"--resume: no checkpoint at {last}")
         ck = torch.load(last, map_location=device, weights_only=False)
-        same_data = ck["config"]["data"] == cfg.data and ck["config"].get("sources", []) == [
-            asdict(x) for x in cfg.sources
-        ]
+        saved = [dict(x) for x in ck["config"].get("sources", ())]
+        same_data = ck["config"]["data"] == cfg.data and saved == [asdict(x) for x in cfg.sources]
         same_spec = ck["config"]["spec"] == cfg.spec.to_dict() and ck["config"].get(
             "arch", "leadernet"
         ) == arch_of(cfg.spec)
