@@ -41,6 +41,8 @@ class AugmentConfig:
     exposure_p: float = 0.0
     white_balance_p: float = 0.0
     codec_p: float = 0.0
+    #: Blur includes defocus (a disc) and noise includes shot noise (off: Gaussian/motion blur, read noise).
+    camera_model: bool = False
     #: Keep a clipped box only when this much of its area stays inside and it is this big.
     min_visible_fraction: float = 0.35
     min_box_px: float = 2.0
@@ -190,6 +192,7 @@ REAL_CAMERA = AugmentConfig(
     exposure_p=0.5,
     white_balance_p=0.4,
     codec_p=0.3,
+    camera_model=True,
 )
 
 
@@ -228,13 +231,13 @@ def defocus(img: Image, radius_px: float) -> Image:
     return np.asarray(cv2.filter2D(img, -1, kernel), np.uint8)
 
 
-def blur(img: Image, rng: np.random.Generator) -> Image:
-    """Gaussian blur, defocus (disc) or a short linear motion blur at a random angle."""
+def blur(img: Image, rng: np.random.Generator, with_defocus: bool = True) -> Image:
+    """Gaussian blur, defocus (a disc; ``with_defocus``) or a short linear motion blur at a random angle."""
     u = rng.random()
-    if u < 0.35:
+    if u < (0.35 if with_defocus else 0.5):
         sigma = rng.uniform(0.4, 1.4)
         return np.asarray(cv2.GaussianBlur(img, (0, 0), sigma), np.uint8)
-    if u < 0.55:
+    if with_defocus and u < 0.55:
         return defocus(img, rng.uniform(1.0, 2.0))
     length = int(rng.integers(3, 8))
     kernel = np.zeros((length, length), np.float32)
@@ -245,8 +248,12 @@ def blur(img: Image, rng: np.random.Generator) -> Image:
     return np.asarray(cv2.filter2D(img, -1, kernel), np.uint8)
 
 
-def sensor_noise(img: Image, rng: np.random.Generator) -> Image:
-    """Read noise (Gaussian, sigma 2-8 grey levels), half the time plus shot noise growing with brightness."""
+def sensor_noise(img: Image, rng: np.random.Generator, shot: bool = True) -> Image:
+    """Read noise (Gaussian, sigma 2-8 grey levels); ``shot``: half the time plus brightness-scaled noise."""
+    if not shot:
+        gauss = rng.normal(0.0, rng.uniform(2.0, 8.0), img.shape).astype(np.float32)
+        plain: Image = np.clip(img.astype(np.float32) + gauss, 0, 255).astype(np.uint8)
+        return plain
     x = img.astype(np.float32)
     sigma = np.float32(rng.uniform(2.0, 8.0))
     if rng.random() < 0.5:
@@ -336,9 +343,9 @@ def training_sample(
     if rng.random() < cfg.gray_p:
         img = grey(img)
     if rng.random() < cfg.blur_p:
-        img = blur(img, rng)
+        img = blur(img, rng, cfg.camera_model)
     if rng.random() < cfg.noise_p:
-        img = sensor_noise(img, rng)
+        img = sensor_noise(img, rng, cfg.camera_model)
     if cfg.codec_p and rng.random() < cfg.codec_p:
         img = codec(img, rng)
     elif rng.random() < cfg.jpeg_p:

@@ -68,3 +68,21 @@ def test_real_camera_recipe_is_a_pure_function_of_the_seed(tiny_dataset: Path, t
     b = training_sample(cache, 2, size_px=96, ref_px=128, rng=np.random.default_rng([5, 1]), cfg=REAL_CAMERA)
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_default_recipe_draws_blur_and_noise_as_without_the_camera_model() -> None:
+    img = _img()
+    from companion.perception.detector.augment import blur
+
+    for seed in range(6):
+        a = blur(img, np.random.default_rng(seed), with_defocus=False)
+        rng = np.random.default_rng(seed)
+        if rng.random() < 0.5:
+            import cv2
+
+            b = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.4, 1.4))
+            np.testing.assert_array_equal(a, b)
+    plain = sensor_noise(img, np.random.default_rng(3), shot=False)
+    rng = np.random.default_rng(3)
+    ref = np.clip(img.astype(np.float32) + rng.normal(0.0, rng.uniform(2.0, 8.0), img.shape), 0, 255)
+    np.testing.assert_array_equal(plain, ref.astype(np.uint8))
