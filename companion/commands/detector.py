@@ -21,9 +21,33 @@ def register(sub: Any) -> None:
     p = sub.add_parser("detector", help="train, evaluate and export the leader detector")
     dsub = p.add_subparsers(dest="detector_command", metavar="ACTION", required=True)
 
-    t = dsub.add_parser("train", help="train on a `sitl dataset` folder (train/val splits)")
+    t = dsub.add_parser(
+        "train", help="train on one or more datasets mixed per batch (`sitl dataset` folders, real frames)"
+    )
     add_config_arg(t)
-    t.add_argument("--data", required=True, help="dataset folder")
+    t.add_argument(
+        "--data",
+        required=True,
+        action="append",
+        metavar="[NAME=]DIR[:WEIGHT]",
+        help="dataset folder, repeatable; WEIGHT is its share of every batch (e.g. real=DIR:0.5)",
+    )
+    t.add_argument(
+        "--arch",
+        choices=("shufflenetv2-fpn", "leadernet"),
+        default="shufflenetv2-fpn",
+        help="network (shufflenetv2-fpn: ShuffleNetV2 0.5x backbone + light FPN)",
+    )
+    t.add_argument(
+        "--backbone", default="", help="pretrained ShuffleNetV2 0.5x state dict (shufflenetv2-fpn only)"
+    )
+    t.add_argument(
+        "--holdout", type=float, default=0.1, help="share of recordings of a flat folder held out to validate"
+    )
+    t.add_argument("--epoch-images", type=int, default=0, help="images per epoch (0: all training images)")
+    t.add_argument(
+        "--augment", choices=("default", "real-camera"), default="real-camera", help="augmentation recipe"
+    )
     t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
     t.add_argument("--epochs", type=int, default=30, help="epochs in the learning-rate schedule (default 30)")
     t.add_argument("--batch-size", type=int, default=32, help="images per step (default 32)")
@@ -46,13 +70,34 @@ def register(sub: Any) -> None:
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(handler=_train)
 
-    e = dsub.add_parser("eval", help="precision, recall, mAP on a folder of images with YOLO labels")
+    e = dsub.add_parser(
+        "eval", help="precision, recall, mAP, false positives on folders of images with YOLO labels"
+    )
     add_config_arg(e)
-    e.add_argument("--data", required=True, help="folder with images/ and labels/ (or a dataset with splits)")
     e.add_argument(
-        "--split", default=None, help="split to evaluate (default: 'test' when the folder has splits)"
+        "--data",
+        required=True,
+        action="append",
+        metavar="[NAME=]DIR",
+        help="folder with images/ and labels/ (or a dataset with splits); repeatable, reported per source",
+    )
+    e.add_argument(
+        "--split",
+        default=None,
+        help="split to evaluate (default: 'test' when the folder has splits; folders without splits: all)",
     )
     e.add_argument("--json", default=None, help="write the metrics to this JSON file")
+    e.add_argument(
+        "--by",
+        default="distance_bin,drone_type,airframe,time_of_day",
+        help="manifest columns reported per value (those a folder's manifest has)",
+    )
+    e.add_argument(
+        "--sheet",
+        default=None,
+        help="write a contact sheet PNG of the worst misses and false positives here (NAME inserted "
+        "before .png when there are several sources)",
+    )
     e.add_argument(
         "--model", default=None, help="weights (.pt) or export (.onnx); default: detector.model_path"
     )
@@ -74,13 +119,27 @@ def register(sub: Any) -> None:
 
 def _train(args: argparse.Namespace) -> int:
     load(args)
-    from companion.perception.detector.train import TrainConfig, train
+    from companion.perception.detector.augment import REAL_CAMERA, AugmentConfig
+    from companion.perception.detector.model import ModelSpec, ShuffleDetSpec
+    from companion.perception.detector.train import TrainConfig, parse_source, train
 
     if args.crop > args.input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
         return 2
+    try:
+        sources = tuple(parse_source(d) for d in args.data)
+    except ValueError as exc:
+        print(f"companion detector train: {exc}", file=sys.stderr)
+        return 2
+    single = len(sources) == 1 and sources[0].weight == 1.0 and "=" not in args.data[0]
     cfg = TrainConfig(
-        data=str(args.data),
+        data=sources[0].path if single else "",
+        sources=() if single else sources,
+        holdout_fraction=args.holdout,
+        epoch_images=args.epoch_images,
+        backbone_weights=args.backbone,
+        spec=ShuffleDetSpec() if args.arch == "shufflenetv2-fpn" else ModelSpec(),
+        augment=REAL_CAMERA if args.augment == "real-camera" else AugmentConfig(),
         out=str(args.out),
         epochs=args.epochs,
         batch_size=args.batch_size,
@@ -130,26 +189,71 @@ def _eval(args: argparse.Namespace) -> int:
     if args.conf is not None:
         updates["conf_threshold"] = args.conf
     det_cfg = det_cfg.model_copy(update=updates)
-    data = Path(args.data)
-    split = args.split
-    if split is None and data.is_dir() and "test" in list_splits(data):
-        split = "test"
+    sources: list[tuple[str, Path, str | None]] = []
+    for text in args.data:
+        name, sep, rest = text.partition("=")
+        if not sep or "/" in name:
+            name, rest = "", text
+        data = Path(rest)
+        splits = list_splits(data) if data.is_dir() else []
+        split = args.split
+        if split is None and "test" in splits:
+            split = "test"
+        elif split is not None and data.is_dir() and not splits:
+            split = None  # a flat folder (e.g. real frames): all of its images
+        sources.append((name or data.name, data, split))
     try:
-        samples = find_samples(data, split)
+        sample_sets = [find_samples(data, split) for _, data, split in sources]
     except FileNotFoundError as exc:
         print(f"companion detector eval: {exc}", file=sys.stderr)
         return 2
     detector = _load_unverified_ok(det_cfg)
-    summary = evaluate(detector, samples, progress=not args.no_progress)
-    summary["data"] = str(data)
-    summary["split"] = split
-    summary["model"] = det_cfg.model_path
-    print(f"{data}{f' [{split}]' if split else ''}: {detector.runtime} at {detector.input_size_px} px")
-    print(format_summary(summary))
+    columns = [c.strip() for c in args.by.split(",") if c.strip()]
+    results: dict[str, Any] = {}
+    for (name, data, split), samples in zip(sources, sample_sets, strict=True):
+        sheet = None
+        if args.sheet:
+            sheet = Path(args.sheet)
+            if len(sources) > 1:
+                sheet = sheet.with_name(f"{sheet.stem}_{name}{sheet.suffix or '.png'}")
+        summary = evaluate(detector, samples, progress=not args.no_progress, columns=columns, sheet=sheet)
+        summary["data"] = str(data)
+        summary["split"] = split
+        summary["model"] = det_cfg.model_path
+        results[name] = summary
+        print(f"{data}{f' [{split}]' if split else ''}: {detector.runtime} at {detector.input_size_px} px")
+        print(format_summary(summary))
+        print(format_groups(summary["by_column"]))
+        if sheet is not None:
+            print(f"contact sheet: {sheet}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(_json_ready(summary), indent=2))
+        doc = next(iter(results.values())) if len(results) == 1 else {"sources": results}
+        Path(args.json).write_text(json.dumps(_json_ready(doc), indent=2))
     return 0
+
+
+def format_groups(by_column: dict[str, dict[str, dict[str, Any]]]) -> str:
+    """Per manifest column and value: recall and mAP@0.5 on its boxes, false positives on its empty frames."""
+
+    def pct(v: Any) -> str:
+        return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f}%"
+
+    lines = []
+    for col, per in by_column.items():
+        lines.append(f"by {col}:")
+        for value, f in per.items():
+            parts = [f"{f['images']} images"]
+            if f["leader_boxes"]:
+                parts.append(
+                    f"recall {pct(f['recall'])}, mAP@0.5 {pct(f['map50'])} ({f['leader_boxes']} boxes)"
+                )
+            if f["leader_free_images"]:
+                parts.append(
+                    f"false positives {pct(f['leader_free_fp_rate'])} of {f['leader_free_images']} empty"
+                )
+            lines.append(f"  {value:<16} " + "; ".join(parts))
+    return "\n".join(lines)
 
 
 def _load_unverified_ok(det_cfg: Any) -> Any:

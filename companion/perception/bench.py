@@ -236,3 +236,111 @@ def format_bench(result: dict[str, Any]) -> str:
                 f"{n}: the window found nothing and the whole frame was searched too on {fb:.0%} of frames"
             )
     return "\n".join(lines)
+
+
+def onnx_input_shape(path: str) -> tuple[int, int] | None:
+    """The fixed (H, W) input of an ONNX model, or None when H or W is dynamic."""
+    import onnxruntime as ort  # noqa: PLC0415
+
+    so = ort.SessionOptions()
+    so.log_severity_level = 3
+    shape = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"]).get_inputs()[0].shape
+    h, w = shape[2], shape[3]
+    return (h, w) if isinstance(h, int) and isinstance(w, int) else None
+
+
+def compare_onnx_models(
+    models: dict[str, str],
+    frames: list[RgbdFrame],
+    input_size_px: int,
+    threads: int = 2,
+    warmup: int = 10,
+) -> dict[str, Any]:
+    """Inference time of several ONNX models (name -> path) on the same frames, interleaved frame by frame.
+
+    A Wingman export (dynamic input) gets each frame letterboxed at ``input_size_px`` as at run time; a
+    peer model with a fixed input (e.g. FastestDet, 352x352) gets the frame resized to that input. Only the
+    ONNX Runtime call is timed (2 threads, no spinning, as :class:`OnnxEngine`).
+    """
+    import cv2  # noqa: PLC0415
+    import onnxruntime as ort  # noqa: PLC0415
+
+    from companion.perception.detector.letterbox import Letterboxer  # noqa: PLC0415
+
+    sessions = {}
+    for name, path in models.items():
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        so.log_severity_level = 3
+        sess = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+        fixed = onnx_input_shape(path)
+        sessions[name] = (sess, sess.get_inputs()[0].name, fixed, Letterboxer(input_size_px))
+    samples: dict[str, list[float]] = {n: [] for n in models}
+    shapes: dict[str, list[int]] = {}
+    for i in range(-warmup, len(frames)):
+        rgb = frames[i % len(frames)].rgb
+        for name, (sess, input_name, fixed, lb) in sessions.items():
+            if fixed is None:
+                x, _ = lb(rgb)
+            else:
+                resized = cv2.resize(rgb[..., ::-1], (fixed[1], fixed[0]), interpolation=cv2.INTER_AREA)
+                x = np.ascontiguousarray(resized.transpose(2, 0, 1)[None], np.float32) / np.float32(255.0)
+            shapes[name] = list(x.shape)
+            t0 = time.perf_counter()
+            sess.run(None, {input_name: x})
+            dt = (time.perf_counter() - t0) * 1e3
+            if i >= 0:
+                samples[name].append(dt)
+    return {
+        "frames": len(frames),
+        "threads": threads,
+        "load_average_1_5_15": _load_average(),
+        "models": {
+            n: {"path": models[n], "input_shape": shapes[n], "inference": percentiles_ms(samples[n])}
+            for n in models
+        },
+    }
+
+
+def format_comparison(result: dict[str, Any]) -> str:
+    """The model comparison as lines of p50 / p95 / p99 ms."""
+    lines = [
+        f"ONNX Runtime inference, {result['frames']} frames, {result['threads']} threads, "
+        f"load average {result['load_average_1_5_15']}"
+    ]
+    for name, m in result["models"].items():
+        v = m["inference"]
+        shape = "x".join(str(d) for d in m["input_shape"][2:])
+        lines.append(
+            f"{name:<24} input {shape:>8}  "
+            f"p50 {v['p50_ms']:6.2f}  p95 {v['p95_ms']:6.2f}  p99 {v['p99_ms']:6.2f} ms"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m companion.perception.bench NAME=MODEL.onnx ...``: time ONNX models side by side."""
+    import argparse  # noqa: PLC0415
+    import json  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m companion.perception.bench", description=main.__doc__)
+    p.add_argument("models", nargs="+", metavar="NAME=MODEL.onnx")
+    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--input-size", type=int, default=320, help="letterbox size of Wingman exports, px")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--json", default=None)
+    args = p.parse_args(argv)
+    models = dict(m.split("=", 1) if "=" in m else (m, m) for m in args.models)
+    result = compare_onnx_models(models, synthetic_frames(args.frames), args.input_size, args.threads)
+    print(format_comparison(result))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,7 +1,9 @@
 """Training augmentations (numpy + OpenCV), each a pure function of its inputs and a seeded generator.
 
 Geometry: mosaic (four images around a random centre) or a single image at a random scale and position;
-horizontal flips. Appearance: HSV jitter, Gaussian or motion blur, sensor noise, JPEG artefacts, greyscale,
+horizontal flips. Appearance, covering what real cameras do to a frame: HSV jitter, exposure (gain and
+gamma), white balance (per-channel gains), defocus (disc), Gaussian or motion blur, sensor noise (shot and
+read noise), JPEG artefacts and video-codec-like artefacts (4:2:0 chroma, coarse quantisation), greyscale,
 and cut-outs (random occluders). Boxes follow the geometry; a box that is mostly cut away loses its label
 *and* its pixels are greyed out, so the network never sees an unlabelled leader as background.
 """
@@ -36,6 +38,11 @@ class AugmentConfig:
     jpeg_p: float = 0.3
     gray_p: float = 0.05
     cutout_p: float = 0.4
+    exposure_p: float = 0.0
+    white_balance_p: float = 0.0
+    codec_p: float = 0.0
+    #: Blur includes defocus (a disc) and noise includes shot noise (off: Gaussian/motion blur, read noise).
+    camera_model: bool = False
     #: Keep a clipped box only when this much of its area stays inside and it is this big.
     min_visible_fraction: float = 0.35
     min_box_px: float = 2.0
@@ -170,11 +177,68 @@ def hsv_jitter(img: Image, rng: np.random.Generator, gains: tuple[float, float, 
     return np.asarray(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB), np.uint8)
 
 
-def blur(img: Image, rng: np.random.Generator) -> Image:
-    """Gaussian blur (defocus) or a short linear motion blur at a random angle."""
-    if rng.random() < 0.5:
+#: The appearance recipe for mixed real and rendered training (real cameras: exposure, white balance,
+#: codec artefacts, noise, blur).
+REAL_CAMERA = AugmentConfig(
+    mosaic_p=0.5,
+    scale_range=(0.6, 1.6),
+    mosaic_scale_range=(0.5, 1.0),
+    hsv_gain=(0.015, 0.5, 0.3),
+    blur_p=0.3,
+    noise_p=0.35,
+    jpeg_p=0.25,
+    gray_p=0.05,
+    cutout_p=0.2,
+    exposure_p=0.5,
+    white_balance_p=0.4,
+    codec_p=0.3,
+    camera_model=True,
+)
+
+
+def exposure(img: Image, rng: np.random.Generator) -> Image:
+    """Exposure gain (0.6-1.5x) and gamma (0.7-1.4) through one lookup table."""
+    gain, gamma = rng.uniform(0.6, 1.5), rng.uniform(0.7, 1.4)
+    x = np.arange(256, dtype=np.float32) / 255.0
+    lut = np.clip(255.0 * np.clip(x * gain, 0.0, 1.0) ** gamma, 0, 255).astype(np.uint8)
+    return np.asarray(cv2.LUT(img, lut), np.uint8)
+
+
+def white_balance(img: Image, rng: np.random.Generator) -> Image:
+    """Per-channel gains of 0.85-1.15 (a camera's white balance off by a few hundred kelvin)."""
+    gains = rng.uniform(0.85, 1.15, 3).astype(np.float32)
+    out: Image = np.clip(img.astype(np.float32) * gains, 0, 255).astype(np.uint8)
+    return out
+
+
+def codec(img: Image, rng: np.random.Generator) -> Image:
+    """Video-codec-like artefacts: chroma at half resolution (4:2:0), then coarse JPEG (quality 15-45)."""
+    h, w = img.shape[:2]
+    ycc = cv2.cvtColor(img, cv2.COLOR_RGB2YCrCb)
+    small = cv2.resize(ycc[..., 1:], (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
+    ycc[..., 1:] = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    rgb = np.asarray(cv2.cvtColor(ycc, cv2.COLOR_YCrCb2RGB), np.uint8)
+    ok, buf = cv2.imencode(".jpg", rgb, (cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(15, 46))))
+    return np.asarray(cv2.imdecode(buf, cv2.IMREAD_UNCHANGED), np.uint8) if ok else rgb
+
+
+def defocus(img: Image, radius_px: float) -> Image:
+    """Convolution with a disc of ``radius_px`` (an out-of-focus lens)."""
+    r = max(1, int(np.ceil(radius_px)))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    kernel = (xx**2 + yy**2 <= radius_px**2 + 0.5).astype(np.float32)
+    kernel /= kernel.sum()
+    return np.asarray(cv2.filter2D(img, -1, kernel), np.uint8)
+
+
+def blur(img: Image, rng: np.random.Generator, with_defocus: bool = True) -> Image:
+    """Gaussian blur, defocus (a disc; ``with_defocus``) or a short linear motion blur at a random angle."""
+    u = rng.random()
+    if u < (0.35 if with_defocus else 0.5):
         sigma = rng.uniform(0.4, 1.4)
         return np.asarray(cv2.GaussianBlur(img, (0, 0), sigma), np.uint8)
+    if with_defocus and u < 0.55:
+        return defocus(img, rng.uniform(1.0, 2.0))
     length = int(rng.integers(3, 8))
     kernel = np.zeros((length, length), np.float32)
     kernel[length // 2, :] = 1.0 / length
@@ -184,10 +248,18 @@ def blur(img: Image, rng: np.random.Generator) -> Image:
     return np.asarray(cv2.filter2D(img, -1, kernel), np.uint8)
 
 
-def sensor_noise(img: Image, rng: np.random.Generator) -> Image:
-    """Additive Gaussian noise, sigma 2-8 grey levels."""
-    noise = rng.normal(0.0, rng.uniform(2.0, 8.0), img.shape).astype(np.float32)
-    out: Image = np.clip(img.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+def sensor_noise(img: Image, rng: np.random.Generator, shot: bool = True) -> Image:
+    """Read noise (Gaussian, sigma 2-8 grey levels); ``shot``: half the time plus brightness-scaled noise."""
+    if not shot:
+        gauss = rng.normal(0.0, rng.uniform(2.0, 8.0), img.shape).astype(np.float32)
+        plain: Image = np.clip(img.astype(np.float32) + gauss, 0, 255).astype(np.uint8)
+        return plain
+    x = img.astype(np.float32)
+    sigma = np.float32(rng.uniform(2.0, 8.0))
+    if rng.random() < 0.5:
+        sigma = np.sqrt(sigma**2 + x * np.float32(rng.uniform(0.02, 0.15)))
+    noise = rng.standard_normal(img.shape).astype(np.float32) * sigma
+    out: Image = np.clip(x + noise, 0, 255).astype(np.uint8)
     return out
 
 
@@ -264,12 +336,18 @@ def training_sample(
     if rng.random() < cfg.cutout_p:
         boxes = cutout(img, boxes, rng)
     img = hsv_jitter(img, rng, cfg.hsv_gain)
+    if cfg.exposure_p and rng.random() < cfg.exposure_p:
+        img = exposure(img, rng)
+    if cfg.white_balance_p and rng.random() < cfg.white_balance_p:
+        img = white_balance(img, rng)
     if rng.random() < cfg.gray_p:
         img = grey(img)
     if rng.random() < cfg.blur_p:
-        img = blur(img, rng)
+        img = blur(img, rng, cfg.camera_model)
     if rng.random() < cfg.noise_p:
-        img = sensor_noise(img, rng)
-    if rng.random() < cfg.jpeg_p:
+        img = sensor_noise(img, rng, cfg.camera_model)
+    if cfg.codec_p and rng.random() < cfg.codec_p:
+        img = codec(img, rng)
+    elif rng.random() < cfg.jpeg_p:
         img = jpeg(img, rng)
     return img, boxes.astype(np.float32)

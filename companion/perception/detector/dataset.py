@@ -12,7 +12,9 @@ classes are ignored). A missing or empty label file means no leader box. Per-ima
 ``manifest.csv`` or ``manifest.jsonl`` in DIR when it has an ``image``/``file`` column: ``range_m`` (leader
 range, for recall by range bin), ``has_leader`` and ``visible_fraction``: a frame shows the leader when it
 is in the scene with some of it visible. A frame can show a little of the leader and still have no box
-(too few pixels to label); such a frame is not "leader-free" when false positives are counted.
+(too few pixels to label); such a frame is not "leader-free" when false positives are counted. The
+manifest's other text columns (e.g. ``distance_bin``, ``drone_type``, ``video``) are kept per image as
+:attr:`Sample.attrs`, for evaluation by column and for holding out whole videos.
 """
 
 from __future__ import annotations
@@ -44,10 +46,35 @@ class Sample:
     label_path: Path | None
     range_m: float | None = None
     leader_visible: bool | None = None
+    #: Text columns of the manifest row, (column, value) pairs.
+    attrs: tuple[tuple[str, str], ...] = ()
 
     @property
     def key(self) -> str:
         return self.image_path.stem
+
+    def attr(self, column: str) -> str | None:
+        """The manifest's value of ``column`` for this image (None: no such column or no manifest row)."""
+        for k, v in self.attrs:
+            if k == column:
+                return v
+        return None
+
+    @property
+    def group(self) -> str:
+        """The recording an image comes from.
+
+        The manifest's ``video``/``sequence`` column, else the name without a trailing ``_f<frame>``.
+        """
+        for column in ("video", "sequence", "seq"):
+            v = self.attr(column)
+            if v:
+                return v
+        stem = self.key
+        head, sep, tail = stem.rpartition("_")
+        if sep and tail.lstrip("f").isdigit():
+            return head
+        return stem
 
 
 def _images_in(folder: Path) -> list[Path]:
@@ -111,7 +138,10 @@ def find_samples(root: Path, split: str | None = None) -> list[Sample]:
             f"no images found in {where}{root} (see companion.perception.detector.dataset)"
         )
     facts = read_manifest(root)
-    return [Sample(img, lab, *facts.get(img.stem, (None, None))) for img, lab in pairs]
+    columns = read_manifest_columns(root)
+    return [
+        Sample(img, lab, *facts.get(img.stem, (None, None)), columns.get(img.stem, ())) for img, lab in pairs
+    ]
 
 
 def _number(v: object) -> float | None:
@@ -122,17 +152,41 @@ def _number(v: object) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _manifest_rows(root: Path) -> list[dict[str, object]]:
+    if (root / "manifest.csv").exists():
+        with (root / "manifest.csv").open(newline="") as f:
+            return list(csv.DictReader(f))
+    if (root / "manifest.jsonl").exists():
+        return [
+            json.loads(line) for line in (root / "manifest.jsonl").read_text().splitlines() if line.strip()
+        ]
+    return []
+
+
+#: Manifest columns never kept as text attributes (numbers, names and per-box lists).
+_NOT_ATTRS = frozenset({"image", "file", "file_name", "frame", "width", "height", "n_boxes", "box_wxh_px"})
+
+
+def read_manifest_columns(root: Path) -> dict[str, tuple[tuple[str, str], ...]]:
+    """Image stem -> the manifest row's text columns (values that are not numbers), as (column, value)."""
+    out: dict[str, tuple[tuple[str, str], ...]] = {}
+    for row in _manifest_rows(root):
+        name = row.get("image") or row.get("file") or row.get("file_name")
+        if name is None:
+            continue
+        attrs = tuple(
+            (str(k), str(v))
+            for k, v in row.items()
+            if k not in _NOT_ATTRS and isinstance(v, str) and v != "" and _number(v) is None
+        )
+        out[Path(str(name)).stem] = attrs
+    return out
+
+
 def read_manifest(root: Path) -> dict[str, tuple[float | None, bool | None]]:
     """Image stem -> (leader range m, leader visible) from ``manifest.csv``/``.jsonl`` in ``root``."""
     out: dict[str, tuple[float | None, bool | None]] = {}
-    rows: Iterable[dict[str, object]] = []
-    if (root / "manifest.csv").exists():
-        with (root / "manifest.csv").open(newline="") as f:
-            rows = list(csv.DictReader(f))
-    elif (root / "manifest.jsonl").exists():
-        rows = [
-            json.loads(line) for line in (root / "manifest.jsonl").read_text().splitlines() if line.strip()
-        ]
+    rows: Iterable[dict[str, object]] = _manifest_rows(root)
     for row in rows:
         name = row.get("image") or row.get("file") or row.get("file_name")
         if name is None:

@@ -1,21 +1,179 @@
-"""Evaluation of a detector on any folder of images with YOLO labels (rendered test split or real photos)."""
+"""Evaluation of a detector on any folder of images with YOLO labels (rendered test split or real frames).
+
+Besides the figures of :meth:`DetectionStats.summary` over the whole folder, the same figures per value of
+the manifest's text columns (e.g. ``distance_bin``, ``drone_type``: recall and mAP where the group has
+boxes, the false-positive rate where it has leader-free images), and a contact sheet: crops of the worst
+misses (labelled leaders the detector scored lowest) and the worst false positives (highest-scoring
+detections that match no label), for people to look at.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 from companion.perception.detector.dataset import Sample, read_labels, read_rgb
 from companion.perception.detector.metrics import DetectionStats
+from companion.perception.detector.postprocess import box_iou
 from companion.perception.detector.runtime import FrameDetector
 
 #: Predictions below this score still count for AP (the precision-recall curve); the operating point uses
 #: the detector's own confidence threshold.
 AP_SCORE_FLOOR = 0.001
+#: Manifest columns reported per value by default (when the manifest has them).
+DEFAULT_COLUMNS = ("distance_bin", "drone_type", "airframe", "time_of_day")
+#: IoU at which a detection counts as finding a labelled leader (the operating point, contact sheet).
+MATCH_IOU = 0.5
 
 
-def evaluate(detector: FrameDetector, samples: Sequence[Sample], progress: bool = True) -> dict[str, Any]:
-    """Run ``detector`` on every sample and summarise (see :meth:`DetectionStats.summary`)."""
+@dataclass(frozen=True)
+class Case:
+    """One entry of the contact sheet: a missed leader or a false positive."""
+
+    kind: str  # "miss" | "false positive"
+    image_index: int
+    box_xyxy_px: tuple[float, float, float, float]
+    #: Miss: best score of any detection overlapping the label (0: none); false positive: its score.
+    score: float
+
+
+def group_summaries(
+    stats: DetectionStats, samples: Sequence[Sample], columns: Sequence[str], conf_threshold: float
+) -> dict[str, dict[str, dict[str, Any]]]:
+    """Column -> value -> figures of the images with that value (only columns some sample has)."""
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for col in columns:
+        values = sorted({v for s in samples if (v := s.attr(col)) is not None})
+        if not values:
+            continue
+        per: dict[str, dict[str, Any]] = {}
+        for v in values:
+            sub = DetectionStats([r for r, s in zip(stats.records, samples, strict=True) if s.attr(col) == v])
+            full = sub.summary(conf_threshold)
+            per[v] = {
+                k: full[k]
+                for k in ("images", "leader_boxes", "recall", "map50", "leader_free_images")
+                if k in full
+            }
+            per[v]["leader_free_fp_rate"] = full["leader_free_fp_rate"]
+        out[col] = per
+    return out
+
+
+def worst_cases(stats: DetectionStats, conf_threshold: float, n: int) -> tuple[list[Case], list[Case]]:
+    """The ``n`` worst misses (lowest best score on the label) and false positives (highest score)."""
+    misses: list[Case] = []
+    fps: list[Case] = []
+    for i, r in enumerate(stats.records):
+        keep = r.pred_scores >= conf_threshold
+        pb, ps = r.pred_boxes[keep], r.pred_scores[keep]
+        iou = box_iou(r.gt_boxes, r.pred_boxes) if len(r.gt_boxes) and len(r.pred_boxes) else None
+        iou_op = box_iou(r.gt_boxes, pb) if len(r.gt_boxes) and len(pb) else np.zeros((len(r.gt_boxes), 0))
+        for g, box in enumerate(r.gt_boxes):
+            if iou_op.shape[1] and (iou_op[g] >= MATCH_IOU).any():
+                continue
+            best = 0.0
+            if iou is not None:
+                over = iou[g] >= MATCH_IOU
+                best = float(r.pred_scores[over].max()) if over.any() else 0.0
+            misses.append(Case("miss", i, _tuple(box), best))
+        matched_gt: NDArray[np.bool_] = np.zeros(len(pb), bool)
+        if len(r.gt_boxes) and len(pb):
+            matched_gt = np.asarray((box_iou(pb, r.gt_boxes) >= MATCH_IOU).any(1), bool)
+        for box, score, hit in zip(pb, ps, matched_gt.tolist(), strict=True):
+            if not hit:
+                fps.append(Case("false positive", i, _tuple(box), float(score)))
+    misses.sort(key=lambda c: c.score)
+    fps.sort(key=lambda c: -c.score)
+    return misses[:n], fps[:n]
+
+
+def _tuple(b: NDArray[np.float32]) -> tuple[float, float, float, float]:
+    return float(b[0]), float(b[1]), float(b[2]), float(b[3])
+
+
+def contact_sheet(
+    samples: Sequence[Sample],
+    stats: DetectionStats,
+    misses: Sequence[Case],
+    false_positives: Sequence[Case],
+    path: Path,
+    *,
+    conf_threshold: float,
+    tile_px: int = 160,
+    columns: int = 6,
+) -> Path:
+    """Write a PNG: a row block of misses, then one of false positives; each tile a crop around the case.
+
+    Green: labelled boxes; red: detections at or above ``conf_threshold``; the caption gives the kind, the
+    score and the image name.
+    """
+    import cv2  # noqa: PLC0415
+
+    def tile(case: Case) -> NDArray[np.uint8]:
+        rgb = read_rgb(samples[case.image_index].image_path)
+        h, w = rgb.shape[:2]
+        x0, y0, x1, y1 = case.box_xyxy_px
+        side = max(64.0, 3.0 * max(x1 - x0, y1 - y0))
+        cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+        ax0 = int(np.clip(cx - side / 2, 0, max(0, w - side)))
+        ay0 = int(np.clip(cy - side / 2, 0, max(0, h - side)))
+        s = int(min(side, w, h))
+        crop = np.ascontiguousarray(rgb[ay0 : ay0 + s, ax0 : ax0 + s, ::-1])
+        f = tile_px / s
+        big = cv2.resize(crop, (tile_px, tile_px), interpolation=cv2.INTER_NEAREST)
+        rec = stats.records[case.image_index]
+
+        def draw(boxes: NDArray[np.float32], colour: tuple[int, int, int]) -> None:
+            for b in boxes:
+                p0 = (round((b[0] - ax0) * f), round((b[1] - ay0) * f))
+                p1 = (round((b[2] - ax0) * f), round((b[3] - ay0) * f))
+                cv2.rectangle(big, p0, p1, colour, 1)
+
+        draw(rec.gt_boxes, (0, 200, 0))
+        draw(rec.pred_boxes[rec.pred_scores >= conf_threshold], (0, 0, 255))
+        canvas = np.full((tile_px + 30, tile_px, 3), 255, np.uint8)
+        canvas[:tile_px] = big
+        label = "MISS" if case.kind == "miss" else "FP"
+        cv2.putText(canvas, f"{label} {case.score:.2f}", (2, tile_px + 12), 0, 0.4, (0, 0, 0), 1)
+        name = samples[case.image_index].key[-24:]
+        cv2.putText(canvas, name, (2, tile_px + 26), 0, 0.3, (60, 60, 60), 1)
+        return canvas
+
+    def block(cases: Sequence[Case], title: str) -> NDArray[np.uint8]:
+        head = np.full((22, columns * tile_px, 3), 255, np.uint8)
+        cv2.putText(head, title, (4, 16), 0, 0.5, (0, 0, 0), 1)
+        rows = [head]
+        tiles = [tile(c) for c in cases]
+        for r in range(0, len(tiles), columns):
+            row = tiles[r : r + columns]
+            row += [np.full_like(tiles[0], 255)] * (columns - len(row))
+            rows.append(np.concatenate(row, 1))
+        if not tiles:
+            empty = np.full((30, columns * tile_px, 3), 255, np.uint8)
+            cv2.putText(empty, "none", (4, 20), 0, 0.5, (0, 0, 0), 1)
+            rows.append(empty)
+        return np.concatenate(rows, 0)
+
+    sheet = np.concatenate(
+        (
+            block(misses, f"worst misses (labelled leader, best score below {conf_threshold:.2f})"),
+            block(false_positives, f"worst false positives (score >= {conf_threshold:.2f}, no label)"),
+        ),
+        0,
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), sheet)
+    return path
+
+
+def collect(detector: FrameDetector, samples: Sequence[Sample], progress: bool = True) -> DetectionStats:
+    """Run ``detector`` on every sample; the predictions (down to :data:`AP_SCORE_FLOOR`) and labels."""
     stats = DetectionStats()
     iterator: Sequence[Sample] = samples
     if progress:
@@ -28,7 +186,30 @@ def evaluate(detector: FrameDetector, samples: Sequence[Sample], progress: bool 
         boxes, scores = detector.raw(rgb, AP_SCORE_FLOOR)
         leader_free = None if s.leader_visible is None else not s.leader_visible
         stats.add(boxes.copy(), scores, read_labels(s, w, h), s.range_m, leader_free)
+    return stats
+
+
+def evaluate(
+    detector: FrameDetector,
+    samples: Sequence[Sample],
+    progress: bool = True,
+    *,
+    columns: Sequence[str] = DEFAULT_COLUMNS,
+    sheet: Path | None = None,
+    sheet_cases: int = 12,
+) -> dict[str, Any]:
+    """Run ``detector`` on every sample and summarise (see :meth:`DetectionStats.summary`).
+
+    Adds ``by_column`` (:func:`group_summaries`) and, with ``sheet``, writes the contact sheet there.
+    """
+    stats = collect(detector, samples, progress)
     out = stats.summary(detector.conf_threshold)
+    out["by_column"] = group_summaries(stats, samples, columns, detector.conf_threshold)
+    if sheet is not None:
+        misses, fps = worst_cases(stats, detector.conf_threshold, sheet_cases)
+        out["contact_sheet"] = str(
+            contact_sheet(samples, stats, misses, fps, sheet, conf_threshold=detector.conf_threshold)
+        )
     out["runtime"] = detector.runtime
     out["input_size_px"] = detector.input_size_px
     out["nms_iou"] = detector.nms_iou

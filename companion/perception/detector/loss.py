@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F  # noqa: N812
 
-from companion.perception.detector.model import LeaderNet
+from companion.perception.detector.model import DetectorNet
 
 _EPS = 1e-9
 
@@ -177,7 +177,7 @@ def dfl_loss(box_logits: Tensor, target_ltrb: Tensor, reg_max: int) -> Tensor:
 class DetectionLoss:
     """Loss of a batch: raw level maps + padded ground truth -> (total, parts for logging)."""
 
-    def __init__(self, net: LeaderNet, cfg: LossConfig | None = None) -> None:
+    def __init__(self, net: DetectorNet, cfg: LossConfig | None = None) -> None:
         self.cfg = cfg or LossConfig()
         self.reg_max = net.spec.reg_max
         self.strides = net.spec.strides

@@ -1,8 +1,9 @@
 """Shipped weights as torch files, and the torch inference engine (imports torch).
 
 The weights file is a plain ``torch.save`` dict (loaded with ``weights_only=True``: tensors and plain
-containers only, no pickled code): format tag, :class:`ModelSpec`, training input size, state dict, and
-free-form metadata (data recipe, seed, command) for the model card.
+containers only, no pickled code): format tag, architecture name (``arch``; a file without one holds a
+:class:`LeaderNet`), its spec, training input size, state dict, and free-form metadata (data recipe, seed,
+command) for the model card.
 """
 
 from __future__ import annotations
@@ -16,24 +17,25 @@ import torch
 from numpy.typing import NDArray
 
 from companion.errors import ModelError
-from companion.perception.detector.model import LeaderNet, ModelSpec
+from companion.perception.detector.model import ARCH_LEADERNET, DetectorNet, build_net
 from companion.perception.detector.runtime import ModelInfo
 
 WEIGHTS_FORMAT = "wingman-leader-detector/1"
 
 
-def model_info(net: LeaderNet, train_input_size_px: int) -> ModelInfo:
+def model_info(net: DetectorNet, train_input_size_px: int) -> ModelInfo:
     """What post-processing needs from a network."""
     return ModelInfo(net.spec.strides, net.spec.reg_max, train_input_size_px)
 
 
-def save_weights(path: Path, net: LeaderNet, train_input_size_px: int, meta: dict[str, Any]) -> None:
+def save_weights(path: Path, net: DetectorNet, train_input_size_px: int, meta: dict[str, Any]) -> None:
     """Write shippable weights (fp32 state dict, unfused) with the spec and metadata."""
     state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save(
         {
             "format": WEIGHTS_FORMAT,
+            "arch": net.arch,
             "spec": net.spec.to_dict(),
             "train_input_size_px": train_input_size_px,
             "state_dict": state,
@@ -43,7 +45,7 @@ def save_weights(path: Path, net: LeaderNet, train_input_size_px: int, meta: dic
     )
 
 
-def load_weights(path: Path, device: str = "cpu") -> tuple[LeaderNet, int, dict[str, Any]]:
+def load_weights(path: Path, device: str = "cpu") -> tuple[DetectorNet, int, dict[str, Any]]:
     """Build the network from a weights file; returns it (eval mode), its training input size and metadata."""
     try:
         blob = torch.load(path, map_location=device, weights_only=True)
@@ -53,7 +55,10 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[LeaderNet, int, dict[
         raise ModelError(f"cannot load weights {path}: {str(exc).splitlines()[0][:160]}") from None
     if not isinstance(blob, dict) or blob.get("format") != WEIGHTS_FORMAT:
         raise ModelError(f"{path} is not a Wingman detector weights file ({WEIGHTS_FORMAT})")
-    net = LeaderNet(ModelSpec.from_dict(blob["spec"]))
+    try:
+        net = build_net(str(blob.get("arch", ARCH_LEADERNET)), blob["spec"])
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ModelError(f"{path}: {exc}") from None
     try:
         net.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:

@@ -1,4 +1,11 @@
-"""Training: ``companion detector train --data DIR --out DIR``.
+"""Training: ``companion detector train --data [NAME=]DIR[:WEIGHT] ... --out DIR``.
+
+Several datasets train together, each with a weight: every batch takes ``round(weight * batch)`` images of
+each source (e.g. half real frames, half renders), whatever the sizes of the folders. A folder with
+``train``/``val`` splits validates on its ``val`` split; a flat folder (real footage) holds out whole
+recordings (the manifest's ``video`` column, or the image-name prefix) for validation, so the validation
+figures are never on frames of a video that trained. Validation is reported per source; the best
+checkpoint is the one with the highest mean mAP@0.5 over the sources.
 
 AdamW with a linear warm-up and a cosine decay, an exponential moving average (EMA) of the weights (the EMA
 is what gets evaluated and shipped), mixed precision on a CUDA GPU, a checkpoint every epoch (``last.pt``) and
@@ -12,6 +19,7 @@ of loader workers, and a resumed run sees the same batches it would have seen.
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import logging
 import math
@@ -29,11 +37,20 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from companion.perception.detector.augment import AugmentConfig, training_sample
 from companion.perception.detector.cache import ImageCache
-from companion.perception.detector.dataset import find_samples
+from companion.perception.detector.dataset import Sample, find_samples, list_splits
 from companion.perception.detector.letterbox import boxes_to_source, letterbox_geometry, letterbox_uint8
 from companion.perception.detector.loss import DetectionLoss, LossConfig
 from companion.perception.detector.metrics import DetectionStats
-from companion.perception.detector.model import LeaderNet, ModelSpec, count_parameters
+from companion.perception.detector.model import (
+    DetectorNet,
+    DetectorSpec,
+    ShuffleDet,
+    ShuffleDetSpec,
+    arch_of,
+    count_parameters,
+    load_backbone,
+    net_for_spec,
+)
 from companion.perception.detector.postprocess import Decoder
 from companion.perception.detector.torch_engine import save_weights
 
@@ -43,11 +60,46 @@ CHECKPOINT_FORMAT = "wingman-detector-checkpoint/1"
 
 
 @dataclass(frozen=True)
+class DataSource:
+    """One training dataset: a name (for the logs), its folder and its share of every batch."""
+
+    name: str
+    path: str
+    weight: float = 1.0
+
+
+def parse_source(text: str) -> DataSource:
+    """``[NAME=]DIR[:WEIGHT]`` -> a :class:`DataSource` (name: the folder's name; weight: 1)."""
+    name, sep, rest = text.partition("=")
+    if not sep or "/" in name:
+        name, rest = "", text
+    path, weight = rest, 1.0
+    head, colon, tail = rest.rpartition(":")
+    if colon:
+        try:
+            weight = float(tail)
+            path = head
+        except ValueError:
+            pass
+    if weight <= 0 or not math.isfinite(weight):
+        raise ValueError(f"--data {text}: the weight must be > 0")
+    return DataSource(name or Path(path).name, path, weight)
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """Everything that defines a training run (saved in every checkpoint)."""
 
     data: str
     out: str
+    #: Datasets mixed in every batch; empty: ``data`` alone.
+    sources: tuple[DataSource, ...] = ()
+    #: Share of the recordings of a flat folder (no ``train``/``val`` splits) held out for validation.
+    holdout_fraction: float = 0.1
+    #: Images per epoch (0: the sum of the sources' training images).
+    epoch_images: int = 0
+    #: Pretrained ShuffleNetV2 backbone weights (``shufflenetv2-fpn`` only; empty: random initialisation).
+    backbone_weights: str = ""
     epochs: int = 30
     batch_size: int = 32
     input_size_px: int = 320
@@ -74,28 +126,73 @@ class TrainConfig:
     #: Start a new run from these weights (a shipped ``.pt`` or a run's checkpoint; its EMA is taken),
     #: e.g. to fine-tune on a larger dataset. Empty: random initialisation.
     init_weights: str = ""
-    spec: ModelSpec = field(default_factory=ModelSpec)
+    spec: DetectorSpec = field(default_factory=ShuffleDetSpec)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+
+    @property
+    def all_sources(self) -> tuple[DataSource, ...]:
+        return self.sources or (DataSource(Path(self.data).name or "data", self.data, 1.0),)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["spec"] = self.spec.to_dict()
+        d["arch"] = arch_of(self.spec)
         return d
 
 
-#: What the sampler hands the dataset: (epoch, image index, mosaic on). The dataset keeps no per-epoch
-#: state, so persistent loader workers (separate processes) always augment for the right epoch.
-SampleKey = tuple[int, int, bool]
+def _held_out(group: str, fraction: float) -> bool:
+    digest = hashlib.sha1(group.encode(), usedforsecurity=False).digest()
+    return int.from_bytes(digest[:4], "big") / 2**32 < fraction
+
+
+def source_splits(src: DataSource, cfg: TrainConfig) -> tuple[list[Sample], list[Sample]]:
+    """Training and validation samples of one source (see the module docstring); raises on overlap."""
+    root = Path(src.path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset folder not found: {root}")
+    if cfg.train_split in list_splits(root):
+        train_samples = find_samples(root, cfg.train_split)
+        try:
+            val_samples = find_samples(root, cfg.val_split)
+        except FileNotFoundError:
+            val_samples = []
+    else:
+        every = find_samples(root, None)
+        train_samples = [s for s in every if not _held_out(s.group, cfg.holdout_fraction)]
+        val_samples = [s for s in every if _held_out(s.group, cfg.holdout_fraction)]
+        held = {s.group for s in val_samples} & {s.group for s in train_samples}
+        if held:
+            raise ValueError(f"{src.name}: recordings in both the train and val images: {sorted(held)[:3]}")
+    if cfg.max_train_images:
+        train_samples = train_samples[: cfg.max_train_images]
+    val_samples = val_samples[: cfg.max_val_images]
+    overlap = {s.key for s in train_samples} & {s.key for s in val_samples}
+    if overlap:
+        raise ValueError(f"{len(overlap)} images are in both the train and val splits")
+    if not train_samples:
+        raise FileNotFoundError(f"{src.name}: no training images in {root}")
+    return train_samples, val_samples
+
+
+#: What the sampler hands the dataset: (epoch, source, image index, draw, mosaic on); ``draw`` counts how
+#: often the image was drawn before in the epoch. The dataset keeps no per-epoch state, so persistent loader
+#: workers (separate processes) always augment for the right epoch.
+SampleKey = tuple[int, int, int, int, bool]
 
 
 class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
-    """Training samples: (3, S, S) uint8 image and (N, 4) boxes, augmented from ``(seed, epoch, index)``."""
+    """Training samples: (3, S, S) uint8 image and (N, 4) boxes, augmented from the sample key."""
 
     def __init__(
-        self, cache: ImageCache, size_px: int, ref_px: int, seed: int, augment: AugmentConfig
+        self,
+        caches: list[ImageCache] | ImageCache,
+        size_px: int,
+        ref_px: int,
+        seed: int,
+        augment: AugmentConfig,
     ) -> None:
-        self.cache = cache
+        self.caches = caches if isinstance(caches, list) else [caches]
         self.size_px = size_px
         self.ref_px = ref_px
         self.seed = seed
@@ -103,33 +200,72 @@ class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
         self.no_mosaic = replace(augment, mosaic_p=0.0)
 
     def __len__(self) -> int:
-        return len(self.cache)
+        return sum(len(c) for c in self.caches)
 
     def __getitem__(self, key: SampleKey) -> tuple[Tensor, Tensor]:
-        epoch, i, mosaic = key
-        rng = np.random.default_rng([self.seed, epoch, i])
+        epoch, source, i, draw, mosaic = key
+        rng = np.random.default_rng([self.seed, epoch, source, i, draw])
         cfg = self.augment if mosaic else self.no_mosaic
         img, boxes = training_sample(
-            self.cache, i, size_px=self.size_px, ref_px=self.ref_px, rng=rng, cfg=cfg
+            self.caches[source], i, size_px=self.size_px, ref_px=self.ref_px, rng=rng, cfg=cfg
         )
         return torch.from_numpy(img).permute(2, 0, 1).contiguous(), torch.from_numpy(boxes)
 
 
-class EpochSampler(Sampler[SampleKey]):
-    """A permutation of the indices drawn from ``(seed, epoch)``, as :data:`SampleKey` tuples."""
+def batch_shares(weights: list[float], batch_size: int) -> list[int]:
+    """Images per batch of each source: ``weight / sum * batch`` rounded by largest remainder, each >= 1."""
+    w = np.asarray(weights, np.float64)
+    exact = w / w.sum() * batch_size
+    counts = np.floor(exact).astype(int)
+    for i in np.argsort(-(exact - counts), kind="stable")[: batch_size - int(counts.sum())]:
+        counts[i] += 1
+    while (counts == 0).any() and batch_size >= len(weights):
+        counts[int(np.argmax(counts))] -= 1
+        counts[int(np.argmin(counts))] += 1
+    return [int(c) for c in counts]
 
-    def __init__(self, n: int, seed: int) -> None:
-        self.n = n
+
+class MixedBatchSampler(Sampler[list[SampleKey]]):
+    """Batches with a fixed share of every source (:func:`batch_shares`), drawn from ``(seed, epoch)``.
+
+    Each source is walked through in a fresh random order per pass; a small source is re-shuffled and walked
+    again when it runs out (``draw`` in the key tells the passes apart), so every source is seen in its share
+    whatever its size.
+    """
+
+    def __init__(self, sizes: list[int], weights: list[float], batch_size: int, batches: int, seed: int):
+        if len(sizes) != len(weights) or not sizes:
+            raise ValueError("one weight per source")
+        total = sum(sizes)
+        self.sizes = sizes
+        self.batch_size = min(batch_size, total)
+        self.shares = batch_shares(weights, self.batch_size)
+        self.batches = max(1, batches)
         self.seed = seed
         self.epoch = 0
         self.mosaic = True
 
-    def __iter__(self) -> Iterator[SampleKey]:
-        order = np.random.default_rng([self.seed, self.epoch, 7]).permutation(self.n).tolist()
-        return iter([(self.epoch, i, self.mosaic) for i in order])
+    def _stream(self, source: int, count: int) -> list[tuple[int, int]]:
+        n = self.sizes[source]
+        out: list[tuple[int, int]] = []
+        draw = 0
+        while len(out) < count:
+            order = np.random.default_rng([self.seed, self.epoch, source, draw, 7]).permutation(n)
+            out.extend((int(i), draw) for i in order[: count - len(out)])
+            draw += 1
+        return out
+
+    def __iter__(self) -> Iterator[list[SampleKey]]:
+        streams = [self._stream(s, k * self.batches) for s, k in enumerate(self.shares)]
+        for b in range(self.batches):
+            batch: list[SampleKey] = []
+            for s, k in enumerate(self.shares):
+                for i, draw in streams[s][b * k : (b + 1) * k]:
+                    batch.append((self.epoch, s, i, draw, self.mosaic))
+            yield batch
 
     def __len__(self) -> int:
-        return self.n
+        return self.batches
 
 
 def collate(batch: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
@@ -174,7 +310,7 @@ class ModelEMA:
                 v.copy_(msd[k])
 
 
-def _init_from(model: nn.Module, ema: ModelEMA, path: Path, device: torch.device) -> None:
+def _init_from(model: DetectorNet, ema: ModelEMA, path: Path, device: torch.device) -> None:
     """Load the weights of ``path`` (weights file or checkpoint) into the model and its EMA."""
     blob = torch.load(path, map_location=device, weights_only=False)
     if not isinstance(blob, dict):
@@ -220,19 +356,22 @@ def pick_device(name: str) -> torch.device:
 
 @torch.no_grad()
 def validate(
-    model: nn.Module, cache: ImageCache, cfg: TrainConfig, device: torch.device, conf_threshold: float = 0.35
+    model: DetectorNet,
+    cache: ImageCache,
+    cfg: TrainConfig,
+    device: torch.device,
+    conf_threshold: float = 0.35,
 ) -> dict[str, Any]:
-    """MAP and recall of ``model`` on cached validation images letterboxed as at run time."""
+    """MAP, recall and false positives of ``model`` on cached validation images letterboxed as at run time."""
     model.eval()
-    spec: ModelSpec = model.spec  # type: ignore[assignment]
-    decoder = Decoder(spec.strides, spec.reg_max)
+    decoder = Decoder(model.spec.strides, model.spec.reg_max)
     stats = DetectionStats()
     for i in range(len(cache)):
         img = cache.image(i)
         geom = letterbox_geometry(img.shape[0], img.shape[1], cfg.input_size_px)
         x = torch.from_numpy(letterbox_uint8(np.asarray(img), geom)).permute(2, 0, 1)[None].to(device)
         levels = [o.float().cpu().numpy() for o in model(x.float() / 255.0)]
-        boxes, scores = decoder(levels, 0.001, 0.5, max_det=50)
+        boxes, scores = decoder(levels, 0.001, 0.5, max_det=20)
         boxes_to_source(boxes, geom)
         stats.add(boxes, scores, cache.boxes(i))
     return stats.summary(conf_threshold)
@@ -261,34 +400,42 @@ def train(
 
     cv2.setNumThreads(1)  # image work here is per sample; torch owns the cores
     torch.manual_seed(cfg.seed)
-    data = Path(cfg.data)
-    train_samples = find_samples(data, cfg.train_split)
-    if cfg.max_train_images:
-        train_samples = train_samples[: cfg.max_train_images]
-    val_samples = find_samples(data, cfg.val_split)[: cfg.max_val_images]
-    overlap = {s.key for s in train_samples} & {s.key for s in val_samples}
-    if overlap:
-        raise ValueError(f"{len(overlap)} images are in both the train and val splits")
+    sources = cfg.all_sources
     cache_root = out / "cache"
-    train_cache = ImageCache.build(train_samples, cache_root, round(cfg.input_size_px * 1.25), progress)
-    val_cache = ImageCache.build(val_samples, cache_root, cfg.input_size_px, progress)
+    train_caches: list[ImageCache] = []
+    val_caches: list[tuple[str, ImageCache]] = []
+    counts = []
+    for src in sources:
+        tr, va = source_splits(src, cfg)
+        counts.append(f"{src.name}: {len(tr)} train / {len(va)} val (weight {src.weight:g})")
+        train_caches.append(ImageCache.build(tr, cache_root, round(cfg.input_size_px * 1.25), progress))
+        if va:
+            val_caches.append((src.name, ImageCache.build(va, cache_root, cfg.input_size_px, progress)))
+    log.info("data: %s", "; ".join(counts))
 
     # channels-last: about 15% faster convolutions and BatchNorm on the CPU, and the layout tensor cores want.
-    model = LeaderNet(cfg.spec).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    model = net_for_spec(cfg.spec)
+    if cfg.backbone_weights and not resume and not cfg.init_weights:
+        if not isinstance(model, ShuffleDet):
+            raise ValueError("--backbone needs the shufflenetv2-fpn architecture")
+        load_backbone(model.backbone, cfg.backbone_weights)
+        log.info("backbone initialised from %s", cfg.backbone_weights)
+    model = model.to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     ema = ModelEMA(model, cfg.ema_decay)
     opt = make_optimizer(model, cfg)
     use_amp = device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
     criterion = DetectionLoss(model, cfg.loss)
-    dataset = AugmentedSet(train_cache, cfg.crop_px, cfg.input_size_px, cfg.seed, cfg.augment)
-    sampler = EpochSampler(len(dataset), cfg.seed)
+    dataset = AugmentedSet(train_caches, cfg.crop_px, cfg.input_size_px, cfg.seed, cfg.augment)
+    sizes = [len(c) for c in train_caches]
+    n_images = cfg.epoch_images or sum(sizes)
+    bs = min(cfg.batch_size, sum(sizes))
+    sampler = MixedBatchSampler(sizes, [s.weight for s in sources], bs, max(1, n_images // bs), cfg.seed)
     loader = DataLoader(
         dataset,
-        batch_size=cfg.batch_size,
-        sampler=sampler,
+        batch_sampler=sampler,
         num_workers=cfg.workers,
         collate_fn=collate,
-        drop_last=len(dataset) > cfg.batch_size,
         worker_init_fn=_worker_init,
         # Spawned, not forked: a forked child can deadlock on locks that the parent's OpenMP or OpenCV
         # thread pools held at fork time (seen here: a worker stuck in a futex from its first sample).
@@ -307,7 +454,12 @@ def train(
         if not last.exists():
             raise FileNotFoundError(f"--resume: no checkpoint at {last}")
         ck = torch.load(last, map_location=device, weights_only=False)
-        if ck["config"]["spec"] != cfg.spec.to_dict() or ck["config"]["data"] != cfg.data:
+        saved = [dict(x) for x in ck["config"].get("sources", ())]
+        same_data = ck["config"]["data"] == cfg.data and saved == [asdict(x) for x in cfg.sources]
+        same_spec = ck["config"]["spec"] == cfg.spec.to_dict() and ck["config"].get(
+            "arch", "leadernet"
+        ) == arch_of(cfg.spec)
+        if not same_spec or not same_data:
             raise ValueError(f"--resume: {last} was trained with another model spec or data folder")
         model.load_state_dict(ck["model"])
         ema.ema.load_state_dict(ck["ema"])
@@ -321,11 +473,11 @@ def train(
             _init_from(model, ema, Path(cfg.init_weights), device)
         (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     log.info(
-        "training %d params on %s: %d train / %d val images, %d epochs x %d steps",
+        "training %d params on %s: %d train images in %d sources, %d epochs x %d steps",
         count_parameters(model),
         device,
-        len(train_samples),
-        len(val_samples),
+        sum(sizes),
+        len(sizes),
         cfg.epochs,
         steps_per_epoch,
     )
@@ -368,16 +520,27 @@ def train(
         row: dict[str, Any] = {"epoch": epoch + 1, "seconds": round(time.monotonic() - t0, 1)}
         row.update({k: round(v / max(1, steps_per_epoch), 4) for k, v in sums.items()})
         last_epoch = epoch == cfg.epochs - 1
-        if (epoch + 1) % cfg.val_every == 0 or last_epoch:
-            val = validate(ema.ema, val_cache, cfg, device)
-            row.update(
-                val_map50=round(val["map50"], 4),
-                val_map50_95=round(val["map50_95"], 4),
-                val_recall=round(val["recall"], 4),
-                val_precision=round(val["precision"], 4),
-            )
-            if val["map50"] > best_map:
-                best_map = val["map50"]
+        if ((epoch + 1) % cfg.val_every == 0 or last_epoch) and val_caches:
+            maps = []
+            for name, cache in val_caches:
+                val = validate(ema.ema, cache, cfg, device)  # type: ignore[arg-type]
+                prefix = "val" if len(val_caches) == 1 and not cfg.sources else f"val_{name}"
+                row.update(
+                    {
+                        f"{prefix}_map50": _r(val["map50"]),
+                        f"{prefix}_map50_95": _r(val["map50_95"]),
+                        f"{prefix}_recall": _r(val["recall"]),
+                        f"{prefix}_precision": _r(val["precision"]),
+                        f"{prefix}_fp_rate": _r(val["leader_free_fp_rate"]),
+                    }
+                )
+                if not math.isnan(val["map50"]):
+                    maps.append(val["map50"])
+            mean_map = float(np.mean(maps)) if maps else 0.0
+            if len(val_caches) > 1 or cfg.sources:
+                row["val_mean_map50"] = round(mean_map, 4)
+            if mean_map > best_map:
+                best_map = mean_map
                 save_weights(out / "best.pt", ema.ema, cfg.input_size_px, _meta(cfg, row))  # type: ignore[arg-type]
         history.append(row)
         log.info("epoch %s", json.dumps(row))
@@ -398,6 +561,10 @@ def train(
     if finished:
         save_weights(out / "final.pt", ema.ema, cfg.input_size_px, _meta(cfg, history[-1] if history else {}))  # type: ignore[arg-type]
     return {"best_val_map50": best_map, "epochs_done": end_epoch, "finished": finished, "history": history}
+
+
+def _r(v: float | None) -> float | None:
+    return None if v is None or math.isnan(v) else round(v, 4)
 
 
 def _meta(cfg: TrainConfig, row: dict[str, Any]) -> dict[str, Any]:
