@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -173,3 +174,17 @@ def test_neither_the_cli_nor_the_executor_module_imports_ray(repo_root: Path) ->
         [sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, check=False
     )
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_a_cluster_address_that_refuses_is_one_line_not_a_hang() -> None:
+    from companion.evaluation.ray_executor import _check_reachable
+
+    with socket.socket() as s:  # a port nothing listens on: bound, never listening
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        with pytest.raises(SimError, match=f"--ray-address 127.0.0.1:{port}: no Ray head answers"):
+            _check_reachable(f"127.0.0.1:{port}", timeout_s=2.0)
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        _check_reachable(f"127.0.0.1:{server.getsockname()[1]}", timeout_s=2.0)
