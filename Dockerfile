@@ -1,5 +1,5 @@
 # The SITL test suite in a container: `docker compose run --rm tests` (see compose.yaml, docs/service.md).
-# Not built on the development machines (they have no Docker engine); kept simple so it is easy to check.
+# The test suite does not build it (it runs without a Docker engine); kept simple so it is easy to check.
 FROM python:3.11-slim-bookworm
 
 ENV DEBIAN_FRONTEND=noninteractive \

@@ -1,4 +1,4 @@
-"""Rendered perception sequences: a hovering follower, the leader moving 3-12 m ahead (issue 5's bar).
+"""Rendered perception sequences: a hovering follower, the leader moving 3-12 m ahead (docs/perception.md).
 
 Renders with the simulator's camera (``sitl.render``: D435i intrinsics, stereo noise on disparity,
 holes, range cut-off) and records to the folder format with ground truth, for ``companion replay``::

@@ -95,7 +95,7 @@ heading_deg = 0.0
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_real_path_leader_hidden_3_s_reacquired_then_20_s_aborts(tmp_path: Path) -> None:
-    """Issue 6: hidden 3 s -> re-acquired (FOLLOW again); hidden 20 s -> REACQUIRE_TIMEOUT -> the configured
+    """Leader hidden 3 s -> re-acquired (FOLLOW again); hidden 20 s -> REACQUIRE_TIMEOUT -> the configured
     abort (``mission.leader_lost_action = "land"``) -> landed and disarmed, no crash."""
     scenario = tmp_path / "hidden.toml"
     scenario.write_text(HIDDEN_SCENARIO)

@@ -1,4 +1,4 @@
-"""Static checks of the Dockerfile and compose file (no Docker engine runs on these machines)."""
+"""Static checks of the Dockerfile and compose file (the test suite runs without a Docker engine)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The service end to end in the simulator: `companion run` as a process against `sitl serve`.
 
-One flight covers issue 7's must-shows: MQTT state/pose/health from a real mosquitto, a broker stop and
+One flight covers it all: MQTT state/pose/health from a real mosquitto, a broker stop and
 restart mid-flight (nothing lost beyond the buffer, the flight goes on), `companion status --json` and
 `companion health --json` against the running service, and SIGTERM during FOLLOW (the vehicle lands and
 disarms, the service exits 0). sd_notify READY/STATUS/WATCHDOG/STOPPING go to a socket of the test's.

@@ -1,4 +1,4 @@
-"""systemd/wingman.service: lint clean, exposure <= 3.0, and the directives issue 7 asks for."""
+"""systemd/wingman.service: lint clean, exposure <= 3.0, and the directives docs/service.md describes."""
 
 from __future__ import annotations
 

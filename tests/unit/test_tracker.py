@@ -413,8 +413,8 @@ def _leader_after_a_passing_phantom(max_challengers: int, monkeypatch: pytest.Mo
 def test_a_phantom_seen_once_does_not_keep_the_leader_from_taking_over(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """leader-occluded seed 8 (stop 21): with one challenger slot, a second false box seen just before the
-    leader held the slot for 4 frames and the leader's 6-frame pass never counted; three slots see both."""
+    """As in leader-occluded seed 8: with one challenger slot, a second false box seen just before the
+    leader holds the slot for 4 frames and the leader's 6-frame pass never counts; three slots see both."""
     assert _leader_after_a_passing_phantom(3, monkeypatch)
     assert not _leader_after_a_passing_phantom(1, monkeypatch)
 
