@@ -9,11 +9,11 @@ ENV DEBIAN_FRONTEND=noninteractive \
     PYTHONUNBUFFERED=1 \
     PY=/opt/venv/bin/python
 
-# mosquitto: the MQTT tests start their own broker; systemd: `systemd-analyze` lints the unit;
+# mosquitto (and its clients): the MQTT tests start their own broker; systemd: `systemd-analyze` lints the unit;
 # Mesa EGL: the simulator renders the camera on the CPU; libusb: pyrealsense2 imports.
 RUN apt-get update \
  && apt-get install -y --no-install-recommends \
-        mosquitto systemd libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 ca-certificates \
+        mosquitto mosquitto-clients systemd libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 ca-certificates \
  && rm -rf /var/lib/apt/lists/*
 
 # Dependencies first (a layer that survives code changes). torch from the CPU index: PyPI's default
@@ -24,7 +24,7 @@ COPY companion/__init__.py companion/__init__.py
 COPY sitl/__init__.py sitl/__init__.py
 RUN python -m venv /opt/venv \
  && /opt/venv/bin/pip install -q torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
- && /opt/venv/bin/pip install -q ".[sim,dev]" \
+ && /opt/venv/bin/pip install -q ".[sim,dev,cluster,realsense]" \
  && /opt/venv/bin/pip uninstall -q -y wingman
 
 COPY . .
@@ -33,5 +33,5 @@ RUN /opt/venv/bin/pip install -q --no-deps -e . \
  && chown -R tester /src
 USER tester
 
-# scripts/check: ruff, mypy, and the tests (SITL, MQTT broker, status socket, systemd unit lint).
+# scripts/check: ruff, mypy, the import rules, and the tests (SITL, MQTT, Ray on the loopback address, ...).
 CMD ["scripts/check"]
