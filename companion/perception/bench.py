@@ -266,16 +266,11 @@ def compare_onnx_models(
     import onnxruntime as ort  # noqa: PLC0415
 
     from companion.perception.detector.letterbox import Letterboxer  # noqa: PLC0415
+    from companion.perception.detector.runtime import session_options  # noqa: PLC0415
 
     sessions = {}
     for name, path in models.items():
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = threads
-        so.inter_op_num_threads = 1
-        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        so.log_severity_level = 3
-        sess = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+        sess = ort.InferenceSession(path, session_options(threads), providers=["CPUExecutionProvider"])
         fixed = onnx_input_shape(path)
         sessions[name] = (sess, sess.get_inputs()[0].name, fixed, Letterboxer(input_size_px))
     samples: dict[str, list[float]] = {n: [] for n in models}
