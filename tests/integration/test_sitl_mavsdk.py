@@ -239,6 +239,10 @@ async def test_health_reads_the_offboard_loss_failsafe_and_never_writes_it(
         "WINGMAN_STATUS__SOCKET_PATH": str(tmp_path / "none.sock"),
         "WINGMAN_DETECTOR__RUNTIME": "truth",
         "WINGMAN_LINK__URL": one_vehicle.api_url(0),
+        # The lone simulated vehicle is system 1, the shipped config's leader id: name it as ours, and the
+        # leader as another system, or the probe rightly refuses it.
+        "WINGMAN_LINK__SYSTEM_ID": str(SYSID),
+        "WINGMAN_LEADER__MAVLINK_SYSTEM_ID": "9",
         "WINGMAN_CAMERA__PATH": str(tmp_path / "cam.sock"),
     }
     r = await asyncio.to_thread(

@@ -95,35 +95,46 @@ async def test_realsense_bag_reads_back_frame_exact(tmp_path: Path) -> None:
 
 
 async def test_realsense_bag_is_what_the_sdk_plays(tmp_path: Path) -> None:
-    # The SDK's own player (librealsense via pyrealsense2) reads the file as a device recording.
+    # The SDK's own player (librealsense via pyrealsense2) reads the file as a device recording. The player
+    # is set to non-real-time and paused before any sensor starts: a pipeline starts playing in real time,
+    # and on a busy machine its first frame can be gone before `set_real_time(False)` lands.
     rs = pytest.importorskip("pyrealsense2")
     frames = synthetic_frames(4)
     path = tmp_path / "rec.bag"
     write_realsense_bag(path, frames)
-    cfg = rs.config()
-    cfg.enable_device_from_file(str(path), repeat_playback=False)
-    pipe = rs.pipeline()
-    profile = pipe.start(cfg)
-    profile.get_device().as_playback().set_real_time(False)
-    got = {}
+    device = rs.context().load_device(str(path))
+    playback = device.as_playback()
+    playback.set_real_time(False)
+    playback.pause()  # until every sensor listens: a sensor started late would miss the first frames
+    queue = rs.frame_queue(64, keep_frames=True)
+    sensors = device.query_sensors()
+    got: dict[str, dict[int, tuple[np.ndarray, float]]] = {"color": {}, "depth": {}}
+    for sensor in sensors:
+        sensor.open(sensor.get_stream_profiles())
+        sensor.start(queue)
+    playback.resume()
     try:
-        while True:
-            ok, fs = pipe.try_wait_for_frames(2000)
+        while len(got["color"]) + len(got["depth"]) < 2 * len(frames):
+            ok, frame = queue.try_wait_for_frame(10_000)
             if not ok:
                 break
-            got[fs.get_depth_frame().get_frame_number()] = (
-                np.asanyarray(fs.get_color_frame().get_data()).copy(),
-                np.asanyarray(fs.get_depth_frame().get_data()).copy(),
-                fs.get_color_frame().get_timestamp(),
+            kind = "depth" if frame.get_profile().stream_type() == rs.stream.depth else "color"
+            got[kind][frame.get_frame_number()] = (
+                np.asanyarray(frame.get_data()).copy(),
+                frame.get_timestamp(),
             )
     finally:
-        pipe.stop()
-    assert sorted(got) == [f.seq for f in frames]
+        for sensor in sensors:
+            sensor.stop()
+            sensor.close()
+    assert sorted(got["color"]) == sorted(got["depth"]) == [f.seq for f in frames]
     for f in frames:
-        rgb, depth_u16, stamp_ms = got[f.seq]
+        rgb, stamp_ms = got["color"][f.seq]
+        depth_u16, depth_stamp_ms = got["depth"][f.seq]
         assert np.array_equal(rgb, f.rgb)
         assert np.array_equal(depth_u16, depth_to_u16(f.depth_m))
         assert stamp_ms == pytest.approx(f.stamp_s * 1e3, abs=1e-3)
+        assert depth_stamp_ms == pytest.approx(f.stamp_s * 1e3, abs=1e-3)
 
 
 def test_align_depth_moves_a_near_object_by_the_parallax() -> None:
