@@ -19,7 +19,7 @@ from companion.errors import CompanionError
 log = logging.getLogger("companion")
 
 #: Command modules under companion.commands, in --help order.
-COMMAND_MODULES = ("run", "status", "config_cmd", "sim", "bench", "detector", "replay")
+COMMAND_MODULES = ("run", "status", "config_cmd", "sim", "bench", "detector", "replay", "autolabel")
 
 Handler = Callable[[argparse.Namespace], int]
 

@@ -24,18 +24,22 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from companion.clock import ManualClock
 from companion.config import Config
+from companion.evaluation.autolabel_check import AutoLabelCheck
 from companion.evaluation.log import FlightLog
 from companion.evaluation.plots import Snapshot
 from companion.evaluation.scoring import RunScorer
 from companion.evaluation.trace import RunObserver
 from companion.mission.types import MissionInputs, StepOutput, Transition
+from companion.perception.autolabel import AutoLabelConfig
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 from companion.service.flight_core import FlightCore
 from companion.vehicle.message_link import MessageVehicleLink
@@ -56,6 +60,13 @@ class LockstepOptions:
     snapshots: int = 5
     #: Called now and then with the sim time (a progress line).
     progress: Callable[[float], None] | None = None
+    #: Auto-label every frame while GPS is good, scored against the renderer's boxes (``auto_label`` in
+    #: the report's extra figures).
+    auto_label: bool = False
+    #: Also write the auto-labelled frames here as a detector dataset (None: score only).
+    auto_label_dir: Path | None = None
+    #: The auto-labelled frames' sequence name (the dataset's group: one flight).
+    auto_label_sequence: str = "0"
 
 
 @dataclass(slots=True)
@@ -113,6 +124,14 @@ class LockstepRun:
         self._in_flight: deque[_InFlight] = deque()
         self._compute_ms: list[float] = []
         self.observer = RunObserver(self.clock, [])
+        self.autolabel: AutoLabelCheck | None = None
+        if options.auto_label:
+            self.autolabel = AutoLabelCheck(
+                options.auto_label_dir,
+                AutoLabelConfig(leader_span_m=cfg.leader.span_m),
+                self.pipeline.camera,
+                options.auto_label_sequence,
+            )
 
     # ------------------------------------------------------------------ mission callbacks
     def _on_transition(self, tr: Transition) -> None:
@@ -134,41 +153,18 @@ class LockstepRun:
     # ------------------------------------------------------------------ the loop
     async def run(self) -> RunResult:
         sc = self.scenario
-        world = self.world
         frame_period_s = 1.0 / sc.run.camera_rate_hz
         truth_period_s = 1.0 / TRUTH_RATE_HZ
-        next_frame_s = 0.0
-        next_truth_s = 0.0
-        next_progress_s = 0.0
         end_s = sc.run.duration_s
         wall0 = time.perf_counter()
         self.core.request_start()
-        async with asyncio.TaskGroup() as tg:
-            mission = tg.create_task(self.core.run(), name="lockstep.mission")
-            while world.t_s < end_s - 1e-9 and not mission.done():
-                world.step()
-                t_s = world.t_s
-                self.clock.set(t_s)
-                self.link.pump()
-                self.core.feed_telemetry()
-                if t_s >= next_frame_s - 1e-9:
-                    next_frame_s += frame_period_s
-                    if self.link.snapshot().armed or self._in_flight:
-                        self._capture(t_s)
-                while self._in_flight and self._in_flight[0].due_s <= t_s + 1e-9:
-                    self._deliver(self._in_flight.popleft())
-                if t_s >= next_truth_s - 1e-9:
-                    next_truth_s += truth_period_s
-                    f = world.truth("follower")
-                    self.scorer.truth(
-                        t_s, f.p_ned_m, f.v_ned_m_s, f.q_ned_body_wxyz, world.truth("leader").p_ned_m
-                    )
-                if self.options.progress is not None and t_s >= next_progress_s:
-                    next_progress_s += 5.0
-                    self.options.progress(t_s)
-                await asyncio.sleep(0)  # the runner and its command executor run here
-            mission.cancel()
+        with ExitStack() as stack:
+            if self.autolabel is not None:
+                stack.enter_context(self.autolabel)
+            await self._loop(end_s, frame_period_s, truth_period_s)
         extra = self.scorer.extra()
+        if self.autolabel is not None:
+            extra["auto_label"] = self.autolabel.summary()
         extra.update(
             {
                 "harness": "lockstep",
@@ -186,6 +182,54 @@ class LockstepRun:
         )
         return RunResult(self.scorer.freeze(), self.scorer.snapshots, extra, self.observer)
 
+    async def _loop(self, end_s: float, frame_period_s: float, truth_period_s: float) -> None:
+        world = self.world
+        next_frame_s = 0.0
+        next_truth_s = 0.0
+        next_progress_s = 0.0
+        async with asyncio.TaskGroup() as tg:
+            mission = tg.create_task(self.core.run(), name="lockstep.mission")
+            while world.t_s < end_s - 1e-9 and not mission.done():
+                world.step()
+                t_s = world.t_s
+                self.clock.set(t_s)
+                self.link.pump()
+                self.core.feed_telemetry()
+                if self.autolabel is not None:
+                    self._share_leader(t_s)
+                if t_s >= next_frame_s - 1e-9:
+                    next_frame_s += frame_period_s
+                    if self.link.snapshot().armed or self._in_flight:
+                        self._capture(t_s)
+                while self._in_flight and self._in_flight[0].due_s <= t_s + 1e-9:
+                    self._deliver(self._in_flight.popleft())
+                if t_s >= next_truth_s - 1e-9:
+                    next_truth_s += truth_period_s
+                    f = world.truth("follower")
+                    self.scorer.truth(
+                        t_s, f.p_ned_m, f.v_ned_m_s, f.q_ned_body_wxyz, world.truth("leader").p_ned_m
+                    )
+                if self.options.progress is not None and t_s >= next_progress_s:
+                    next_progress_s += 5.0
+                    self.options.progress(t_s)
+                await asyncio.sleep(0)  # the runner and its command executor run here
+            mission.cancel()
+
+    def _share_leader(self, t_s: float) -> None:
+        """The leader's own EKF estimate, moved into the follower's local frame, as MQTT would share it."""
+        if self.autolabel is None:
+            return
+        est = self.world.autopilot("leader").est
+        off_l = self.world.origin_offset_ned_m("leader")
+        off_f = self.world.origin_offset_ned_m("follower")
+        p = (
+            float(est.n_m + off_l[0] - off_f[0]),
+            float(est.e_m + off_l[1] - off_f[1]),
+            float(est.d_m + off_l[2] - off_f[2]),
+        )
+        v = (float(est.vn_m_s), float(est.ve_m_s), float(est.vd_m_s))
+        self.autolabel.share.sample(t_s, p, v, bool(est.global_valid))
+
     def _capture(self, t_s: float) -> None:
         follower = self.world.truth("follower")
         leader = None if self.scenario.run.leader_hidden(t_s) else self.world.truth("leader")
@@ -202,6 +246,10 @@ class LockstepRun:
         compute_ms = item.compute_ms + process_ms
         self._compute_ms.append(compute_ms)
         self.observer.on_frame(item.frame, item.result, track, process_ms)
+        if self.autolabel is not None:
+            self.autolabel.on_frame(
+                self.clock.now_s(), item.frame, self.link.snapshot(), self.pipeline.attitude
+            )
         est = track.leader_estimate()
         stamp_s = item.frame.stamp_s
         self.scorer.frame(
