@@ -469,6 +469,25 @@ class LoggingConfig(Section):
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
+class AutoLabelSection(Section):
+    """Recording the leader's box from its shared position while GPS is good (a dataset to fine-tune on)."""
+
+    #: Off by default: recording writes images to disk for as long as the formation flies.
+    enabled: bool = False
+    #: Dataset folder; each service start writes a new sub-folder named by its start time.
+    out_dir: str = "/var/lib/wingman/autolabel"
+    #: Stop writing beyond this many bytes per start (images and labels).
+    max_bytes: int = Field(2_000_000_000, gt=0)
+    #: A shared leader position older than this at a frame's time is not used, s.
+    share_max_age_s: float = Field(0.5, gt=0.0, le=5.0)
+    #: 1-sigma error of the expected leader position (both GPS fixes and the share's age), m.
+    position_sigma_m: float = Field(0.5, gt=0.0, le=5.0)
+    #: Spinning propellers leave no depth: the box is widened by this share of the span on each side.
+    side_pad_fraction: float = Field(0.2, ge=0.0, le=1.0)
+    #: Keep one drone-free frame in this many as a negative.
+    negative_every: int = Field(5, ge=1)
+
+
 class Config(Section):
     """The whole service configuration."""
 
@@ -487,6 +506,7 @@ class Config(Section):
     status: StatusConfig = StatusConfig()
     service: ServiceConfig = ServiceConfig()
     logging: LoggingConfig = LoggingConfig()
+    autolabel: AutoLabelSection = AutoLabelSection()
 
     @model_validator(mode="after")
     def _truth_needs_truth(self) -> Config:

@@ -15,10 +15,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.perception.autolabel import AutoLabelConfig, Verdict, auto_label, box_iou, leader_in_camera
+from companion.perception.autolabel import AutoLabelConfig, Verdict, box_iou
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.perception.types import RgbdFrame
+from companion.service.autolabel_tap import label_frame
 from companion.vehicle.types import Vec3T, VehicleState
 
 #: IoU a label must reach against the true box to count as right.
@@ -106,16 +107,11 @@ class AutoLabelCheck:
     ) -> None:
         sc = self.score
         sc.frames += 1
-        R_ned_body = attitude.R_at(frame.stamp_s)
         leader = self.share.at(t_s, frame.stamp_s)
-        if not vehicle.global_position_ok or R_ned_body is None or leader is None:
+        label = label_frame(frame, vehicle, attitude, leader, geometry=self.geometry, cfg=self.cfg)
+        if label is None:
             sc.gated_out += 1
             return
-        # The position telemetry is newer than the frame: step it back along the velocity.
-        back_s = vehicle.local_position_stamp_s - frame.stamp_s
-        p_follower = np.asarray(vehicle.p_ned_m, np.float64) - back_s * np.asarray(vehicle.v_ned_m_s)
-        p_cam = leader_in_camera(self.geometry, R_ned_body, p_follower, leader)
-        label = auto_label(frame.depth_m, frame.intrinsics, p_cam, self.cfg)
         truth = frame.truth
         true_box = None if truth is None else truth.box_xyxy_px
         if true_box is not None:

@@ -137,7 +137,7 @@ def auto_label(
     )
     if touches:
         return AutoLabel(Verdict.REJECTED, "the blob runs into the background", None, 0.0, expected, z)
-    grow = int(math.ceil(cfg.gather_fraction * max(bw, bh)))
+    grow = math.ceil(cfg.gather_fraction * max(bw, bh))
     gx0, gy0 = max(0, bx - grow), max(0, by - grow)
     gx1, gy1 = min(x1 - x0, bx + bw + grow), min(y1 - y0, by + bh + grow)
     ys, xs = np.nonzero(mask[gy0:gy1, gx0:gx1])

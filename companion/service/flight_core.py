@@ -24,6 +24,7 @@ from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
 from companion.vehicle.types import NEVER_S
@@ -69,6 +70,8 @@ class FlightCore:
         self.track: Any = None
         self._attitude_stamp_s = NEVER_S
         self._velocity_stamp_s = NEVER_S
+        #: Auto-labelling while GPS is good (``[autolabel] enabled``); its writer runs with :meth:`run`.
+        self.autolabel = AutoLabelTap(cfg, self.pipeline.camera) if cfg.autolabel.enabled else None
 
     def on_frame(self, frame: RgbdFrame, result: DetectorResult) -> Any:
         """One detector result through pose and tracker to the mission; returns the tracker's state."""
@@ -79,6 +82,8 @@ class FlightCore:
         if est is not None:
             self.runner.submit_leader(est)
         self.runner.submit_obstacle(self.pipeline.obstacle(frame, track))
+        if self.autolabel is not None:
+            self.autolabel.on_frame(frame, self.link.snapshot(), self.pipeline.attitude)
         return track
 
     def feed_telemetry(self) -> None:
@@ -94,7 +99,10 @@ class FlightCore:
             self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
 
     def submit_leader_shared(self, position: SharedLeaderPosition) -> None:
+        """The leader's shared position, to the mission and the auto-labeller."""
         self.runner.submit_leader_shared(position)
+        if self.autolabel is not None:
+            self.autolabel.share(position)
 
     def request_start(self, *, takeover: bool = True) -> None:
         """See :meth:`MissionRunner.request_start`."""
@@ -109,4 +117,8 @@ class FlightCore:
 
     async def run(self) -> None:
         """The mission until its shutdown action is under way."""
-        await self.runner.run()
+        if self.autolabel is None:
+            await self.runner.run()
+            return
+        with self.autolabel:
+            await self.runner.run()

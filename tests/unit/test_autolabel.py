@@ -172,3 +172,34 @@ def test_the_writer_refuses_a_folder_with_data(tmp_path: Path) -> None:
     (tmp_path / "ds" / "keep.txt").write_text("x")
     with pytest.raises(FileExistsError, match="not empty"), AutoLabelWriter(tmp_path / "ds"):
         pass
+
+
+def test_the_service_tap_labels_only_with_gps_and_a_fresh_share(tmp_path: Path) -> None:
+    from companion.config import Config
+    from companion.mission.types import SharedLeaderPosition
+    from companion.perception.transform import AttitudeHistory, CameraGeometry
+    from companion.service.autolabel_tap import AutoLabelTap
+    from companion.vehicle.types import VehicleState
+
+    cfg = Config.model_validate({"autolabel": {"enabled": True, "out_dir": str(tmp_path)}})
+    geometry = CameraGeometry(np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]]), np.zeros(3))  # cam z = body x
+    attitude = AttitudeHistory()
+    attitude.push(0.0, (1.0, 0.0, 0.0, 0.0))  # level, facing north
+    attitude.push(10.0, (1.0, 0.0, 0.0, 0.0))
+    depth, box = _scene((0.0, 0.0, 6.0))  # the leader 6 m north of the follower, at its height
+    frame = RgbdFrame(np.zeros((480, 640, 3), np.uint8), depth, INTR, stamp_s=2.0, seq=7)
+    good = VehicleState(global_position_ok=True, p_ned_m=(0.0, 0.0, -5.0), local_position_stamp_s=2.0)
+    with AutoLabelTap(cfg, geometry, now_wall_s=0.0) as tap:
+        tap.on_frame(frame, good, attitude)  # no share yet
+        tap.share(SharedLeaderPosition(1.7, (5.4, 0.0, -5.0)))
+        tap.share(SharedLeaderPosition(1.8, (5.6, 0.0, -5.0)))  # 2 m/s north: at 2.0 s it is at 6.0 m
+        tap.on_frame(frame, VehicleState(global_position_ok=False), attitude)  # GPS not good
+        tap.on_frame(frame, good, attitude)
+        late = RgbdFrame(frame.rgb, depth, INTR, stamp_s=2.4, seq=8)
+        tap.on_frame(late, good, attitude)  # the share is 0.6 s old: too old
+    assert tap.gated_out == 3
+    assert tap.counts.labels == 1
+    out = next(tmp_path.iterdir())
+    label = (out / "labels" / f"{out.name}_f000007.txt").read_text().split()
+    cx = float(label[1]) * 640
+    assert cx == pytest.approx((box[0] + box[2]) / 2, abs=0.5)
