@@ -29,6 +29,11 @@ def register(sub: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="output folder: one dataset folder per flight")
     p.add_argument("--no-write", action="store_true", help="score only, write no images")
     p.add_argument(
+        "--truth-labels",
+        action="store_true",
+        help="also write every frame with the renderer's true box (an evaluation set: RUN/truth)",
+    )
+    p.add_argument(
         "--set",
         action="append",
         default=[],
@@ -82,6 +87,7 @@ def _autolabel(args: argparse.Namespace) -> int:
                     auto_label=True,
                     auto_label_dir=None if args.no_write else run_dir / "dataset",
                     auto_label_sequence=run_name,
+                    truth_label_dir=run_dir / "truth" if args.truth_labels else None,
                 )
                 result = run_lockstep(run_file, seed, cfg, load_detect(cfg, "network"), options)
                 summary = result.extra["auto_label"]

@@ -109,6 +109,40 @@ def register(sub: Any) -> None:
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(handler=_eval)
 
+    f = dsub.add_parser(
+        "finetune",
+        help="fine-tune the model in service on auto-labelled recordings; keep it only if it is better",
+        description="Fine-tune the configured model on auto-labelled recordings (companion autolabel or "
+        "[autolabel] in the service) mixed with a replay of its original data, export ONNX, and score old "
+        "and new on held-out recordings. --install copies the new model over the configured one only when "
+        "it beats it there.",
+    )
+    add_config_arg(f)
+    f.add_argument("--data", required=True, action="append", metavar="DIR", help="a recording (repeatable)")
+    f.add_argument(
+        "--replay",
+        action="append",
+        default=[],
+        metavar="NAME=DIR:WEIGHT",
+        help="original training data to replay so the model does not forget (repeatable)",
+    )
+    f.add_argument(
+        "--eval", required=True, action="append", metavar="DIR", help="held-out recording (repeatable)"
+    )
+    f.add_argument("--out", type=Path, required=True, help="run folder: weights, ONNX, finetune.json, card")
+    f.add_argument("--epochs", type=int, default=10, help="epochs (default 10)")
+    f.add_argument("--epoch-images", type=int, default=800, help="images per epoch (default 800)")
+    f.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 0.0005)")
+    f.add_argument("--own-weight", type=float, default=0.5, help="share of every batch from --data")
+    f.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    f.add_argument("--workers", type=int, default=1, help="augmentation worker processes")
+    f.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument(
+        "--install", action="store_true", help="copy the new model over the configured one if it was accepted"
+    )
+    f.set_defaults(handler=_finetune)
+
     x = dsub.add_parser("export", help="export weights to ONNX (opset >= 17) and update the checksum sidecar")
     add_config_arg(x)
     x.add_argument("--weights", default=None, help="weights .pt (default: detector.model_path)")
@@ -165,6 +199,52 @@ def _train(args: argparse.Namespace) -> int:
         "done" if result["finished"] else f"stopped after epoch {result['epochs_done']} (--resume to go on)"
     )
     print(f"{state}; best validation mAP@0.5 {result['best_val_map50']:.3f}; weights in {args.out}/best.pt")
+    return 0
+
+
+def _finetune(args: argparse.Namespace) -> int:
+    cfg = load(args)
+    from companion.perception.detector.finetune import FinetuneOptions, finetune, install
+    from companion.perception.detector.train import parse_source
+
+    try:
+        replay = [parse_source(r) for r in args.replay]
+        opts = FinetuneOptions(
+            epochs=args.epochs,
+            epoch_images=args.epoch_images,
+            lr=args.lr,
+            own_weight=args.own_weight,
+            threads=args.threads,
+            workers=args.workers,
+            device=args.device,
+            seed=args.seed,
+        )
+        args.out.mkdir(parents=True, exist_ok=True)
+        result = finetune(
+            cfg.detector,
+            [Path(d) for d in args.data],
+            replay,
+            [Path(d) for d in args.eval],
+            out=args.out,
+            opts=opts,
+        )
+    except (FileNotFoundError, ValueError, ModelError) as exc:
+        print(f"companion detector finetune: {exc}", file=sys.stderr)
+        return 2
+    b, a = result["before"], result["after"]
+    print(
+        f"held-out recordings: mAP@0.5 {b['map50']} -> {a['map50']}, recall {b['recall']} -> {a['recall']}, "
+        f"recall within 10 m {b['recall_within_10m']} -> {a['recall_within_10m']}; "
+        f"trained in {result['train_wall_s'] / 60:.1f} min; "
+        + ("accepted" if result["accepted"] else "refused: the model in service stays")
+    )
+    if args.install:
+        try:
+            path = install(args.out, Path(cfg.detector.model_path).parent)
+        except ValueError as exc:
+            print(f"companion detector finetune: {exc}", file=sys.stderr)
+            return 3
+        print(f"installed {path}")
     return 0
 
 

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.perception.autolabel import AutoLabelConfig, Verdict, box_iou
+from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, box_iou
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.perception.types import RgbdFrame
@@ -86,27 +86,48 @@ class _Score:
 class AutoLabelCheck:
     """Labels every delivered frame while GPS is good and the share fresh; scores it; writes it."""
 
-    def __init__(self, out_dir: Path | None, cfg: AutoLabelConfig, geometry: CameraGeometry, sequence: str):
+    def __init__(
+        self,
+        out_dir: Path | None,
+        cfg: AutoLabelConfig,
+        geometry: CameraGeometry,
+        sequence: str,
+        truth_dir: Path | None = None,
+    ):
         self.cfg = cfg
         self.geometry = geometry
         self.share = LeaderShare()
         self.score = _Score()
         self.writer = AutoLabelWriter(out_dir, sequence=sequence) if out_dir is not None else None
+        #: Every frame with the renderer's own box (an evaluation set; never a training set for a product).
+        self.truth_writer = (
+            AutoLabelWriter(truth_dir, sequence=sequence, negative_every=1) if truth_dir is not None else None
+        )
 
     def __enter__(self) -> AutoLabelCheck:
-        if self.writer is not None:
-            self.writer.__enter__()
+        for w in (self.writer, self.truth_writer):
+            if w is not None:
+                w.__enter__()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.writer is not None:
-            self.writer.__exit__(*exc)
+        for w in (self.writer, self.truth_writer):
+            if w is not None:
+                w.__exit__(*exc)
 
     def on_frame(
         self, t_s: float, frame: RgbdFrame, vehicle: VehicleState, attitude: AttitudeHistory
     ) -> None:
         sc = self.score
         sc.frames += 1
+        if self.truth_writer is not None and frame.truth is not None:
+            box = frame.truth.box_xyxy_px
+            truth_label = (
+                AutoLabel(Verdict.LABEL, "truth", box, 1.0)
+                if box is not None
+                else AutoLabel(Verdict.NEGATIVE, "truth")
+            )
+            self.truth_writer.offer(frame, truth_label)
         leader = self.share.at(t_s, frame.stamp_s)
         label = label_frame(frame, vehicle, attitude, leader, geometry=self.geometry, cfg=self.cfg)
         if label is None:
@@ -159,6 +180,8 @@ class AutoLabelCheck:
         }
         if self.writer is not None:
             out["written"] = self.writer.counts.as_dict()
+        if self.truth_writer is not None:
+            out["truth_written"] = self.truth_writer.counts.as_dict()
         return out
 
 

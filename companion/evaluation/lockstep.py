@@ -67,6 +67,8 @@ class LockstepOptions:
     auto_label_dir: Path | None = None
     #: The auto-labelled frames' sequence name (the dataset's group: one flight).
     auto_label_sequence: str = "0"
+    #: Also write every frame with the renderer's own box here (an evaluation set).
+    truth_label_dir: Path | None = None
 
 
 @dataclass(slots=True)
@@ -131,6 +133,7 @@ class LockstepRun:
                 AutoLabelConfig(leader_span_m=cfg.leader.span_m),
                 self.pipeline.camera,
                 options.auto_label_sequence,
+                options.truth_label_dir,
             )
 
     # ------------------------------------------------------------------ mission callbacks

@@ -2,8 +2,8 @@
 
 Layout (what ``companion detector train --data`` and ``eval`` read): ``images/NAME.jpg``,
 ``labels/NAME.txt`` (YOLO, empty for a negative), ``manifest.csv`` with one row per written frame (verdict,
-quality, expected range, and, in the simulator, the renderer's true box for checking). Rejected frames are
-counted, never written.
+quality, the expected range and ``range_m``, which is the true range in the simulator, and there the
+renderer's true box too). Rejected frames are counted, never written.
 
 The queue is bounded: when the disk or the encoder falls behind, frames are dropped and counted, not
 waited for. Writing stops at ``max_bytes`` (counted as ``over_budget``).
@@ -35,6 +35,7 @@ MANIFEST_COLUMNS = (
     "verdict",
     "quality",
     "expected_range_m",
+    "range_m",
     "truth_box_xyxy_px",
     "truth_visible_fraction",
 )
@@ -171,6 +172,8 @@ class AutoLabelWriter:
         text = format_yolo_labels(boxes, w, h)
         (self.out_dir / "labels" / f"{name}.txt").write_text(text)
         truth = frame.truth
+        # The leader's range: the renderer's where it is known (simulator), else the expected one.
+        range_m = f"{truth.p_cam_leader_m[2]:.2f}" if truth is not None else f"{label.expected_range_m:.2f}"
         truth_box = (
             ""
             if truth is None or truth.box_xyxy_px is None
@@ -184,6 +187,7 @@ class AutoLabelWriter:
                 label.verdict.value,
                 f"{label.quality:.3f}",
                 f"{label.expected_range_m:.2f}",
+                range_m,
                 truth_box,
                 "" if truth is None else f"{truth.visible_fraction:.3f}",
             )

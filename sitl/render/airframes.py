@@ -1,9 +1,11 @@
 """The leader: quad-X airframes (body, four arms, motors, rotor discs, landing gear) in body FRD.
 
 Five looks so the detector does not learn one: an F450 kit frame, a Phantom-like white shell, a 5-inch
-racer, a heavy-lift quad and a micro quad with prop guards. Geometry is built at the airframe's usual
-size and scaled uniformly to ``LeaderLook.span_m`` (motor-to-motor diagonal). Motors sit at +-45 and
-+-135 deg (quad-X), rotor discs spin in the body x-y plane above the motors (z is down in FRD).
+racer, a heavy-lift quad and a micro quad with prop guards. A sixth, a yellow hexacopter (``hexa``), is
+never drawn by the dataset generator: it is the airframe a detector has not seen, for fine-tuning tests.
+Geometry is built at the airframe's usual size and scaled uniformly to ``LeaderLook.span_m``
+(motor-to-motor diagonal). Quad motors sit at +-45 and +-135 deg (quad-X), the hexa's every 60 deg from
+30 deg; rotor discs spin in the body x-y plane above the motors (z is down in FRD).
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ _LIVERIES: dict[str, _Livery] = {
     "racer": _Livery((0.02, 0.02, 0.02), (0.025, 0.025, 0.025), (0.80, 0.22, 0.02), (0.60, 0.30, 0.02)),
     "heavy": _Livery((0.06, 0.06, 0.065), (0.02, 0.02, 0.02), (0.75, 0.50, 0.02), (0.03, 0.03, 0.03)),
     "micro": _Livery((0.02, 0.02, 0.02), (0.03, 0.03, 0.03), (0.65, 0.05, 0.03), (0.55, 0.55, 0.55)),
+    "hexa": _Livery((0.85, 0.65, 0.02), (0.80, 0.80, 0.78), (0.10, 0.30, 0.75), (0.60, 0.60, 0.62)),
 }
 
 
@@ -226,7 +229,35 @@ def _micro(b: MeshBuilder, rot: MeshBuilder, lv: _Livery) -> tuple[float, float,
     return r_m, r_p, hub
 
 
-_BUILDERS = {"f450": _f450, "phantom": _phantom, "racer": _racer, "heavy": _heavy, "micro": _micro}
+def _hexa(b: MeshBuilder, rot: MeshBuilder, lv: _Livery) -> tuple[float, float, tuple[float, float, float]]:
+    r_m, r_p = 0.275, 0.11
+    hub = (0.07, 0.07, 0.03)
+    angles = [math.radians(30.0 + 60.0 * i) for i in range(6)]
+    b.add(cylinder(0.085, -0.03, 0.03, 6), lv.body, Kind.GLOSSY)  # a hexagonal centre plate stack
+    b.add(ellipsoid((0.07, 0.07, 0.045), 12, 6).transformed(t=(0.0, 0.0, -0.04)), lv.body, Kind.GLOSSY)
+    b.add(box((0.05, 0.02, 0.01), (0.06, 0.0, -0.03)), lv.accent, Kind.GLOSSY)
+    for ang in angles:
+        x, y = _motor_xy(r_m, ang)
+        b.add(_tube((0.0, 0.0, -0.005), (x, y, -0.005), 0.011, 8), lv.arm, Kind.GLOSSY)
+        b.add(cylinder(0.02, -0.04, 0.0, 10).transformed(t=(x, y, 0.0)), lv.accent, Kind.METAL)
+        rot.add(double_sided(disc(r_p, 20)).transformed(t=(x, y, -0.045)), lv.prop, Kind.ROTOR)
+    for sy in (1.0, -1.0):
+        for sx in (1.0, -1.0):
+            b.add(
+                _tube((sx * 0.05, sy * 0.05, 0.03), (sx * 0.07, sy * 0.13, 0.19), 0.006), lv.arm, Kind.PLAIN
+            )
+        b.add(_tube((-0.13, sy * 0.13, 0.19), (0.13, sy * 0.13, 0.19), 0.007), lv.arm, Kind.PLAIN)
+    return r_m, r_p, hub
+
+
+_BUILDERS = {
+    "f450": _f450,
+    "phantom": _phantom,
+    "racer": _racer,
+    "heavy": _heavy,
+    "micro": _micro,
+    "hexa": _hexa,
+}
 
 
 def build_leader(look: LeaderLook) -> LeaderModel:

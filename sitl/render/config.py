@@ -19,7 +19,7 @@ from companion.perception.types import Intrinsics
 
 RGB = tuple[float, float, float]
 
-Airframe = Literal["f450", "phantom", "racer", "heavy", "micro"]
+Airframe = Literal["f450", "phantom", "racer", "heavy", "micro", "hexa"]
 #: Motor-to-motor diagonal of each airframe, m (a 450-class frame is 0.45).
 AIRFRAME_SPAN_M: dict[str, float] = {
     "f450": 0.45,
@@ -27,6 +27,7 @@ AIRFRAME_SPAN_M: dict[str, float] = {
     "racer": 0.22,
     "heavy": 0.90,
     "micro": 0.12,
+    "hexa": 0.55,
 }
 
 
