@@ -67,7 +67,10 @@ def _score(det_cfg: DetectorConfig, weights: Path, eval_sets: Sequence[Path]) ->
     detector = load_detector(
         det_cfg.model_copy(update={"model_path": str(weights), "model_sha256": "", "runtime": "onnx"})
     )
-    samples = [s for d in eval_sets for split in (list_splits(d) or [None]) for s in find_samples(d, split)]
+    samples = []
+    for d in eval_sets:  # every split of a dataset with splits; a recording (flat folder) whole
+        splits: list[str | None] = list(list_splits(d)) or [None]
+        samples += [s for split in splits for s in find_samples(d, split)]
     out = evaluate(detector, samples, progress=False, columns=())
 
     def num(v: Any) -> float | None:
