@@ -483,7 +483,7 @@ class AutoLabelSection(Section):
     #: 1-sigma error of the expected leader position (both GPS fixes and the share's age), m.
     position_sigma_m: float = Field(0.5, gt=0.0, le=5.0)
     #: Spinning propellers leave no depth: the box is widened by this share of the span on each side.
-    side_pad_fraction: float = Field(0.2, ge=0.0, le=1.0)
+    side_pad_fraction: float = Field(0.15, ge=0.0, le=1.0)
     #: Keep one drone-free frame in this many as a negative.
     negative_every: int = Field(5, ge=1)
 

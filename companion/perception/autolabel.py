@@ -67,7 +67,7 @@ class AutoLabelConfig:
     #: (landing gear, antennas: thin parts that depth edge holes cut off from the body).
     gather_fraction: float = 0.5
     #: Spinning propellers leave no depth: the box is widened by this share of the span on each side.
-    side_pad_fraction: float = 0.2
+    side_pad_fraction: float = 0.15
 
 
 @dataclass(frozen=True, slots=True)
