@@ -41,7 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from companion.perception.types import Intrinsics
+from companion.kernel.camera import Intrinsics
 from sitl.render.config import CameraModel
 from sitl.render.randomize import (
     SPLITS,

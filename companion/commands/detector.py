@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.commands._common import add_config_arg, load
-from companion.errors import ModelError
+from companion.kernel.errors import ModelError
 
 log = logging.getLogger("companion.detector")
 

@@ -30,7 +30,8 @@ from companion.evaluation.metrics import FORMATION_STATES
 from companion.evaluation.obstacles import Envelopes
 from companion.evaluation.outcome import TruthMonitor
 from companion.evaluation.plots import Snapshot
-from companion.perception.types import Detection, GroundTruth, RgbImage
+from companion.kernel.camera import GroundTruth, RgbImage
+from companion.perception.types import Detection
 
 MIN_VISIBLE_FRACTION = 0.25
 MIN_VISIBLE_PX = 12.0

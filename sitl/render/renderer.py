@@ -24,10 +24,9 @@ import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.config import MountConfig
-from companion.errors import CameraError
-from companion.frames import Mat3, R_body_cam_from_mount, R_from_quat, Vec3
-from companion.perception.types import GroundTruth, Intrinsics, RgbdFrame
+from companion.kernel.camera import GroundTruth, Intrinsics, MountConfig, RgbdFrame
+from companion.kernel.errors import CameraError
+from companion.kernel.frames import Mat3, R_body_cam_from_mount, R_from_quat, Vec3
 from sitl.render import shaders
 from sitl.render.airframes import LeaderModel, build_leader
 from sitl.render.config import CameraModel, VisualConfig

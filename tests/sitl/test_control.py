@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.frames import R_from_quat, quat_from_euler
+from companion.kernel.frames import R_from_quat, quat_from_euler
 from sitl.control import (
     NAN,
     InnerLoop,
