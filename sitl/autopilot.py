@@ -32,6 +32,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import telemetry
+from sitl.attitude import Quat, attitude_from_thrust, quat_from_euler, wrap_pi
 from sitl.commander import (
     Action,
     DisarmTimer,
@@ -41,21 +42,11 @@ from sitl.commander import (
     mode_can_run,
     resolve_failsafe,
 )
-from sitl.control import (
-    NAN,
-    AttitudeGains,
-    InnerLoop,
-    PositionController,
-    PositionLimits,
-    Quat,
-    TrajectorySetpoint,
-    attitude_from_thrust,
-    quat_from_euler,
-    wrap_pi,
-)
+from sitl.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
 from sitl.dynamics import QUAD, QuadDynamics, QuadModel
 from sitl.estimator import Estimator, GpsFailure, GpsSample, GpsSensor, VisionSample
 from sitl.geo import LocalProjection
+from sitl.inner_loop import AttitudeGains, InnerLoop
 from sitl.modes import NavState, nav_state_from_mode
 from sitl.navigator import Navigator, NavLimits, RtlPhase
 from sitl.offboard import (

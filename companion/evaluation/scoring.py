@@ -106,7 +106,7 @@ class RunScorer:
         its scene's structures for the crash check.
         """
         from sitl.render.config import visual_from_mapping  # noqa: PLC0415 (pydantic only; sitl at eval)
-        from sitl.render.world import solid_structures  # noqa: PLC0415
+        from sitl.render.structures import solid_structures  # noqa: PLC0415
 
         run = scenario.run
         window = (run.formation_start_s, run.formation_start_s + run.formation_duration_s)
