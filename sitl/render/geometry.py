@@ -59,6 +59,14 @@ class CameraPose:
         return self.R_cam_ned @ (np.asarray(p_ned_m, dtype=np.float64) - self.p_ned_cam_m)
 
 
+@dataclass(frozen=True, slots=True)
+class LeaderPose:
+    """The leader's attitude (body -> NED) and centre position in NED, m."""
+
+    R_ned_body: Mat3
+    p_ned_m: Vec3
+
+
 def as_vec3(value: ArrayLike) -> Vec3:
     """A float64 3-vector from any array-like (tuples, lists, arrays)."""
     arr = np.asarray(value, dtype=np.float64).reshape(3)
