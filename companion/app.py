@@ -30,9 +30,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion import __version__, compat
-from companion.clock import Clock
+from companion import __version__
 from companion.config import Config
+from companion.kernel import compat
+from companion.kernel.clock import Clock
 from companion.service.gcs import OnboardStatusBuilder
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats

@@ -14,7 +14,8 @@ import sys
 from collections.abc import Callable, Sequence
 
 from companion import __version__
-from companion.errors import CompanionError
+from companion.kernel.cli import describe_commands
+from companion.kernel.errors import CompanionError
 
 log = logging.getLogger("companion")
 
@@ -48,22 +49,6 @@ def build_parser() -> argparse.ArgumentParser:
         importlib.import_module(f"companion.commands.{name}").register(sub)
     describe_commands(parser)
     return parser
-
-
-def describe_commands(parser: argparse.ArgumentParser) -> None:
-    """Give every (sub)command without a description its one-line help as one.
-
-    So ``companion CMD --help`` says what the command does, not only its options.
-    """
-    for action in parser._actions:
-        if not isinstance(action, argparse._SubParsersAction):
-            continue
-        helps = {a.dest: a.help for a in action._choices_actions}
-        for name, sub in action.choices.items():
-            if not sub.description and helps.get(name):
-                text = str(helps[name])
-                sub.description = text[0].upper() + text[1:] + ("" if text.endswith(".") else ".")
-            describe_commands(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

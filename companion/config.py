@@ -10,21 +10,15 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
-from companion.compat import tomllib
-from companion.errors import ConfigError
+from companion.kernel.camera import MountConfig
+from companion.kernel.config import Section, deep_merge, env_overrides, format_validation_error, read_toml
+from companion.kernel.errors import ConfigError
 
 SCHEMA_VERSION = 1
-ENV_PREFIX = "WINGMAN_"
-
-
-class Section(BaseModel):
-    """Base of every config section: immutable, and unknown keys are errors (typos must not pass)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
 
 class LinkConfig(Section):
@@ -60,18 +54,6 @@ class LinkConfig(Section):
         if problem is not None:
             raise ValueError(problem)
         return v
-
-
-class MountConfig(Section):
-    """Camera extrinsics: position of the camera in body FRD and its angles relative to body."""
-
-    x_m: float = 0.10
-    y_m: float = 0.0
-    z_m: float = 0.0
-    roll_deg: float = 0.0
-    #: Positive tilts the camera up: a follower flies nose-down, so a small up-tilt centres the leader.
-    pitch_deg: float = 5.0
-    yaw_deg: float = 0.0
 
 
 class CameraConfig(Section):
@@ -552,69 +534,6 @@ def url_problem(url: str) -> str | None:
     if not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
         return f"{scheme}:// needs HOST:PORT with a port in 1-65535 (got {rest!r})"
     return None
-
-
-def format_validation_error(exc: ValidationError) -> list[str]:
-    """One line per problem: ``dotted.key: what is wrong (got <value>)``."""
-    lines = []
-    for err in exc.errors():
-        key = ".".join(str(p) for p in err["loc"])
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        if not key:
-            lines.append(msg)  # a rule across sections: its message names the keys
-            continue
-        got = err.get("input")
-        shown = "" if err["type"] in ("extra_forbidden", "missing") else f" (got {got!r})"
-        lines.append(f"{key}: {msg}{shown}")
-    return lines
-
-
-def env_overrides(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[str, Any]:
-    """Nested dict from ``PREFIX_SECTION__KEY=value`` variables; values parse as TOML literals or strings."""
-    out: dict[str, Any] = {}
-    for name, raw in environ.items():
-        if not name.startswith(prefix) or name == f"{prefix}CONFIG":
-            continue
-        path = [p.lower() for p in name[len(prefix) :].split("__") if p]
-        if not path:
-            continue
-        try:
-            value: Any = tomllib.loads(f"v = {raw}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = raw
-        node = out
-        for part in path[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"${name}", [f"{'.'.join(path)}: conflicts with another override"])
-        node[path[-1]] = value
-    return out
-
-
-def deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
-    """Merge ``top`` into a copy of ``base``; tables merge key by key, other values replace."""
-    merged = dict(base)
-    for key, value in top.items():
-        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
-            merged[key] = deep_merge(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
-
-
-def read_toml(path: Path) -> dict[str, Any]:
-    """Parse a TOML file, turning every failure into a one-line :class:`ConfigError`."""
-    try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise ConfigError(str(path), ["file not found"]) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(str(path), [f"not valid TOML: {exc}"]) from None
-    except OSError as exc:
-        raise ConfigError(str(path), [f"cannot read: {exc.strerror}"]) from None
 
 
 def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> Config:

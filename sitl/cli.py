@@ -9,8 +9,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from companion import __version__
-from companion.cli import describe_commands
-from companion.errors import CompanionError
+from companion.kernel.cli import describe_commands
+from companion.kernel.errors import CompanionError
 
 Handler = Callable[[argparse.Namespace], int]
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from companion.config import Section, deep_merge, env_overrides, format_validation_error, read_toml
-from companion.errors import ConfigError
+from companion.kernel.config import Section, deep_merge, env_overrides, format_validation_error, read_toml
+from companion.kernel.errors import ConfigError
 
 SCHEMA_VERSION = 1
 

@@ -41,8 +41,9 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from companion.perception.types import Intrinsics
+from companion.kernel.camera import Intrinsics
 from sitl.render.config import CameraModel
+from sitl.render.geometry import LeaderPose
 from sitl.render.randomize import (
     SPLITS,
     Photometric,
@@ -50,7 +51,7 @@ from sitl.render.randomize import (
     distractor_frame_vertices,
     sample_sequence,
 )
-from sitl.render.renderer import LeaderPose, RenderedView, Renderer
+from sitl.render.renderer import RenderedView, Renderer
 
 U8 = NDArray[np.uint8]
 

@@ -25,7 +25,7 @@ import jsbsim
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.frames import R_from_euler, quat_from_R
+from companion.kernel.frames import R_from_euler, quat_from_R
 from sitl.geo import LocalProjection
 
 MODEL_ROOT = Path(__file__).resolve().parent / "models"

@@ -14,7 +14,8 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
-from sitl.control import NAN, TrajectorySetpoint, wrap_pi
+from sitl.attitude import wrap_pi
+from sitl.control import NAN, TrajectorySetpoint
 from sitl.modes import NavState
 
 

@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
-from sitl.control import NAN, Quat, TrajectorySetpoint, quat_normalized
+from sitl.attitude import Quat, quat_normalized
+from sitl.control import NAN, TrajectorySetpoint
 from sitl.geo import LocalProjection
 
 FRAME_GLOBAL_INT = 5

@@ -76,8 +76,8 @@ from typing import Any, Literal
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from companion.config import Section, format_validation_error, read_toml
-from companion.errors import ConfigError
+from companion.kernel.config import Section, format_validation_error, read_toml
+from companion.kernel.errors import ConfigError
 from sitl.estimator import GpsFailure, GpsJump, GpsNoise, GpsOutage
 from sitl.trajectory import Circle, FigureEight, SpeedProfile, Straight, Trajectory, Waypoints
 from sitl.wind import WindParams

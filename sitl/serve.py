@@ -38,9 +38,9 @@ from typing import Any, cast
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.errors import CompanionError, ConfigError
-from companion.logs import setup_logging
-from companion.shipped import project_root
+from companion.kernel.errors import CompanionError, ConfigError
+from companion.kernel.logs import setup_logging
+from companion.kernel.shipped import project_root
 from sitl.config import SitlConfig, load_sitl_config
 from sitl.dynamics import VehicleTruth
 from sitl.links import MessageLink

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Final
 from pymavlink.dialects.v20 import common as mavlink
 
 if TYPE_CHECKING:
-    from sitl.autopilot import Autopilot
+    from sitl.autopilot_state import AutopilotState
 
 MAV_TYPE_QUADROTOR: Final = 2
 MAV_AUTOPILOT_PX4: Final = 12
@@ -112,7 +112,7 @@ def _clip_i(x: float, lo: int, hi: int) -> int:
     return int(x)
 
 
-def heartbeat(ap: Autopilot) -> mavlink.MAVLink_message:
+def heartbeat(ap: AutopilotState) -> mavlink.MAVLink_message:
     """HEARTBEAT: quad, PX4 autopilot, base_mode/custom_mode of the current nav state."""
     nav = ap.nav_state
     return mavlink.MAVLink_heartbeat_message(
@@ -120,7 +120,7 @@ def heartbeat(ap: Autopilot) -> mavlink.MAVLink_message:
     )
 
 
-def sys_status(ap: Autopilot) -> mavlink.MAVLink_message:
+def sys_status(ap: AutopilotState) -> mavlink.MAVLink_message:
     """SYS_STATUS: sensor present/enabled/health bits (GPS only while GNSS is fused), battery."""
     present, enabled, health = ap.sensor_bits()
     return mavlink.MAVLink_sys_status_message(
@@ -129,12 +129,12 @@ def sys_status(ap: Autopilot) -> mavlink.MAVLink_message:
     )  # fmt: skip
 
 
-def system_time(ap: Autopilot) -> mavlink.MAVLink_message:
+def system_time(ap: AutopilotState) -> mavlink.MAVLink_message:
     """SYSTEM_TIME: unix time and time since boot, both following sim time."""
     return mavlink.MAVLink_system_time_message(ap.unix_time_us(), ap.time_boot_ms())
 
 
-def attitude(ap: Autopilot) -> mavlink.MAVLink_message:
+def attitude(ap: AutopilotState) -> mavlink.MAVLink_message:
     """ATTITUDE: Euler angles and body rates."""
     d = ap.dyn
     return mavlink.MAVLink_attitude_message(
@@ -142,7 +142,7 @@ def attitude(ap: Autopilot) -> mavlink.MAVLink_message:
     )
 
 
-def attitude_quaternion(ap: Autopilot) -> mavlink.MAVLink_message:
+def attitude_quaternion(ap: AutopilotState) -> mavlink.MAVLink_message:
     """ATTITUDE_QUATERNION: body -> NED quaternion and body rates."""
     d = ap.dyn
     w, x, y, z = ap.attitude_q()
@@ -151,7 +151,7 @@ def attitude_quaternion(ap: Autopilot) -> mavlink.MAVLink_message:
     )
 
 
-def local_position_ned(ap: Autopilot) -> mavlink.MAVLink_message:
+def local_position_ned(ap: AutopilotState) -> mavlink.MAVLink_message:
     """LOCAL_POSITION_NED: the estimate (drifting after GPS loss; no validity flags)."""
     e = ap.est
     return mavlink.MAVLink_local_position_ned_message(
@@ -159,7 +159,7 @@ def local_position_ned(ap: Autopilot) -> mavlink.MAVLink_message:
     )
 
 
-def global_position_int(ap: Autopilot) -> mavlink.MAVLink_message | None:
+def global_position_int(ap: AutopilotState) -> mavlink.MAVLink_message | None:
     """GLOBAL_POSITION_INT: the estimate as lat/lon/alt (None before the EKF has an origin)."""
     e = ap.est
     if not e.origin_valid:
@@ -180,7 +180,7 @@ def global_position_int(ap: Autopilot) -> mavlink.MAVLink_message | None:
     )
 
 
-def gps_raw_int(ap: Autopilot) -> mavlink.MAVLink_message:
+def gps_raw_int(ap: AutopilotState) -> mavlink.MAVLink_message:
     """GPS_RAW_INT: the last receiver fix, or "no GPS" (fix 0, 65535s) after 1 s without data."""
     g = ap.gps_last
     t_us = int(ap.t_s * 1e6)
@@ -211,12 +211,12 @@ def gps_raw_int(ap: Autopilot) -> mavlink.MAVLink_message:
     )
 
 
-def extended_sys_state(ap: Autopilot) -> mavlink.MAVLink_message:
+def extended_sys_state(ap: AutopilotState) -> mavlink.MAVLink_message:
     """EXTENDED_SYS_STATE: landed state."""
     return mavlink.MAVLink_extended_sys_state_message(0, ap.landed_state())
 
 
-def estimator_status(ap: Autopilot) -> mavlink.MAVLink_message:
+def estimator_status(ap: AutopilotState) -> mavlink.MAVLink_message:
     """ESTIMATOR_STATUS: EKF2 solution flags and accuracies."""
     e = ap.est
     return mavlink.MAVLink_estimator_status_message(
@@ -225,7 +225,7 @@ def estimator_status(ap: Autopilot) -> mavlink.MAVLink_message:
     )  # fmt: skip
 
 
-def odometry(ap: Autopilot) -> mavlink.MAVLink_message:
+def odometry(ap: AutopilotState) -> mavlink.MAVLink_message:
     """ODOMETRY: local NED pose, body-frame velocity (as PX4 sends it), covariances from eph/epv."""
     e = ap.est
     d = ap.dyn
@@ -253,7 +253,7 @@ def odometry(ap: Autopilot) -> mavlink.MAVLink_message:
     )  # fmt: skip
 
 
-def highres_imu(ap: Autopilot) -> mavlink.MAVLink_message:
+def highres_imu(ap: AutopilotState) -> mavlink.MAVLink_message:
     """HIGHRES_IMU: specific force, gyro, a synthetic magnetometer and baro."""
     d = ap.dyn
     fx, fy, fz = d.specific_force_body()
@@ -268,7 +268,7 @@ def highres_imu(ap: Autopilot) -> mavlink.MAVLink_message:
     )  # fmt: skip
 
 
-def altitude(ap: Autopilot) -> mavlink.MAVLink_message:
+def altitude(ap: AutopilotState) -> mavlink.MAVLink_message:
     """ALTITUDE: AMSL, local and relative-to-home altitude of the estimate."""
     e = ap.est
     amsl = ap.origin.alt0_m - e.d_m
@@ -278,7 +278,7 @@ def altitude(ap: Autopilot) -> mavlink.MAVLink_message:
     )
 
 
-def vfr_hud(ap: Autopilot) -> mavlink.MAVLink_message:
+def vfr_hud(ap: AutopilotState) -> mavlink.MAVLink_message:
     """VFR_HUD: ground speed, heading, throttle, altitude and climb rate."""
     e = ap.est
     gs = math.hypot(e.vn_m_s, e.ve_m_s)
@@ -288,7 +288,7 @@ def vfr_hud(ap: Autopilot) -> mavlink.MAVLink_message:
     )
 
 
-def battery_status(ap: Autopilot) -> mavlink.MAVLink_message:
+def battery_status(ap: AutopilotState) -> mavlink.MAVLink_message:
     """BATTERY_STATUS: the simple 4S battery model."""
     b = ap.battery
     cells = [b.voltage_mv // 4] * 4 + [65535] * 6
@@ -298,12 +298,12 @@ def battery_status(ap: Autopilot) -> mavlink.MAVLink_message:
     )  # fmt: skip
 
 
-def timesync(ap: Autopilot) -> mavlink.MAVLink_message:
+def timesync(ap: AutopilotState) -> mavlink.MAVLink_message:
     """TIMESYNC request (tc1 = 0, ts1 = now in ns)."""
     return mavlink.MAVLink_timesync_message(0, int(ap.t_s * 1e9))
 
 
-def home_position(ap: Autopilot) -> mavlink.MAVLink_message | None:
+def home_position(ap: AutopilotState) -> mavlink.MAVLink_message | None:
     """HOME_POSITION (None until home is set)."""
     h = ap.home
     if h is None:
@@ -316,7 +316,7 @@ def home_position(ap: Autopilot) -> mavlink.MAVLink_message | None:
     )  # fmt: skip
 
 
-def autopilot_version(ap: Autopilot) -> mavlink.MAVLink_message:
+def autopilot_version(ap: AutopilotState) -> mavlink.MAVLink_message:
     """AUTOPILOT_VERSION: PX4 v1.15 capabilities (MAVSDK reads MISSION_INT from them)."""
     return mavlink.MAVLink_autopilot_version_message(
         CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x0011,
@@ -324,7 +324,7 @@ def autopilot_version(ap: Autopilot) -> mavlink.MAVLink_message:
     )  # fmt: skip
 
 
-Builder = Callable[["Autopilot"], "mavlink.MAVLink_message | None"]
+Builder = Callable[["AutopilotState"], "mavlink.MAVLink_message | None"]
 
 BUILDERS: Final[dict[int, Builder]] = {
     mavlink.MAVLINK_MSG_ID_HEARTBEAT: heartbeat,

@@ -31,7 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.autopilot import LINK_API, LINK_GCS, Autopilot
+from sitl.autopilot import Autopilot
+from sitl.autopilot_state import LINK_API, LINK_GCS
 from sitl.config import SitlConfig
 from sitl.dynamics import QuadDynamics, VehicleTruth
 from sitl.estimator import GpsSensor

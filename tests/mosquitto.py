@@ -15,7 +15,7 @@ from typing import Any
 
 import aiomqtt
 
-from companion.compat import Self
+from companion.kernel.compat import Self
 
 
 def free_tcp_port() -> int:

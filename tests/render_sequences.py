@@ -23,10 +23,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.config import MountConfig
-from companion.frames import quat_from_euler
+from companion.kernel.camera import MountConfig, RgbdFrame
+from companion.kernel.frames import quat_from_euler
 from companion.perception.record import FolderRecorder
-from companion.perception.types import RgbdFrame
 
 G_M_S2 = 9.81
 PATHS = ("weave", "arc")

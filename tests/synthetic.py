@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.perception.types import GroundTruth, Intrinsics, RgbdFrame
+from companion.kernel.camera import GroundTruth, Intrinsics, RgbdFrame
 
 D435_COLOR = Intrinsics.from_hfov(640, 480, 69.0)
 

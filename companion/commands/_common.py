@@ -7,10 +7,10 @@ import os
 from pathlib import Path
 
 from companion.config import Config, load_config
-from companion.logs import setup_logging
-from companion.shipped import project_root, resolve
+from companion.kernel.logs import setup_logging
+from companion.kernel.shipped import project_root, resolve
 
-#: Relative to the project root (companion/shipped.py): the working folder, or the installed copy.
+#: Relative to the project root (companion/kernel/shipped.py): the working folder, or the installed copy.
 DEFAULT_CONFIG = Path("config/wingman.toml")
 
 

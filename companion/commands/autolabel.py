@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from companion.logs import setup_logging
+from companion.kernel.logs import setup_logging
 
 
 def register(sub: Any) -> None:
@@ -52,8 +52,6 @@ def _seeds(text: str) -> list[int]:
 
 
 def _autolabel(args: argparse.Namespace) -> int:
-    from companion.config import deep_merge
-    from companion.errors import CompanionError
     from companion.evaluation.autolabel_check import write_sheet
     from companion.evaluation.campaign import effective_scenario, parse_overrides
     from companion.evaluation.lockstep import LockstepOptions
@@ -64,6 +62,8 @@ def _autolabel(args: argparse.Namespace) -> int:
         service_config,
     )
     from companion.evaluation.tomlw import dumps
+    from companion.kernel.config import deep_merge
+    from companion.kernel.errors import CompanionError
 
     setup_logging("human", "WARNING")
     try:

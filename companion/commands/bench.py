@@ -74,8 +74,8 @@ def _frames(args: argparse.Namespace, cfg: Any) -> list[Any]:
         return synthetic_frames(args.frames)
     import numpy as np
 
+    from companion.kernel.camera import GroundTruth, Intrinsics, RgbdFrame
     from companion.perception.detector.dataset import find_samples, read_labels, read_rgb
-    from companion.perception.types import GroundTruth, Intrinsics, RgbdFrame
 
     samples = find_samples(Path(args.data), args.split)[: args.frames]
     synth = synthetic_frames(len(samples))

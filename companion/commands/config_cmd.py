@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.config import Config, load_config
-from companion.errors import ConfigError, ModelError
+from companion.kernel.errors import ConfigError, ModelError
 
 
 def register(sub: Any) -> None:

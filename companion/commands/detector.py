@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.commands._common import add_config_arg, load
-from companion.errors import ModelError
+from companion.kernel.errors import ModelError
 
 log = logging.getLogger("companion.detector")
 
@@ -137,7 +137,7 @@ def register(sub: Any) -> None:
     f.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     f.add_argument("--workers", type=int, default=1, help="augmentation worker processes")
     f.add_argument("--device", default="auto", help="auto | cpu | cuda")
-    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--seed", type=int, default=0, help="seed of the sample order and augmentations")
     f.add_argument(
         "--install", action="store_true", help="copy the new model over the configured one if it was accepted"
     )

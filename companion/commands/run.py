@@ -13,10 +13,10 @@ import threading
 import time
 from typing import Any
 
-from companion import compat
 from companion.commands._common import add_config_arg, load
 from companion.config import Config
-from companion.errors import first_companion_error
+from companion.kernel import compat
+from companion.kernel.errors import first_companion_error
 
 log = logging.getLogger("companion")
 
@@ -51,7 +51,7 @@ def _run(args: argparse.Namespace) -> int:
 
 async def _serve(cfg: Config, notify: Any, creds: Any, guard: ExitGuard) -> int:
     from companion.app import FollowerService
-    from companion.clock import MonotonicClock
+    from companion.kernel.clock import MonotonicClock
     from companion.service.systemd import SystemdNotifier
     from companion.service.wiring import make_parts_factory
 

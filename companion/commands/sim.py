@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from companion.logs import setup_logging
+from companion.kernel.logs import setup_logging
 
 
 def register(sub: Any) -> None:

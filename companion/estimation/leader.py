@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from companion.compat import StrEnum
+from companion.kernel.compat import StrEnum
 from companion.vehicle.types import Vec3T
 
 

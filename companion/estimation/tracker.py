@@ -67,7 +67,7 @@ from numpy.typing import NDArray
 
 from companion.config import TrackerConfig
 from companion.estimation.leader import LeaderEstimate, TrackStatus
-from companion.frames import Mat3, Vec3
+from companion.kernel.frames import Mat3, Vec3
 from companion.perception.pose import LeaderMeasurement, bearing
 from companion.perception.transform import CameraGeometry, rotate_cov
 

@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from companion.config import load_config
+from companion.kernel.camera import RgbdFrame
 from companion.perception.autolabel import AutoLabelConfig, auto_label
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.bench import percentiles_ms, synthetic_frames
 from companion.perception.pipeline import PerceptionPipeline
-from companion.perception.types import RgbdFrame
 
 
 def _p_cam(frame: RgbdFrame) -> np.ndarray:

@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.kernel.camera import RgbdFrame
 from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, box_iou
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.transform import AttitudeHistory, CameraGeometry
-from companion.perception.types import RgbdFrame
 from companion.service.autolabel_tap import label_frame
 from companion.vehicle.types import Vec3T, VehicleState
 

@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
-from companion.config import deep_merge
-from companion.errors import CompanionError, ConfigError
 from companion.evaluation.metrics import monte_carlo_summary
 from companion.evaluation.report import write_json
+from companion.kernel.config import deep_merge
+from companion.kernel.errors import CompanionError, ConfigError
 
 log = logging.getLogger(__name__)
 

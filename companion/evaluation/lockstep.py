@@ -31,16 +31,17 @@ from typing import Any
 
 import numpy as np
 
-from companion.clock import ManualClock
 from companion.config import Config
 from companion.evaluation.autolabel_check import AutoLabelCheck
 from companion.evaluation.log import FlightLog
 from companion.evaluation.plots import Snapshot
 from companion.evaluation.scoring import RunScorer
 from companion.evaluation.trace import RunObserver
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.clock import ManualClock
 from companion.mission.types import MissionInputs, StepOutput, Transition
 from companion.perception.autolabel import AutoLabelConfig
-from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
 from companion.vehicle.message_link import MessageVehicleLink
 

@@ -26,7 +26,8 @@ from numpy.typing import ArrayLike, NDArray
 
 F64 = NDArray[np.float64]
 
-#: Highest a pitched roof rises above a building's walls, in units of its shorter side (sitl.render.world).
+#: Highest a pitched roof rises above a building's walls, in units of its shorter side
+#: (sitl.render.structures).
 ROOF_RISE = 0.45
 
 

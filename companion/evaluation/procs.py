@@ -18,10 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Self
 
-from companion.errors import CompanionError
-from companion.shipped import project_root
+from companion.kernel.errors import CompanionError
+from companion.kernel.shipped import project_root
 
-#: Children run here: the folder with config/ and models/ (companion/shipped.py).
+#: Children run here: the folder with config/ and models/ (companion/kernel/shipped.py).
 REPO = project_root()
 
 

@@ -25,7 +25,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TextIO
 
-from companion.errors import ConfigError
 from companion.evaluation.campaign import (
     RunSpec,
     SimError,
@@ -34,6 +33,7 @@ from companion.evaluation.campaign import (
     run_one,
     write_campaign_summary,
 )
+from companion.kernel.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

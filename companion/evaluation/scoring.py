@@ -30,7 +30,8 @@ from companion.evaluation.metrics import FORMATION_STATES
 from companion.evaluation.obstacles import Envelopes
 from companion.evaluation.outcome import TruthMonitor
 from companion.evaluation.plots import Snapshot
-from companion.perception.types import Detection, GroundTruth, RgbImage
+from companion.kernel.camera import GroundTruth, RgbImage
+from companion.perception.types import Detection
 
 MIN_VISIBLE_FRACTION = 0.25
 MIN_VISIBLE_PX = 12.0
@@ -105,7 +106,7 @@ class RunScorer:
         its scene's structures for the crash check.
         """
         from sitl.render.config import visual_from_mapping  # noqa: PLC0415 (pydantic only; sitl at eval)
-        from sitl.render.world import solid_structures  # noqa: PLC0415
+        from sitl.render.structures import solid_structures  # noqa: PLC0415
 
         run = scenario.run
         window = (run.formation_start_s, run.formation_start_s + run.formation_duration_s)

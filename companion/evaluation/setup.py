@@ -12,15 +12,16 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from companion.config import Config, deep_merge, format_validation_error, read_toml
-from companion.errors import ConfigError
+from companion.config import Config
 from companion.evaluation.lockstep import LockstepOptions, LockstepRun, RunResult
 from companion.evaluation.log import save_log
 from companion.evaluation.metrics import compute_metrics
 from companion.evaluation.plots import write_plots
 from companion.evaluation.report import build_report, write_report
+from companion.kernel.config import deep_merge, format_validation_error, read_toml
+from companion.kernel.errors import ConfigError
+from companion.kernel.shipped import project_root
 from companion.perception.types import DetectStage
-from companion.shipped import project_root
 
 log = logging.getLogger(__name__)
 

@@ -4,9 +4,9 @@
 on the wall clock would then see telemetry rates, frame ages and its own control period all off by the speed
 factor. So in ``companion sim`` the service runs on the simulator's time: a component inside ``sitl serve``
 publishes ``(sim time, monotonic time)`` into a small memory-mapped file each time the simulation advances
-(:class:`SimClockWriter`), and :class:`SimClock` (a :class:`companion.clock.Clock`) reads it, extrapolating
-between publications at the nominal speed, never past ``max_lead_s`` ahead of the last published sim time
-(a stalled simulator stops the service's time too), and never backwards.
+(:class:`SimClockWriter`), and :class:`SimClock` (a :class:`~companion.kernel.clock.Clock`) reads it,
+extrapolating between publications at the nominal speed, never past ``max_lead_s`` ahead of the last
+published sim time (a stalled simulator stops the service's time too), and never backwards.
 
 The file is a seqlock: ``seq`` (uint64, odd while a write is in progress), ``sim_s``, ``mono_s`` (float64).
 Only time crosses this boundary; no state of the vehicle does.
@@ -61,7 +61,7 @@ class SimClockWriter:
 
 
 class SimClock:
-    """A :class:`companion.clock.Clock` that follows the simulator's published time.
+    """A :class:`companion.kernel.clock.Clock` that follows the simulator's published time.
 
     Args:
         path: the file :class:`SimClockWriter` publishes into (it must exist).

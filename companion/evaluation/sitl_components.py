@@ -21,9 +21,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from companion.config import MountConfig
 from companion.evaluation.simclock import SimClockWriter
 from companion.evaluation.truthlog import TruthWriter, truth_row
+from companion.kernel.camera import MountConfig
 
 RUN_ENV = "WINGMAN_SIM_RUN"
 #: How often the clock is published, sim s (the simulation advances in 5 ms physics steps).

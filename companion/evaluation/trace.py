@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.kernel.camera import GroundTruth, RgbdFrame
 from companion.mission.types import MissionInputs, StepOutput
-from companion.perception.types import Detection, DetectorResult, GroundTruth, RgbdFrame
+from companion.perception.types import Detection, DetectorResult
 
 
 @dataclass(slots=True)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.frames import Vec3
+from companion.kernel.frames import Vec3
 
 #: Never predict an estimate further ahead than this (s); older ones are the mission's "stale" problem.
 MAX_PREDICT_S = 1.0

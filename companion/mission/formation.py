@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import FormationConfig
-from companion.frames import Vec3, wrap_pi
+from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.safety import (
     G_M_S2,
     SafetyLimits,

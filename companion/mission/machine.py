@@ -31,7 +31,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.estimation.leader import LeaderEstimate, TrackStatus
-from companion.frames import Vec3, wrap_pi
+from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.ego import HOLD_S as EGO_STALE_S
 from companion.mission.ego import EgoMotion
 from companion.mission.formation import FollowerState, FormationLaw, Slot

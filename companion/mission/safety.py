@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import SafetyConfig
-from companion.frames import Vec3
+from companion.kernel.frames import Vec3
 
 G_M_S2 = 9.80665
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from companion.compat import StrEnum
 from companion.estimation.leader import LeaderEstimate, ObstacleAhead
+from companion.kernel.compat import StrEnum
 from companion.vehicle.types import ExternalPosition, Setpoint, Severity, Vec3T, VehicleState
 
 

@@ -25,9 +25,9 @@ from enum import Enum
 import cv2
 import numpy as np
 
-from companion.frames import Mat3, Vec3
+from companion.kernel.camera import DepthImage, Intrinsics
+from companion.kernel.frames import Mat3, Vec3
 from companion.perception.transform import CameraGeometry
-from companion.perception.types import DepthImage, Intrinsics
 
 BoxT = tuple[float, float, float, float]
 

@@ -22,9 +22,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from companion.kernel.camera import RgbdFrame
 from companion.perception.autolabel import AutoLabel, Verdict
 from companion.perception.detector.dataset import format_yolo_labels
-from companion.perception.types import RgbdFrame
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.perception.types import Detection, GroundTruth, Intrinsics, RgbdFrame
+from companion.kernel.camera import GroundTruth, Intrinsics, RgbdFrame
+from companion.perception.types import Detection
 
 log = logging.getLogger(__name__)
 

@@ -13,8 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.frames import Vec3
-from companion.perception.types import Detection, DetectorResult, RgbdFrame, RgbImage
+from companion.kernel.camera import RgbdFrame, RgbImage
+from companion.kernel.frames import Vec3
+from companion.perception.types import Detection, DetectorResult
 
 #: Range bins (truth distance camera -> leader centre), m.
 RANGE_BINS_M: tuple[tuple[float, float], ...] = (

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.frames import Vec3
-from companion.perception.types import Intrinsics
+from companion.kernel.camera import Intrinsics
+from companion.kernel.frames import Vec3
 
 #: Depth below this is the camera's own noise or the airframe, m.
 MIN_RANGE_M = 0.3

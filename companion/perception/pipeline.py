@@ -23,12 +23,13 @@ import numpy as np
 from companion.config import Config, LeaderConfig, PoseConfig, SafetyConfig, TrackerConfig
 from companion.estimation.leader import ObstacleAhead, TrackStatus
 from companion.estimation.tracker import TargetTracker, TrackState
-from companion.frames import Mat3
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.frames import Mat3
 from companion.mission.safety import SafetyLimits
 from companion.perception.obstacle import MIN_RANGE_M, guard_range_m, nearest_ahead
 from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
 from companion.perception.transform import AttitudeHistory, CameraGeometry, VelocityHistory
-from companion.perception.types import Detection, RgbdFrame
+from companion.perception.types import Detection
 
 
 @dataclass(slots=True)

@@ -36,8 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import LeaderConfig, PoseConfig
-from companion.frames import Mat3, Vec3
-from companion.perception.types import DepthImage, Detection, Intrinsics
+from companion.kernel.camera import DepthImage, Intrinsics
+from companion.kernel.frames import Mat3, Vec3
+from companion.perception.types import Detection
 
 #: Trim window half-width in stereo-noise sigmas around the cluster centre.
 _TRIM_SIGMAS = 2.5

@@ -16,8 +16,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.compat import Self
-from companion.errors import CompanionError
+from companion.kernel.camera import Intrinsics, RgbdFrame
+from companion.kernel.compat import Self
+from companion.kernel.errors import CompanionError
 from companion.perception.sources.file import (
     ATTITUDE_FILE,
     DEFAULT_DEPTH_SCALE_M,
@@ -28,7 +29,6 @@ from companion.perception.sources.file import (
     intrinsics_to_json,
     truth_to_json,
 )
-from companion.perception.types import Intrinsics, RgbdFrame
 
 
 class RecordError(CompanionError):

@@ -24,10 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from companion import compat
 from companion.config import Config
-from companion.errors import ModelError
 from companion.estimation.tracker import TrackState
+from companion.kernel import compat
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.errors import ModelError
 from companion.perception.evaluate import (
     FrameError,
     Summary,
@@ -39,7 +40,7 @@ from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.pose import back_project
 from companion.perception.sources import open_source, parse_source
 from companion.perception.transform import AttitudeHistory, CameraGeometry
-from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage
 
 #: Frames waiting for the writer (about 2 MB each at 640 x 480): a few seconds of a slow disk.
 RECORD_QUEUE_FRAMES = 90

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.config import MountConfig
-from companion.frames import Mat3, R_body_cam_from_mount, R_from_quat, Vec3
+from companion.kernel.camera import MountConfig
+from companion.kernel.frames import Mat3, R_body_cam_from_mount, R_from_quat, Vec3
 
 Quat = NDArray[np.float64]
 

@@ -1,6 +1,6 @@
-"""Value types that cross module boundaries on the per-frame path: frames, intrinsics, detections, truth.
+"""Value types of the service's per-frame path: detections, the detect stage, the frame source protocol.
 
-Arrays are not copied when these are built: a frame owns the buffers its source produced.
+Frames, intrinsics and ground truth are :mod:`companion.kernel.camera`'s (the simulator makes them too).
 """
 
 from __future__ import annotations
@@ -10,68 +10,8 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Protocol
 
-import numpy as np
-from numpy.typing import NDArray
-
-from companion.compat import Self
-from companion.frames import Mat3, Vec3
-
-RgbImage = NDArray[np.uint8]  # H x W x 3, RGB order (not OpenCV's BGR)
-DepthImage = NDArray[np.float32]  # H x W, metres along the optical axis, 0 = invalid
-
-
-@dataclass(frozen=True, slots=True)
-class Intrinsics:
-    """Pinhole intrinsics of the colour camera (depth is aligned to it), pixels."""
-
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-    width_px: int
-    height_px: int
-
-    @property
-    def K(self) -> Mat3:
-        """The 3x3 camera matrix."""
-        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
-
-    @classmethod
-    def from_hfov(cls, width_px: int, height_px: int, hfov_deg: float) -> Intrinsics:
-        """Square pixels, principal point at the centre, focal length from the horizontal field of view."""
-        f = (width_px / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
-        return cls(float(f), float(f), (width_px - 1) / 2.0, (height_px - 1) / 2.0, width_px, height_px)
-
-
-@dataclass(frozen=True, slots=True)
-class GroundTruth:
-    """What the simulator knows about the leader at a frame's timestamp (never fed to the service's estimate).
-
-    ``box_xyxy_px`` is the tight box of the leader's *visible* pixels, None when none are visible.
-    """
-
-    box_xyxy_px: tuple[float, float, float, float] | None
-    visible_fraction: float
-    #: Leader centre in the camera frame (x right, y down, z forward), m.
-    p_cam_leader_m: Vec3
-    #: Leader yaw minus follower yaw, rad, wrapped to [-pi, pi).
-    yaw_rel_rad: float
-    #: Follower and leader true poses in local NED at the frame's timestamp.
-    p_ned_follower_m: Vec3 | None = None
-    p_ned_leader_m: Vec3 | None = None
-    q_ned_follower_wxyz: NDArray[np.float64] | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class RgbdFrame:
-    """One aligned colour + depth frame with its capture time on the source's clock (s)."""
-
-    rgb: RgbImage
-    depth_m: DepthImage
-    intrinsics: Intrinsics
-    stamp_s: float
-    seq: int = 0
-    truth: GroundTruth | None = None
+from companion.kernel.camera import RgbdFrame, RgbImage
+from companion.kernel.compat import Self
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,7 +80,7 @@ class FrameSource(Protocol):
     """An async iterator of RGB-D frames; an async context manager that owns the device or file.
 
     ``async with source: async for frame in source: ...``. Opening a missing device or file raises
-    :class:`companion.errors.CameraError` with one clear line. Iteration ends at the end of a recording
+    :class:`companion.kernel.errors.CameraError` with one clear line. Iteration ends at the end of a recording
     (unless looping) and never yields a frame twice.
     """
 

@@ -17,13 +17,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from companion.clock import Clock
 from companion.config import Config
-from companion.frames import quat_from_euler
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.clock import Clock
+from companion.kernel.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.pipeline import PerceptionPipeline
-from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink

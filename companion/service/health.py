@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from companion.clock import Clock
+from companion.kernel.clock import Clock
 
 
 @dataclass(slots=True)

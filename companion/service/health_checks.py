@@ -21,9 +21,9 @@ from typing import Any
 import aiomqtt
 import numpy as np
 
-from companion import compat
 from companion.config import Config, load_config
-from companion.errors import CompanionError
+from companion.kernel import compat
+from companion.kernel.errors import CompanionError
 from companion.service.status import ServiceNotRunningError, query_status
 from companion.telemetry.mqtt import load_mqtt_credentials
 

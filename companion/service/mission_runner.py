@@ -14,10 +14,10 @@ import asyncio
 import logging
 from collections.abc import Callable
 
-from companion import compat
-from companion.clock import Clock
-from companion.errors import CommandRejectedError, CompanionError, LinkLostError
 from companion.estimation.leader import LeaderEstimate, ObstacleAhead
+from companion.kernel import compat
+from companion.kernel.clock import Clock
+from companion.kernel.errors import CommandRejectedError, CompanionError, LinkLostError
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     Command,

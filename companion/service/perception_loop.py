@@ -19,9 +19,10 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
-from companion import compat
-from companion.clock import Clock
-from companion.perception.types import DetectorResult, FrameSource, RgbdFrame
+from companion.kernel import compat
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.clock import Clock
+from companion.perception.types import DetectorResult, FrameSource
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.mailbox import Latest, MailboxClosedError

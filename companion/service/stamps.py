@@ -21,9 +21,10 @@ from collections import deque
 from collections.abc import AsyncIterator
 from types import TracebackType
 
-from companion.clock import Clock
-from companion.compat import Self
-from companion.perception.types import FrameSource, RgbdFrame
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.clock import Clock
+from companion.kernel.compat import Self
+from companion.perception.types import FrameSource
 
 
 class StampMapper:

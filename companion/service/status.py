@@ -20,9 +20,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from companion import compat
-from companion.compat import Self
-from companion.errors import CompanionError
+from companion.kernel import compat
+from companion.kernel.compat import Self
+from companion.kernel.errors import CompanionError
 
 log = logging.getLogger(__name__)
 

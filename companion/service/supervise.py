@@ -11,8 +11,8 @@ import logging
 import random
 from collections.abc import Awaitable, Callable
 
-from companion import compat
-from companion.clock import Clock
+from companion.kernel import compat
+from companion.kernel.clock import Clock
 from companion.service.health import HealthBoard
 
 log = logging.getLogger(__name__)

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from types import TracebackType
 
-from companion.compat import Self
+from companion.kernel.compat import Self
 
 log = logging.getLogger(__name__)
 

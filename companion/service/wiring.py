@@ -17,13 +17,14 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from companion import compat
 from companion.app import Parts, PartsContext, PartsFactory
-from companion.clock import Clock, MonotonicClock
 from companion.config import Config
-from companion.errors import CompanionError, NotBuiltError, first_companion_error
+from companion.kernel import compat
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.clock import Clock, MonotonicClock
+from companion.kernel.errors import CompanionError, NotBuiltError, first_companion_error
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
-from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult
 from companion.service.perception_loop import PerceptionLoop

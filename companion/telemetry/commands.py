@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from companion.compat import StrEnum
+from companion.kernel.compat import StrEnum
 
 #: A shorter key is guessable; 32 random bytes is what the docs tell operators to generate.
 MIN_KEY_BYTES = 16

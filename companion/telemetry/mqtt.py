@@ -22,10 +22,10 @@ from typing import Any, TypeVar
 import aiomqtt
 from pydantic import ValidationError
 
-from companion import compat
-from companion.clock import Clock
 from companion.config import MqttConfig
-from companion.errors import ConfigError
+from companion.kernel import compat
+from companion.kernel.clock import Clock
+from companion.kernel.errors import ConfigError
 from companion.service.supervise import Backoff
 from companion.telemetry.commands import Command, CommandRejectedError, CommandVerifier
 from companion.telemetry.payloads import (

@@ -1,9 +1,9 @@
 """``VehicleLink``: what the mission needs from the autopilot, and nothing else.
 
 The real implementation is :class:`companion.vehicle.mavsdk_link.MavsdkVehicleLink`; tests of pure logic use
-fakes. Commands raise :class:`companion.errors.CommandRejectedError` when the autopilot refuses or does not
-answer, and :class:`companion.errors.LinkLostError` only when there is no link at all. Telemetry never raises:
-a lost link shows as ``VehicleState.connected == False`` and stale stamps.
+fakes. Commands raise :class:`~companion.kernel.errors.CommandRejectedError` when the autopilot refuses or
+does not answer, and :class:`~companion.kernel.errors.LinkLostError` only when there is no link at all.
+Telemetry never raises: a lost link shows as ``VehicleState.connected == False`` and stale stamps.
 """
 
 from __future__ import annotations

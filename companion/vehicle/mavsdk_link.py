@@ -21,7 +21,7 @@ MAVSDK quirks handled here:
   Commands here use the plugins' ``*_async`` callbacks instead, awaited with a timeout, and setpoints are
   plain non-blocking sends on the loop thread; telemetry uses the asyncio subscriptions.
 * **Link loss.** A lost link is a state (``VehicleState.connected``, stale stamps), never an exception from
-  telemetry; commands without a link raise :class:`~companion.errors.LinkLostError`.
+  telemetry; commands without a link raise :class:`~companion.kernel.errors.LinkLostError`.
 """
 
 from __future__ import annotations
@@ -47,11 +47,11 @@ from mavsdk.plugins.mocap import AngleBody, Covariance, Mocap, PositionBody, Vis
 from mavsdk.plugins.offboard import Attitude, Offboard, OffboardResult, VelocityBodyYawspeed, VelocityNedYaw
 from mavsdk.plugins.server_utility import ServerUtility, StatusTextType
 
-from companion import compat
-from companion.clock import Clock
-from companion.compat import Self
 from companion.config import LinkConfig
-from companion.errors import CommandRejectedError, LinkLostError, WrongVehicleError
+from companion.kernel import compat
+from companion.kernel.clock import Clock
+from companion.kernel.compat import Self
+from companion.kernel.errors import CommandRejectedError, LinkLostError, WrongVehicleError
 from companion.vehicle import failsafe
 from companion.vehicle.boottime import BootClockMap
 from companion.vehicle.identity import choose_autopilot

@@ -32,10 +32,10 @@ from typing import Any, Protocol
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.clock import Clock
 from companion.config import LinkConfig
-from companion.errors import CommandRejectedError, LinkLostError
-from companion.frames import quat_from_euler
+from companion.kernel.clock import Clock
+from companion.kernel.errors import CommandRejectedError, LinkLostError
+from companion.kernel.frames import quat_from_euler
 from companion.vehicle import failsafe
 from companion.vehicle.boottime import BootClockMap
 from companion.vehicle.types import (

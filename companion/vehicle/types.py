@@ -1,8 +1,9 @@
 """Value types between the mission and the autopilot link: the vehicle snapshot and the setpoints.
 
-Frames follow :mod:`companion.frames`: local NED for positions and velocities, body FRD for body velocities,
-yaw about NED down (zero north, clockwise positive). Every telemetry group carries the stamp (on the service's
-monotonic clock) of the message it came from, so a consumer can tell a fresh value from a stale one.
+Frames follow :mod:`companion.kernel.frames`: local NED for positions and velocities, body FRD for body
+velocities, yaw about NED down (zero north, clockwise positive). Every telemetry group carries the stamp (on
+the service's monotonic clock) of the message it came from, so a consumer can tell a fresh value from a
+stale one.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from companion.compat import StrEnum
+from companion.kernel.compat import StrEnum
 
 NEVER_S = -math.inf
 """The stamp of a telemetry group that has never been received."""

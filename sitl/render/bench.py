@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.frames import quat_from_euler
+from companion.kernel.frames import quat_from_euler
 from sitl.render.config import CameraModel, VisualConfig
 from sitl.render.geometry import VehiclePose
 from sitl.render.renderer import Renderer

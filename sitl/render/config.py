@@ -13,9 +13,9 @@ from typing import Any, Literal
 
 from pydantic import AliasChoices, ConfigDict, Field, ValidationError, model_validator
 
-from companion.config import Section, format_validation_error
-from companion.errors import ConfigError
-from companion.perception.types import Intrinsics
+from companion.kernel.camera import Intrinsics
+from companion.kernel.config import Section, format_validation_error
+from companion.kernel.errors import ConfigError
 
 RGB = tuple[float, float, float]
 

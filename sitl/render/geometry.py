@@ -1,6 +1,6 @@
 """Pure camera geometry for the renderer: poses, GL matrices, truth from masks. No GL here.
 
-Conventions (see :mod:`companion.frames`): camera x right, y down, z forward; body FRD; world NED.
+Conventions (see :mod:`companion.kernel.frames`): camera x right, y down, z forward; body FRD; world NED.
 Pixel coordinates follow the intrinsics: the centre of pixel column ``i`` is at ``u = i`` (OpenCV).
 Boxes (``box_xyxy_px``) use the detector/COCO edge convention instead: pixel column ``i`` spans
 ``[i, i + 1)``, so a box covering columns ``c0..c1`` is ``x0 = c0, x1 = c1 + 1`` and its centre in
@@ -16,9 +16,8 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from companion.config import MountConfig
-from companion.frames import Mat3, R_body_cam_from_mount, R_from_quat, Vec3, euler_from_R, wrap_pi
-from companion.perception.types import Intrinsics
+from companion.kernel.camera import Intrinsics, MountConfig
+from companion.kernel.frames import Mat3, R_body_cam_from_mount, R_from_quat, Vec3, euler_from_R, wrap_pi
 
 Mat4 = NDArray[np.float64]
 Box = tuple[float, float, float, float]
@@ -58,6 +57,14 @@ class CameraPose:
     def to_cam(self, p_ned_m: ArrayLike) -> Vec3:
         """A NED point expressed in the camera frame, m."""
         return self.R_cam_ned @ (np.asarray(p_ned_m, dtype=np.float64) - self.p_ned_cam_m)
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderPose:
+    """The leader's attitude (body -> NED) and centre position in NED, m."""
+
+    R_ned_body: Mat3
+    p_ned_m: Vec3
 
 
 def as_vec3(value: ArrayLike) -> Vec3:

@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.frames import R_BODY_CAM_LEVEL, Mat3, R_from_euler, Vec3
-from companion.perception.types import Intrinsics
+from companion.kernel.camera import Intrinsics
+from companion.kernel.frames import R_BODY_CAM_LEVEL, Mat3, R_from_euler, Vec3
 from sitl.render.config import AIRFRAME_SPAN_M, RGB, LeaderLook, OccluderSpec, VisualConfig
+from sitl.render.distractors import balloon_mesh, bird_mesh, debris_mesh, distractor_vertices, plane_mesh
 from sitl.render.geometry import CameraPose, rotation_vector_matrix
 from sitl.render.meshes import F32, Kind, Mesh
-from sitl.render.world import balloon_mesh, bird_mesh, debris_mesh, distractor_vertices, plane_mesh
 
 SPLITS = ("train", "val", "test")
 

@@ -3,7 +3,7 @@
 :class:`CameraServer` samples the truth callable every ``1 / rate_hz`` sim seconds, has the frame
 rendered by a worker process (:mod:`sitl.render.worker`: moderngl holds the GIL while the driver
 renders, which would stall the simulator's real-time loop) and forwards it to every connected client
-over a Unix socket, in the wire format of :mod:`companion.perception.sources.sim`. A client that falls
+over a Unix socket, in the wire format of :mod:`companion.kernel.camera_wire`. A client that falls
 behind loses frames rather than building a backlog. Nothing is rendered while no client is connected.
 
 In ``sitl serve`` add ``components = ["sitl.render.server:camera_component"]`` to ``[serve]`` (or pass
@@ -24,9 +24,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol, Self
 
-from companion.config import MountConfig
-from companion.errors import CameraError
-from companion.perception.sources.sim import PREFIX, DepthEncoding
+from companion.kernel.camera import MountConfig
+from companion.kernel.camera_wire import PREFIX, DepthEncoding
+from companion.kernel.errors import CameraError
 from sitl.render.config import CameraModel, VisualConfig, visual_from_mapping
 from sitl.render.geometry import PoseTruth
 from sitl.render.worker import READY, pose_to_json

@@ -7,7 +7,7 @@ Protocol. stdin: one JSON line of configuration (``camera``, ``visual``, ``mount
 ``depth``), then one JSON line per frame: ``{"t": t_s, "f": pose, "l": pose or null}`` with
 ``pose = {"p": [n, e, d], "q": [w, x, y, z], "w": [p, q, r] or null}``. stdout: ``b"RDY1"`` once the
 renderer is up, then one message per request in the wire format of
-:mod:`companion.perception.sources.sim`, ready to forward to clients as is. EOF on stdin ends it.
+:mod:`companion.kernel.camera_wire`, ready to forward to clients as is. EOF on stdin ends it.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import MountConfig
-from companion.perception.sources.sim import encode_frame
+from companion.kernel.camera import MountConfig
+from companion.kernel.camera_wire import encode_frame
 from sitl.render.config import CameraModel, VisualConfig
 from sitl.render.geometry import PoseTruth, VehiclePose
 from sitl.render.renderer import Renderer

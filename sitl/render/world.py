@@ -1,5 +1,8 @@
 """The world around the vehicles, from a :class:`VisualConfig`: light, ground style, static geometry.
 
+The structures standing in it are built by :mod:`sitl.render.structures`; what flies through a
+dataset's frames is :mod:`sitl.render.distractors`.
+
 Pure numpy: builds vertex arrays and uniform values, uploads nothing. Radiometry is in arbitrary linear
 units where a white surface facing a high sun reflects about 3; the camera's auto exposure scales it.
 """
@@ -12,23 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sitl.render.config import RGB, OccluderSpec, VisualConfig
-from sitl.render.meshes import (
-    F32,
-    F64,
-    Kind,
-    Mesh,
-    MeshBuilder,
-    Rx,
-    Rz,
-    box,
-    concat,
-    cone,
-    cylinder,
-    double_sided,
-    ellipsoid,
-    quads_to_mesh,
-)
+from sitl.render.config import RGB, VisualConfig
+from sitl.render.meshes import F32, F64, Kind, Mesh, MeshBuilder, quads_to_mesh
+from sitl.render.structures import CROWN_RGB, add_structure, random_structures
 
 #: Half side of the square ground plane, m (the far clip plane sits beyond it).
 GROUND_HALF_M = 3500.0
@@ -162,105 +151,6 @@ def ground_style(visual: VisualConfig, rng: np.random.Generator) -> GroundStyle:
     )
 
 
-_WALL_RGB: tuple[RGB, ...] = (
-    (0.45, 0.44, 0.42),
-    (0.55, 0.50, 0.42),
-    (0.30, 0.12, 0.08),
-    (0.65, 0.65, 0.62),
-    (0.25, 0.27, 0.30),
-)
-_ROOF_RGB: tuple[RGB, ...] = ((0.12, 0.05, 0.04), (0.08, 0.08, 0.09), (0.25, 0.24, 0.22), (0.05, 0.07, 0.10))
-_CROWN_RGB: tuple[RGB, ...] = (
-    (0.05, 0.10, 0.03),
-    (0.07, 0.12, 0.04),
-    (0.16, 0.13, 0.10),
-    (0.22, 0.12, 0.04),
-    (0.12, 0.11, 0.10),
-)
-
-
-def _prism_roof(w: float, d: float, h: float) -> Mesh:
-    """A gable roof over a w x d footprint (ridge along x), base at z = 0, apex at z = -h (NED up)."""
-    x, y = w / 2.0, d / 2.0
-    slopes = np.array(
-        [
-            [[x, -y, 0.0], [-x, -y, 0.0], [-x, 0.0, -h], [x, 0.0, -h]],
-            [[-x, y, 0.0], [x, y, 0.0], [x, 0.0, -h], [-x, 0.0, -h]],
-        ]
-    )
-    uv = np.array([[[0.0, 0.0], [w, 0.0], [w, y], [0.0, y]]] * 2)
-    roof = quads_to_mesh(slopes, uv)
-    gables = np.array(
-        [[[x, y, 0.0], [x, -y, 0.0], [x, 0.0, -h]], [[-x, -y, 0.0], [-x, y, 0.0], [-x, 0.0, -h]]]
-    )
-    pos = gables.reshape(-1, 3)
-    nrm = np.repeat(np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]), 3, axis=0)
-    gm = Mesh(pos, nrm, pos[:, [1, 2]] * np.array([1.0, -1.0]))
-    return concat([roof, gm])
-
-
-def add_structure(b: MeshBuilder, spec: OccluderSpec, rng: np.random.Generator) -> None:
-    """One building, tree, pole or wall standing at ``spec.p_ned_m``."""
-    R = Rz(math.radians(spec.yaw_deg))
-    t = np.asarray(spec.p_ned_m, dtype=np.float64)
-    w, d, h = spec.resolved_size_m
-    if spec.kind == "branch":
-        b.add(box((w, d, h)).transformed(R, t), spec.rgb or (0.09, 0.07, 0.05), Kind.BARK)
-        return
-    t[2] = 0.0  # everything else stands on the ground
-    if spec.kind in ("building", "wall"):
-        wall = spec.rgb or _WALL_RGB[int(rng.integers(len(_WALL_RGB)))]
-        kind = Kind.WALL if spec.kind == "building" else Kind.PLAIN
-        b.add(box((w, d, h), (0.0, 0.0, -h / 2.0)).transformed(R, t), wall, kind)
-        if spec.kind == "building":
-            roof_rgb = _ROOF_RGB[int(rng.integers(len(_ROOF_RGB)))]
-            if h < 12.0 and rng.random() < 0.6:
-                roof = _prism_roof(w * 1.05, d * 1.05, min(w, d) * rng.uniform(0.25, 0.45))
-                b.add(roof.transformed(R, t + R @ np.array([0.0, 0.0, -h])), roof_rgb, Kind.ROOF)
-            else:
-                b.add(box((w, d, 0.3), (0.0, 0.0, -h - 0.15)).transformed(R, t), roof_rgb, Kind.ROOF)
-    elif spec.kind == "pole":
-        radius = max(w, 0.05)
-        rgb = spec.rgb or ((0.22, 0.16, 0.10) if rng.random() < 0.5 else (0.35, 0.35, 0.34))
-        b.add(cylinder(radius, -h, 0.0, 8).transformed(R, t), rgb, Kind.BARK)
-        b.add(box((0.12, max(d, 1.6), 0.12), (0.0, 0.0, -h + 0.6)).transformed(R, t), rgb, Kind.BARK)
-    else:
-        crown_w = w
-        trunk_r = max(0.08, 0.03 * crown_w)
-        sparse = float(rng.uniform(0.05, 0.45))
-        rgb = spec.rgb or _CROWN_RGB[int(rng.integers(len(_CROWN_RGB)))]
-        bark = (0.10, 0.08, 0.06)
-        if spec.kind == "conifer":
-            rgb = spec.rgb or (0.03, 0.065, 0.03)
-            b.add(cylinder(trunk_r, -h * 0.3, 0.0, 6).transformed(R, t), bark, Kind.BARK)
-            for j, (z0, z1, r) in enumerate(((-0.15, -0.55, 0.5), (-0.4, -0.8, 0.38), (-0.65, -1.0, 0.25))):
-                crown = cone(crown_w * r, z0 * h, z1 * h, 10)
-                b.add(crown.transformed(R @ Rz(j * 0.7), t), rgb, _foliage_kind(0.1 * sparse))
-        else:
-            trunk_h = h * rng.uniform(0.3, 0.45)
-            b.add(cylinder(trunk_r, -trunk_h - 0.5, 0.0, 6).transformed(R, t), bark, Kind.BARK)
-            crown_h = h - trunk_h
-            n_blobs = int(rng.integers(1, 4))
-            for _ in range(n_blobs):
-                off = rng.normal(0.0, crown_w * 0.12, 3) * np.array([1.0, 1.0, 0.5])
-                radii = (
-                    crown_w / 2.0 * rng.uniform(0.7, 1.0),
-                    crown_w / 2.0 * rng.uniform(0.7, 1.0),
-                    crown_h / 2.0,
-                )
-                centre = t + R @ (np.array([0.0, 0.0, -trunk_h - crown_h / 2.0]) + off)
-                b.add(
-                    ellipsoid(radii, 9, 6).transformed(Rz(rng.uniform(0, 6.3)), centre),
-                    rgb,
-                    _foliage_kind(sparse),
-                )
-
-
-def _foliage_kind(sparse: float) -> float:
-    """Foliage kind with a sparsity in its fractional part (the shader reads fract(kind))."""
-    return float(Kind.FOLIAGE) + min(max(sparse, 0.0), 0.95)
-
-
 def _ring(radius: float, heights: F64, rgb: RGB, kind: float, b: MeshBuilder, *, segments: int = 48) -> None:
     """A vertical band around the origin facing inwards, top edge at the given heights (m, up).
 
@@ -385,37 +275,6 @@ def sort_by_group(vertices: F32) -> tuple[F32, tuple[tuple[int, int], ...]]:
     return vertices[idx], ranges
 
 
-def random_structures(visual: VisualConfig, rng: np.random.Generator) -> list[OccluderSpec]:
-    """Scatter ``visual.structures`` buildings, trees and poles in the annulus around home."""
-    out: list[OccluderSpec] = []
-    kinds = ("building", "tree", "conifer", "pole")
-    probs = (0.22, 0.45, 0.18, 0.15)
-    for _ in range(visual.structures):
-        kind = kinds[int(rng.choice(4, p=probs))]
-        r = math.sqrt(rng.uniform(visual.clear_radius_m**2, visual.world_radius_m**2))
-        a = rng.uniform(0.0, 2.0 * math.pi)
-        p = (r * math.cos(a), r * math.sin(a), 0.0)
-        if kind == "building":
-            size = (rng.uniform(6, 22), rng.uniform(6, 22), rng.uniform(4, 24))
-        elif kind in ("tree", "conifer"):
-            hgt = rng.uniform(6, 22)
-            size = (hgt * rng.uniform(0.35, 0.7), 0.0, hgt)
-        else:
-            size = (rng.uniform(0.1, 0.2), rng.uniform(1.2, 2.4), rng.uniform(7, 12))
-        out.append(OccluderSpec(kind=kind, p_ned_m=p, size_m=size, yaw_deg=float(rng.uniform(0, 360))))
-    return out
-
-
-def solid_structures(visual: VisualConfig) -> tuple[OccluderSpec, ...]:
-    """Every structure :func:`build_world` stands in the scene: the random ones and the occluders.
-
-    The random ones are the first draws of the world's generator, so this repeats them exactly without
-    building any geometry (the evaluation's collision check needs them, not the meshes).
-    """
-    rng = np.random.default_rng(visual.seed)
-    return (*random_structures(visual, rng), *visual.occluders)
-
-
 def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
     """Geometry and shading of a visual configuration (deterministic in ``visual.seed``).
 
@@ -450,7 +309,7 @@ def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
         bumps = rng.uniform(0.0, 4.0, n)
         gaps = _smooth_profile(rng, n, 4) < rng.uniform(0.1, 0.3)
         heights = np.where(gaps, 0.5, base + bumps)
-        crown = _CROWN_RGB[int(rng.integers(len(_CROWN_RGB)))]
+        crown = CROWN_RGB[int(rng.integers(len(CROWN_RGB)))]
         _ring(
             visual.world_radius_m * rng.uniform(1.1, 1.6), heights, _scale(crown, 0.8), float(Kind.DISTANT), b
         )
@@ -476,85 +335,3 @@ def build_world(visual: VisualConfig, pattern_dens_quantile: F64) -> World:
         cloud_threshold=thr,
         cloud_offset_texels=(float(rng.uniform(0, 1024)), float(rng.uniform(0, 1024))),
     )
-
-
-def bird_mesh(span_m: float, flap_rad: float) -> Mesh:
-    """A bird in its own frame (x forward, z down): slim body, two wings raised by ``flap_rad``."""
-    body = ellipsoid((span_m * 0.22, span_m * 0.06, span_m * 0.06), 8, 4)
-    half = span_m / 2.0
-    chord = span_m * 0.22
-    wing = np.array(
-        [
-            [
-                [chord * 0.4, 0.0, 0.0],
-                [chord * 0.1, half, 0.0],
-                [-chord * 0.3, half * 0.9, 0.0],
-                [-chord * 0.6, 0.0, 0.0],
-            ]
-        ]
-    )
-    w_mesh = double_sided(quads_to_mesh(wing))
-    right = w_mesh.transformed(Rx(-flap_rad))
-    left = w_mesh.transformed(np.diag([1.0, -1.0, 1.0])).transformed(Rx(flap_rad))
-    left = Mesh(left.pos[np.arange(left.n_vertices).reshape(-1, 3)[:, ::-1].reshape(-1)], -left.nrm, left.uv)
-    tail = double_sided(
-        quads_to_mesh(
-            np.array(
-                [
-                    [
-                        [-chord * 0.5, -span_m * 0.04, 0.0],
-                        [-chord * 0.5, span_m * 0.04, 0.0],
-                        [-chord * 1.1, span_m * 0.07, 0.0],
-                        [-chord * 1.1, -span_m * 0.07, 0.0],
-                    ]
-                ]
-            )
-        )
-    )
-    return concat([body, right, left, tail])
-
-
-def balloon_mesh(radius_m: float) -> Mesh:
-    """A party balloon with a short string hanging below it (+z)."""
-    return concat(
-        [
-            ellipsoid((radius_m, radius_m, radius_m * 1.15), 10, 6),
-            cylinder(radius_m * 0.02, 0.0, radius_m * 4.0, 4, caps=False).transformed(t=(0.0, 0.0, radius_m)),
-        ]
-    )
-
-
-def plane_mesh(span_m: float) -> Mesh:
-    """A small aeroplane: fuselage, wing, tailplane, fin."""
-    length = span_m * 0.8
-    return concat(
-        [
-            ellipsoid((length / 2.0, span_m * 0.05, span_m * 0.06), 10, 5),
-            box((span_m * 0.16, span_m, span_m * 0.015)),
-            box((span_m * 0.08, span_m * 0.35, span_m * 0.01), (-length * 0.42, 0.0, 0.0)),
-            box((span_m * 0.1, span_m * 0.01, span_m * 0.14), (-length * 0.42, 0.0, -span_m * 0.07)),
-        ]
-    )
-
-
-def debris_mesh(size_m: float) -> Mesh:
-    """A tumbling leaf or plastic scrap: a crumpled double-sided quad."""
-    q = np.array(
-        [
-            [
-                [size_m, 0.0, 0.0],
-                [0.0, size_m * 0.6, size_m * 0.2],
-                [-size_m, 0.0, 0.0],
-                [0.0, -size_m * 0.6, -size_m * 0.2],
-            ]
-        ]
-    )
-    return double_sided(quads_to_mesh(q))
-
-
-def distractor_vertices(items: list[tuple[Mesh, F64, F64, RGB, Kind]]) -> F32:
-    """Vertex array of placed distractor meshes: (mesh, R_ned_obj, p_ned_m, rgb, kind) each."""
-    b = MeshBuilder()
-    for mesh, R, p, rgb, kind in items:
-        b.add(mesh.transformed(R, p), rgb, kind)
-    return b.build()

@@ -25,12 +25,12 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.clock import MonotonicClock
 from companion.config import Config
 from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.evaluation.procs import Child
 from companion.evaluation.procs import SitlPorts as Ports
-from companion.frames import R_from_quat
+from companion.kernel.clock import MonotonicClock
+from companion.kernel.frames import R_from_quat
 from companion.mission.formation import Slot, ned_to_heading
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, MissionState, SharedLeaderPosition, StepOutput, Transition

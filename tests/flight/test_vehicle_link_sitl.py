@@ -16,7 +16,7 @@ import pytest
 from mavsdk.plugins.offboard import OffboardResult
 
 from companion.config import Config
-from companion.errors import CommandRejectedError
+from companion.kernel.errors import CommandRejectedError
 from companion.vehicle.types import (
     AttitudeSetpoint,
     FlightMode,

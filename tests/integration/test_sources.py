@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from companion.config import CameraConfig
-from companion.errors import CameraError
+from companion.kernel.camera import Intrinsics, RgbdFrame
+from companion.kernel.errors import CameraError
 from companion.perception.record import FolderRecorder, RecordError
 from companion.perception.sources import open_source, parse_source
 from companion.perception.sources.bag import BagSource, align_depth_to_color, write_realsense_bag
 from companion.perception.sources.file import FolderSource, depth_to_u16
 from companion.perception.sources.realsense import RealSenseSource
-from companion.perception.types import Intrinsics, RgbdFrame
 from tests.synthetic import D435_COLOR, frame_from_view, render
 
 N_FRAMES = 6

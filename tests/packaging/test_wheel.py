@@ -1,7 +1,7 @@
 """The wheel works outside the checkout: built here, installed elsewhere, run from another folder.
 
-The wheel carries ``config/`` and ``models/`` (companion/shipped.py finds them), so ``sitl serve`` and
-``companion sim`` need nothing from the repository. The installed package is put first on the path of a
+The wheel carries ``config/`` and ``models/`` (companion/kernel/shipped.py finds them), so ``sitl serve``
+and ``companion sim`` need nothing from the repository. The installed package is put first on the path of a
 folder outside the checkout, so nothing is imported from the source tree.
 """
 
@@ -44,7 +44,9 @@ def _env(site: Path) -> dict[str, str]:
 
 
 def test_the_installed_package_carries_its_config_and_weights(installed: Path, tmp_path: Path) -> None:
-    code = "import companion, companion.shipped as s; print(companion.__file__); print(s.project_root())"
+    code = (
+        "import companion, companion.kernel.shipped as s; print(companion.__file__); print(s.project_root())"
+    )
     r = subprocess.run(
         [sys.executable, "-c", code],
         cwd=tmp_path,

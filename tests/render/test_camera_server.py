@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from companion.config import CameraConfig
-from companion.errors import CameraError
-from companion.frames import quat_from_euler
+from companion.kernel.errors import CameraError
+from companion.kernel.frames import quat_from_euler
 from companion.perception.sources.sim import SimFrameSource, open_sim_source
 from sitl.render.config import VisualConfig
 from sitl.render.geometry import VehiclePose

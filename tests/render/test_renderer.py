@@ -11,8 +11,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from companion.config import MountConfig
-from companion.frames import R_from_euler, R_from_quat, quat_from_euler, quat_from_R
+from companion.kernel.camera import MountConfig
+from companion.kernel.frames import R_from_euler, R_from_quat, quat_from_euler, quat_from_R
 from sitl.render.airframes import leader_triangles_m
 from sitl.render.config import CameraModel, LeaderLook, OccluderSpec, VisualConfig
 from sitl.render.geometry import VehiclePose, camera_pose

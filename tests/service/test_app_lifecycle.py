@@ -15,11 +15,11 @@ from typing import Any
 import aiomqtt
 import pytest
 
-from companion import compat
 from companion.app import FollowerService, Parts, PartsContext
-from companion.clock import MonotonicClock
 from companion.config import Config
-from companion.errors import LinkLostError
+from companion.kernel import compat
+from companion.kernel.clock import MonotonicClock
+from companion.kernel.errors import LinkLostError
 from companion.service.ports import (
     FlightSnapshot,
     LeaderSummary,

@@ -16,9 +16,9 @@ from typing import Any
 import aiomqtt
 import pytest
 
-from companion import compat
-from companion.clock import MonotonicClock
 from companion.config import MqttConfig
+from companion.kernel import compat
+from companion.kernel.clock import MonotonicClock
 from companion.telemetry.commands import Command, sign_command
 from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
 from companion.telemetry.payloads import HealthMsg, LeaderPositionMsg, PoseMsg, StateMsg
@@ -195,7 +195,7 @@ async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> 
 
 REPORTER_PROC = """
 import asyncio, sys, time
-from companion.clock import MonotonicClock
+from companion.kernel.clock import MonotonicClock
 from companion.config import MqttConfig
 from companion.telemetry.mqtt import MqttReporter, TelemetrySources
 from companion.telemetry.payloads import HealthMsg, StateMsg

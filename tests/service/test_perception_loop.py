@@ -10,17 +10,11 @@ from types import TracebackType
 
 import numpy as np
 
-from companion import compat
-from companion.clock import MonotonicClock
-from companion.compat import Self
-from companion.perception.types import (
-    Detection,
-    DetectorResult,
-    DetectorTiming,
-    Intrinsics,
-    RgbdFrame,
-    RgbImage,
-)
+from companion.kernel import compat
+from companion.kernel.camera import Intrinsics, RgbdFrame, RgbImage
+from companion.kernel.clock import MonotonicClock
+from companion.kernel.compat import Self
+from companion.perception.types import Detection, DetectorResult, DetectorTiming
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.perception_loop import PerceptionLoop

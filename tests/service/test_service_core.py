@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion import compat
-from companion.clock import ManualClock
+from companion.kernel import compat
+from companion.kernel.clock import ManualClock
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.mailbox import Latest, MailboxClosedError

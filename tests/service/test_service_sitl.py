@@ -25,7 +25,7 @@ from typing import Any
 
 import pytest
 
-from companion import compat
+from companion.kernel import compat
 from companion.service.status import ServiceNotRunningError, query_status
 from tests.flight.wiretap import WireTap, open_wiretap
 from tests.mosquitto import Collector, Mosquitto

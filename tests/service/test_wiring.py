@@ -16,12 +16,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion import compat
 from companion.app import FollowerService, Parts, PartsContext
-from companion.clock import MonotonicClock
-from companion.config import Config, MountConfig
+from companion.config import Config
 from companion.estimation.leader import TrackStatus
 from companion.estimation.tracker import RelativeEstimate, TrackState
+from companion.kernel import compat
+from companion.kernel.camera import MountConfig
+from companion.kernel.clock import MonotonicClock
 from companion.mission.types import CommandKind
 from companion.perception.transform import CameraGeometry
 from companion.service.status import query_status

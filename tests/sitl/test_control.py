@@ -8,22 +8,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.frames import R_from_quat, quat_from_euler
-from sitl.control import (
-    NAN,
-    InnerLoop,
-    PositionController,
-    PositionLimits,
-    TrajectorySetpoint,
-    attitude_from_thrust,
-    quat_between,
-    quat_mul,
-    yaw_of,
-)
-from sitl.control import (
-    quat_from_euler as quat_from_euler_fast,
-)
+from companion.kernel.frames import R_from_quat, quat_from_euler
+from sitl.attitude import attitude_from_thrust, quat_between, quat_mul, yaw_of
+from sitl.attitude import quat_from_euler as quat_from_euler_fast
+from sitl.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
 from sitl.dynamics import QUAD
+from sitl.inner_loop import InnerLoop
 
 angles = st.floats(-1.2, 1.2)
 

@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
-from companion.clock import ManualClock
 from companion.config import LinkConfig
+from companion.kernel.clock import ManualClock
 from companion.vehicle import failsafe
 from companion.vehicle.message_link import MessageVehicleLink
 from sitl.modes import NavState

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.errors import ConfigError
+from companion.kernel.errors import ConfigError
 from sitl.links import LinkFaults
 from sitl.scenario import LinkSpec, LinkWindowSpec, Scenario, load_scenario
 from sitl.trajectory import Circle, FigureEight, SpeedProfile, Straight, Waypoints

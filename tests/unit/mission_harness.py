@@ -10,9 +10,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from companion.clock import ManualClock
 from companion.config import Config
 from companion.estimation.leader import LeaderEstimate, ObstacleAhead, TrackStatus
+from companion.kernel.clock import ManualClock
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     Command,

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from companion.evaluation.autolabel_check import LeaderShare
+from companion.kernel.camera import Intrinsics, RgbdFrame
 from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, auto_label, box_iou
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.detector.dataset import find_samples, read_labels
-from companion.perception.types import Intrinsics, RgbdFrame
 
 INTR = Intrinsics(460.0, 460.0, 319.5, 239.5, 640, 480)
 CFG = AutoLabelConfig(leader_span_m=0.45, side_pad_fraction=0.0)

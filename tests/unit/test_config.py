@@ -4,8 +4,9 @@ from pathlib import Path
 
 import pytest
 
-from companion.config import Config, env_overrides, load_config
-from companion.errors import ConfigError
+from companion.config import Config, load_config
+from companion.kernel.config import env_overrides
+from companion.kernel.errors import ConfigError
 from sitl.config import load_sitl_config
 
 

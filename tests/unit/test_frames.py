@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.frames import (
+from companion.kernel.frames import (
     R_BODY_CAM_LEVEL,
     R_body_cam_from_mount,
     R_from_euler,

@@ -8,10 +8,10 @@ from __future__ import annotations
 import asyncio
 import itertools
 
-from companion import compat
-from companion.clock import MonotonicClock
 from companion.config import Config, MissionConfig
-from companion.errors import CommandRejectedError
+from companion.kernel import compat
+from companion.kernel.clock import MonotonicClock
+from companion.kernel.errors import CommandRejectedError
 from companion.mission.machine import MissionMachine
 from companion.mission.types import Command, CommandKind, MissionState, Transition
 from companion.service.mission_runner import MissionRunner

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from companion.config import Config
+from companion.kernel.camera import Intrinsics, RgbdFrame
 from companion.perception.obstacle import guard_range_m, nearest_ahead
 from companion.perception.pipeline import PerceptionPipeline
-from companion.perception.types import Intrinsics, RgbdFrame
 
 K = Intrinsics.from_hfov(640, 480, 69.0)
 ARGS = {"max_range_m": 4.0, "window_frac": (0.6, 0.3), "min_px": 8}

@@ -12,7 +12,7 @@ from companion.evaluation.outcome import TruthMonitor
 from companion.evaluation.setup import scenario_path
 from sitl.render import world as render_world
 from sitl.render.config import OccluderSpec, VisualConfig, visual_from_mapping
-from sitl.render.world import solid_structures
+from sitl.render.structures import solid_structures
 from sitl.scenario import load_scenario
 
 LEVEL = (1.0, 0.0, 0.0, 0.0)

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import LeaderConfig, PoseConfig
+from companion.kernel.camera import Intrinsics
 from companion.perception.pose import (
     LeaderMeasurement,
     SizeCalibrator,
@@ -21,7 +22,7 @@ from companion.perception.pose import (
     range_from_size,
     robust_depth,
 )
-from companion.perception.types import Detection, Intrinsics
+from companion.perception.types import Detection
 from tests.synthetic import D435_COLOR, render
 
 LEADER = LeaderConfig(box_centre_below_m=0.0)  # the synthetic quad's silhouette is centred

@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion.errors import ConfigError
 from companion.evaluation import campaign
 from companion.evaluation.campaign import (
     RunSpec,
@@ -22,6 +21,7 @@ from companion.evaluation.campaign import (
     parse_seeds,
 )
 from companion.evaluation.setup import all_scenarios, scenario_path
+from companion.kernel.errors import ConfigError
 from companion.mission.ego import EgoMotion
 
 

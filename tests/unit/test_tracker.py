@@ -8,10 +8,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.config import MountConfig, TrackerConfig
+from companion.config import TrackerConfig
 from companion.estimation.leader import TrackStatus
 from companion.estimation.tracker import TargetTracker
-from companion.frames import R_from_euler
+from companion.kernel.camera import MountConfig
+from companion.kernel.frames import R_from_euler
 from companion.perception.pose import LeaderMeasurement, bearing
 from companion.perception.transform import CameraGeometry
 

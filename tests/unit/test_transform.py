@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.config import MountConfig
-from companion.frames import R_from_euler, R_from_quat, quat_from_euler
+from companion.kernel.camera import MountConfig
+from companion.kernel.frames import R_from_euler, R_from_quat, quat_from_euler
 from companion.perception.transform import AttitudeHistory, CameraGeometry, rotate_cov, slerp
 
 angles = st.floats(-math.pi + 1e-3, math.pi - 1e-3)

@@ -12,12 +12,13 @@ from pathlib import Path
 from typing import Literal
 
 from companion.config import DetectorConfig
-from companion.errors import ModelError
+from companion.kernel.camera import RgbdFrame
+from companion.kernel.errors import ModelError
 from companion.perception.detector.roi import RoiDetector, focus_box
 from companion.perception.detector.roi import window_note as window_note
 from companion.perception.detector.runtime import FrameDetector, OnnxEngine
 from companion.perception.detector.weights import verify_model_file
-from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
+from companion.perception.types import DetectorResult, DetectStage
 
 log = logging.getLogger(__name__)
 

@@ -25,9 +25,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from companion.config import DetectorConfig
+from companion.kernel.camera import RgbImage
 from companion.perception.detector.letterbox import STRIDE
 from companion.perception.detector.runtime import FrameDetector
-from companion.perception.types import DetectorResult, DetectorTiming, RgbImage
+from companion.perception.types import DetectorResult, DetectorTiming
 
 Box = tuple[float, float, float, float]
 

@@ -18,10 +18,11 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import ModelError
+from companion.kernel.camera import RgbImage
+from companion.kernel.errors import ModelError
 from companion.perception.detector.letterbox import Letterboxer, boxes_to_source
 from companion.perception.detector.postprocess import Decoder
-from companion.perception.types import Detection, DetectorResult, DetectorTiming, RgbImage
+from companion.perception.types import Detection, DetectorResult, DetectorTiming
 
 log = logging.getLogger(__name__)
 

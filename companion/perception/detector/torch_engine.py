@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from companion.errors import ModelError
+from companion.kernel.errors import ModelError
 from companion.perception.detector.model import ARCH_LEADERNET, DetectorNet, build_net
 from companion.perception.detector.runtime import ModelInfo
 

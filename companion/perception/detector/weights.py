@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from companion.errors import ModelError
+from companion.kernel.errors import ModelError
 
 _CHUNK = 1 << 20
 

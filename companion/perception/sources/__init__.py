@@ -11,9 +11,9 @@ import importlib
 from pathlib import Path
 from typing import Any
 
-from companion.clock import Clock
 from companion.config import CameraConfig
-from companion.errors import CameraError
+from companion.kernel.clock import Clock
+from companion.kernel.errors import CameraError
 from companion.perception.types import FrameSource
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from companion.clock import Clock, MonotonicClock
+from companion.kernel.clock import Clock, MonotonicClock
 
 
 class Pacer:

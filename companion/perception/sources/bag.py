@@ -35,15 +35,15 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.clock import Clock
-from companion.compat import Self
-from companion.errors import CameraError
-from companion.frames import Mat3, R_from_quat, Vec3
+from companion.kernel.camera import DepthImage, Intrinsics, RgbdFrame, RgbImage
+from companion.kernel.clock import Clock
+from companion.kernel.compat import Self
+from companion.kernel.errors import CameraError
+from companion.kernel.frames import Mat3, R_from_quat, Vec3
 from companion.perception.sources import rosbag2
 from companion.perception.sources._pacing import Pacer
 from companion.perception.sources.file import depth_to_u16
 from companion.perception.sources.rosbag2 import Db3Image, Db3Recording
-from companion.perception.types import DepthImage, Intrinsics, RgbdFrame, RgbImage
 
 FILE_VERSION = 3
 _STREAM_TOPIC = re.compile(r"^/device_(\d+)/sensor_(\d+)/(Depth|Color)_(\d+)/(.+)$")

@@ -30,11 +30,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.clock import Clock
-from companion.compat import Self
-from companion.errors import CameraError
+from companion.kernel.camera import DepthImage, GroundTruth, Intrinsics, RgbdFrame, RgbImage
+from companion.kernel.clock import Clock
+from companion.kernel.compat import Self
+from companion.kernel.errors import CameraError
 from companion.perception.sources._pacing import Pacer
-from companion.perception.types import DepthImage, GroundTruth, Intrinsics, RgbdFrame, RgbImage
 
 INTRINSICS_FILE = "intrinsics.json"
 INDEX_FILE = "frames.csv"

@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from companion.compat import Self
 from companion.config import CameraConfig
-from companion.errors import CameraError
-from companion.perception.types import Intrinsics, RgbdFrame
+from companion.kernel.camera import Intrinsics, RgbdFrame
+from companion.kernel.compat import Self
+from companion.kernel.errors import CameraError
 
 #: How long one wait for a frameset may take before the camera counts as stalled, ms.
 _WAIT_TIMEOUT_MS = 2000

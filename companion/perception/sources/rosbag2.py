@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import CameraError
-from companion.perception.types import Intrinsics, RgbImage
+from companion.kernel.camera import Intrinsics, RgbImage
+from companion.kernel.errors import CameraError
 
 _STREAM = re.compile(r"^/device_(\d+)/sensor_(\d+)/(Depth|Color)_(\d+)/(.+)$")
 #: compressed_depth_image_transport's header before the PNG: format (int32) and two float32 parameters.

@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from companion.errors import ModelError
+from companion.kernel.errors import ModelError
 from companion.perception.detector.model import (
     ARCH_SHUFFLE,
     LeaderNet,

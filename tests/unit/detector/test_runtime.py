@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from companion.config import DetectorConfig
-from companion.errors import ModelError
+from companion.kernel.errors import ModelError
 from companion.perception.detector import choose_runtime, load_detector
 from companion.perception.detector.export import max_output_difference
 from companion.perception.detector.letterbox import Letterboxer

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.errors import ModelError
+from companion.kernel.errors import ModelError
 from companion.perception.detector.weights import read_sidecar, sha256_file, verify_model_file, write_sidecar
 
 

@@ -1,4 +1,7 @@
-"""The service's exception tree. Events (GPS loss, a lost leader) are mission inputs, never exceptions."""
+"""The exception tree of both programs (the simulator raises the same config and camera errors).
+
+Events (GPS loss, a lost leader) are mission inputs, never exceptions.
+"""
 
 
 class CompanionError(Exception):

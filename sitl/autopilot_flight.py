@@ -1,0 +1,296 @@
+"""The autopilot's flight logic: commander, land detector and control.
+
+The commander keeps home, the estimate flags, the mode with its failsafes, and arming; the land detector
+says when the vehicle is on the ground; control turns the offboard or navigator setpoint into the
+position and attitude controllers' inputs.
+
+The second layer of :class:`sitl.autopilot.Autopilot`, on :class:`~sitl.autopilot_state.AutopilotState`;
+the commander's pure decisions are :mod:`sitl.commander`'s, the auto modes' trajectories
+:mod:`sitl.navigator`'s.
+"""
+
+from __future__ import annotations
+
+import math
+
+from sitl import telemetry
+from sitl.attitude import attitude_from_thrust, wrap_pi
+from sitl.autopilot_state import (
+    ACCEPTED,
+    MOTORS_IDLE,
+    MOTORS_OFF,
+    SEV_CRITICAL,
+    SEV_INFO,
+    TEMPORARILY_REJECTED,
+    AutopilotState,
+    Home,
+)
+from sitl.commander import Action, Flags, action_nav_state, resolve_failsafe
+from sitl.control import NAN, TrajectorySetpoint
+from sitl.modes import NavState
+from sitl.navigator import RtlPhase
+from sitl.offboard import OffboardSetpoint, SetpointKind
+
+
+class AutopilotFlight(AutopilotState):
+    """Commander, land detector and control of an autopilot (see :class:`~sitl.autopilot.Autopilot`)."""
+
+    # ------------------------------------------------------------------ commander
+    def _update_home(self) -> None:
+        if self.home is None and not self.armed and self.flags.global_position_valid:
+            self._set_home_here()
+
+    def _set_home_here(self) -> None:
+        n, e, d = self.position_ned()
+        lat, lon, alt = self.origin.to_geodetic(n, e, d)
+        self.home = Home(lat, lon, alt, n, e, d)
+        self._broadcast(telemetry.home_position(self))
+
+    def _update_flags(self) -> None:
+        p = self.params
+        lp, lr, lv, gp = self.validity.update(
+            self.t_s,
+            ekf_xy_valid=self.est.xy_valid,
+            ekf_global_valid=self.est.global_valid,
+            eph_m=self.est.eph_m,
+            evh_m_s=self.est.evh_m_s,
+            com_pos_fs_eph_m=p["COM_POS_FS_EPH"],
+            com_vel_fs_evh_m_s=p["COM_VEL_FS_EVH"],
+        )
+        key = (lp, lr, lv, gp, self.home is not None, self._offboard_available(lp, lv))
+        if key != self._flags_key:  # Flags is immutable; rebuild only when something changed
+            self._flags_key = key
+            self.flags = Flags(
+                attitude_valid=True,
+                local_position_valid=lp,
+                local_position_relaxed_valid=lr,
+                local_velocity_valid=lv,
+                global_position_valid=gp,
+                local_altitude_valid=True,
+                home_valid=key[4],
+                offboard_signal=key[5],
+            )
+
+    def _offboard_available(self, local_pos_valid: bool, local_vel_valid: bool) -> bool:
+        sp = self.offboard_sp
+        if sp is None:
+            return False
+        if self.t_s - sp.t_s >= self._pv["COM_OF_LOSS_T"] * self.speed_factor:
+            return False
+        if sp.position and not local_pos_valid:
+            return False
+        return not (sp.velocity and not local_vel_valid)
+
+    def _update_mode(self) -> None:
+        if not self.armed:
+            self.failsafe_action = Action.NONE
+            nav = self.user_mode
+        else:
+            if (
+                self.nav_state is NavState.AUTO_TAKEOFF
+                and self.user_mode is NavState.AUTO_TAKEOFF
+                and self.navigator.takeoff_done
+            ):
+                # COM_TAKEOFF_ACT = 0: hold at the takeoff point once the altitude is reached.
+                self._hold_target = self.navigator.target
+                self.user_mode = NavState.AUTO_LOITER
+            p = self.params
+            action = resolve_failsafe(
+                self.user_mode, self.flags, int(p["COM_OBL_RC_ACT"]), int(p["NAV_RCL_ACT"])
+            )
+            if action is Action.DISARM:
+                self._disarm("Failsafe: disarming")
+                return
+            if action is not self.failsafe_action:
+                if action is not Action.NONE:
+                    target = action_nav_state(action)
+                    name = target.ui_name if target is not None else action.name.title()
+                    self.statustext(SEV_CRITICAL, f"Failsafe activated: switching to {name}")
+                elif self.failsafe_action is not Action.NONE:
+                    self.statustext(SEV_INFO, "Failsafe cleared")
+            self.failsafe_action = action
+            nav = action_nav_state(action) or self.user_mode
+        if nav is not self.nav_state:
+            self._enter(nav)
+
+    def _enter(self, nav: NavState) -> None:
+        self.nav_state = nav
+        pos, vel = self.position_ned(), self.velocity_ned()
+        yaw = self.dyn.yaw_rad
+        self._yaw_hold_rad = yaw
+        hold_target, self._hold_target = self._hold_target, None
+        if nav.is_auto:
+            self.navigator.enter(
+                nav, self.t_s, pos, vel, yaw, takeoff_d_m=self._takeoff_target_d_m, hold_target=hold_target
+            )
+
+    def _set_user_mode(self, nav: NavState) -> None:
+        self.user_mode = nav
+        if nav is NavState.AUTO_TAKEOFF and not math.isfinite(self._takeoff_target_d_m):
+            self._takeoff_target_d_m = self._takeoff_d_from_alt(NAN)
+        # Re-enter even if the nav state stays (e.g. a second takeoff command) so targets refresh.
+        self._update_mode()
+        if self.nav_state is nav:
+            self._enter(nav)
+
+    def _takeoff_d_from_alt(self, alt_amsl_m: float) -> float:
+        home_d = self.home.d_m if self.home is not None else 0.0
+        if math.isfinite(alt_amsl_m):
+            target_d = self.origin.alt0_m - alt_amsl_m
+        else:
+            target_d = home_d - self._pv["MIS_TAKEOFF_ALT"]
+        # Never take off downwards: PX4 holds when already above the takeoff altitude.
+        return min(target_d, self.est.d_m)
+
+    def _arm(self, forced: bool) -> tuple[int, str | None]:
+        if self.armed:
+            return ACCEPTED, None
+        del forced  # PX4 runs the checks on external arm requests even when forced
+        if not self.armable():
+            return TEMPORARILY_REJECTED, "Arming denied: Resolve system health failures first"
+        self.armed = True
+        self.landed = True
+        self._takeoff_ref_d_m = self.est.d_m
+        self.disarm_timer.reset()
+        self.pos_ctrl.reset()
+        self.inner.reset_integrators()
+        if self.flags.global_position_valid:
+            self._set_home_here()  # PX4 updates home on arming
+        self._enter(self.nav_state)
+        self.statustext(SEV_INFO, "Armed by external command")
+        return ACCEPTED, None
+
+    def _disarm(self, text: str | None) -> None:
+        was_failsafe = self.failsafe_action is not Action.NONE
+        self.armed = False
+        self._motors = MOTORS_OFF
+        self.thrust_sp = 0.0
+        self.landed = True
+        self._takeoff_target_d_m = NAN
+        if was_failsafe:
+            self.user_mode = NavState.AUTO_LAND if self.nav_state is NavState.DESCEND else self.nav_state
+        self.failsafe_action = Action.NONE
+        if self.nav_state is not self.user_mode:
+            self._enter(self.user_mode)
+        self.disarm_timer.reset()
+        if text:
+            self.statustext(SEV_INFO, text)
+
+    # ------------------------------------------------------------------ land detector
+    def _descent_commanded(self) -> bool:
+        nav = self.nav_state
+        if nav in (NavState.AUTO_LAND, NavState.DESCEND):
+            return True
+        if nav is NavState.AUTO_RTL and self.navigator.rtl_phase is RtlPhase.LAND:
+            return True
+        sp = self._traj
+        if sp is not None:
+            if not math.isnan(sp.vz) and sp.vz > 0.05:
+                return True
+            return bool(not math.isnan(sp.z) and sp.z > self.est.d_m + 0.3)
+        # Attitude/rate offboard: low thrust is the only hint, as for PX4's land detector.
+        return self.thrust_sp < 0.6 * self._pv["MPC_THR_HOVER"]
+
+    def _update_land_detector(self) -> None:
+        if not self.armed:
+            self.landed = True
+            self._ground_contact_since_s = None
+            return
+        e = self.est
+        if self.landed:
+            if self._motors is None and (self._takeoff_ref_d_m - e.d_m > 0.3 or e.vd_m_s < -0.5):
+                self.landed = False
+                self._ground_contact_since_s = None
+            return
+        slow = abs(e.vd_m_s) < 0.25 and math.hypot(e.vn_m_s, e.ve_m_s) < 1.5
+        low_thrust = self.thrust_sp < 0.9 * self._pv["MPC_THR_HOVER"]
+        if slow and low_thrust and self._descent_commanded():
+            if self._ground_contact_since_s is None:
+                self._ground_contact_since_s = self.t_s
+            elif self.t_s - self._ground_contact_since_s >= 1.0:  # LNDMC_TRIG_TIME
+                self.landed = True
+                self._takeoff_ref_d_m = e.d_m
+        else:
+            self._ground_contact_since_s = None
+
+    # ------------------------------------------------------------------ control
+    def _control(self, dt_s: float) -> None:
+        if not self.armed or self.nav_state is NavState.TERMINATION:
+            self._motors = MOTORS_OFF
+            self.thrust_sp = 0.0
+            self._traj = None
+            return
+        nav = self.nav_state
+        self._rates_sp = None
+        self.yawspeed_ff_rad_s = NAN
+        traj: TrajectorySetpoint | None = None
+        if nav is NavState.OFFBOARD and self.offboard_sp is not None:
+            sp = self.offboard_sp
+            if sp.kind is SetpointKind.TRAJECTORY:
+                traj = sp.trajectory
+                if not sp.valid:
+                    # PX4: invalid position-control input -> hold level and stop vertically.
+                    traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, 0.0))
+            else:
+                self._traj = None
+                self._attitude_setpoint(sp, dt_s)
+                return
+        elif nav.is_auto:
+            home = self.home
+            home_ned = (home.n_m, home.e_m, home.d_m) if home is not None else (0.0, 0.0, 0.0)
+            traj = self.navigator.update(self.t_s, dt_s, self.position_ned(), home_ned)
+        else:
+            traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, self._pv["MPC_LAND_SPEED"]))
+        self._traj = traj
+        if self.landed and not self._climb_demanded(traj):
+            self._idle_on_ground()
+            return
+        if self._motors is not None:
+            # Leaving the ground: start the position controller from a clean state.
+            self.pos_ctrl.reset()
+            self.inner.reset_integrators()
+            self._motors = None
+        thr = self.pos_ctrl.update(traj, self.position_ned(), self.velocity_ned(), dt_s)
+        if not math.isnan(traj.yaw):
+            self._yaw_hold_rad = traj.yaw
+        elif not math.isnan(traj.yawspeed):
+            self._yaw_hold_rad = wrap_pi(self._yaw_hold_rad + traj.yawspeed * dt_s)
+        if not math.isnan(traj.yawspeed):
+            self.yawspeed_ff_rad_s = traj.yawspeed
+        self.q_sp, self.thrust_sp = attitude_from_thrust(thr[0], thr[1], thr[2], self._yaw_hold_rad)
+        self._integrate = not self.landed
+
+    def _attitude_setpoint(self, sp: OffboardSetpoint, dt_s: float) -> None:
+        del dt_s
+        self.thrust_sp = sp.thrust
+        if sp.kind is SetpointKind.ATTITUDE:
+            self.q_sp = sp.q_sp
+            self.yawspeed_ff_rad_s = sp.yawspeed_rad_s
+        else:
+            r = sp.rates_sp
+            self._rates_sp = (
+                r[0] if r[0] == r[0] else 0.0,
+                r[1] if r[1] == r[1] else 0.0,
+                r[2] if r[2] == r[2] else 0.0,
+            )
+        if self.landed and sp.thrust < 0.5 * self._pv["MPC_THR_HOVER"]:
+            self._idle_on_ground()
+            return
+        self._motors = None
+        self._integrate = not self.landed
+
+    def _climb_demanded(self, traj: TrajectorySetpoint) -> bool:
+        d = self.est.d_m
+        if not math.isnan(traj.z) and traj.z < d - 0.3:
+            return True
+        if not math.isnan(traj.vz) and traj.vz < -0.3:
+            return True
+        return not math.isnan(traj.az) and traj.az < -1.0
+
+    def _idle_on_ground(self) -> None:
+        self._motors = MOTORS_IDLE
+        self.thrust_sp = 0.0
+        self.pos_ctrl.reset()
+        self.inner.reset_integrators()
+        self._integrate = False
+        self._yaw_hold_rad = self.dyn.yaw_rad
