@@ -19,10 +19,10 @@ from typing import Any
 
 from companion.clock import Clock
 from companion.config import Config
+from companion.estimation.pipeline import PerceptionPipeline
 from companion.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
-from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
@@ -64,7 +64,8 @@ class FlightCore:
             on_transition=on_transition,
             on_step=on_step,
         )
-        self.pipeline = PerceptionPipeline.from_config(cfg)
+        # The depth guard looks out as far as the mission's separation barrier needs to brake.
+        self.pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=self.machine.limits.brake_m_s2)
         #: The tracker's latest output (for the status endpoint).
         self.track: Any = None
         self._attitude_stamp_s = NEVER_S

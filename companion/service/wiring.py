@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 #: Perception modules the service needs, and which part of the project owns each.
 PERCEPTION_MODULES = {
     "companion.perception.detector": "detector",
-    "companion.perception.pipeline": "perception",
+    "companion.estimation.pipeline": "perception",
     "companion.perception.sources": "perception",
 }
 #: How often the follower's attitude is copied from telemetry into the perception's history.

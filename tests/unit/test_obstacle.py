@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from companion.config import Config
+from companion.estimation.pipeline import PerceptionPipeline
+from companion.mission.safety import SafetyLimits
 from companion.perception.obstacle import guard_range_m, nearest_ahead
-from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.types import Intrinsics, RgbdFrame
 
 K = Intrinsics.from_hfov(640, 480, 69.0)
@@ -64,7 +65,9 @@ def test_the_guard_looks_out_to_the_stopping_distance_within_its_bounds() -> Non
 
 def _pole_seen(v_ned_m_s: tuple[float, float, float] | None) -> bool:
     """A pole 7 m dead ahead of a level follower facing north, flying at ``v_ned_m_s``."""
-    pipeline = PerceptionPipeline.from_config(Config())
+    cfg = Config()
+    brake_m_s2 = SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2).brake_m_s2
+    pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=brake_m_s2)
     pipeline.attitude.push(0.0, (1.0, 0.0, 0.0, 0.0))
     pipeline.attitude.push(1.0, (1.0, 0.0, 0.0, 0.0))
     if v_ned_m_s is not None:
