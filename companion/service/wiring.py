@@ -18,7 +18,6 @@ from collections.abc import Callable
 from typing import Any
 
 from companion import compat
-from companion.app import Parts, PartsContext, PartsFactory
 from companion.clock import Clock, MonotonicClock
 from companion.config import Config
 from companion.errors import CompanionError, NotBuiltError, first_companion_error
@@ -26,6 +25,7 @@ from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOut
 from companion.perception.types import DetectorResult, DetectStage, RgbdFrame
 from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult
+from companion.service.parts import Parts, PartsContext, PartsFactory
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import (
     FlightSnapshot,
