@@ -22,8 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import Config, LeaderConfig, PoseConfig, SafetyConfig, TrackerConfig
+from companion.estimation.estimate import TrackState
 from companion.estimation.leader import ObstacleAhead, TrackStatus
-from companion.estimation.tracker import TargetTracker, TrackState
+from companion.estimation.tracker import TargetTracker
 from companion.frames import Mat3
 from companion.perception.obstacle import MIN_RANGE_M, guard_range_m, nearest_ahead
 from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all

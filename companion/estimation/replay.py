@@ -20,8 +20,8 @@ import numpy as np
 
 from companion.config import Config
 from companion.errors import ModelError
+from companion.estimation.estimate import TrackState
 from companion.estimation.pipeline import PerceptionPipeline
-from companion.estimation.tracker import TrackState
 from companion.perception.evaluate import (
     FrameError,
     Summary,

@@ -20,8 +20,8 @@ from companion import compat
 from companion.app import FollowerService, Parts, PartsContext
 from companion.clock import MonotonicClock
 from companion.config import Config, MountConfig
+from companion.estimation.estimate import RelativeEstimate, TrackState
 from companion.estimation.leader import TrackStatus
-from companion.estimation.tracker import RelativeEstimate, TrackState
 from companion.mission.types import CommandKind
 from companion.perception.transform import CameraGeometry
 from companion.service.status import query_status
