@@ -27,7 +27,8 @@ from companion.estimation.leader import ObstacleAhead, TrackStatus
 from companion.estimation.tracker import TargetTracker
 from companion.frames import Mat3
 from companion.perception.obstacle import MIN_RANGE_M, guard_range_m, nearest_ahead
-from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
+from companion.perception.pose import LeaderMeasurement, measure_all
+from companion.perception.size_range import SizeCalibrator
 from companion.perception.transform import AttitudeHistory, CameraGeometry, VelocityHistory
 from companion.perception.types import Detection, RgbdFrame
 
