@@ -34,7 +34,7 @@ import numpy as np
 
 from companion.frames import Vec3
 from companion.mission.ego import HOLD_S as EGO_STALE_S
-from companion.mission.formation import Slot
+from companion.mission.geometry import Slot
 from companion.mission.states import (
     AIRBORNE_STATES,
     NOT_IN_CONTROL,

@@ -17,7 +17,8 @@ from companion.config import Config
 from companion.estimation.leader import LeaderEstimate
 from companion.frames import Vec3, wrap_pi
 from companion.mission.ego import EgoMotion
-from companion.mission.formation import FollowerState, FormationLaw
+from companion.mission.formation import FormationLaw
+from companion.mission.geometry import FollowerState
 from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
 from companion.mission.offboard import CommandBook, OffboardStream
 from companion.mission.safety import SafetyLimits
