@@ -121,7 +121,8 @@ def _train(args: argparse.Namespace) -> int:
     load(args)
     from companion.perception.detector.augment import REAL_CAMERA, AugmentConfig
     from companion.perception.detector.model import ModelSpec, ShuffleDetSpec
-    from companion.perception.detector.train import TrainConfig, parse_source, train
+    from companion.perception.detector.train import train
+    from companion.perception.detector.train_config import TrainConfig, parse_source
 
     if args.crop > args.input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
