@@ -120,7 +120,8 @@ def register(sub: Any) -> None:
 def _train(args: argparse.Namespace) -> int:
     load(args)
     from companion.perception.detector.augment import REAL_CAMERA, AugmentConfig
-    from companion.perception.detector.model import ModelSpec, ShuffleDetSpec
+    from companion.perception.detector.leadernet import ModelSpec
+    from companion.perception.detector.shufflenet import ShuffleDetSpec
     from companion.perception.detector.train import train
     from companion.perception.detector.train_config import TrainConfig, parse_source
 

@@ -35,18 +35,13 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from companion.perception.detector.cache import ImageCache
+from companion.perception.detector.layers import count_parameters
 from companion.perception.detector.letterbox import boxes_to_source, letterbox_geometry, letterbox_uint8
 from companion.perception.detector.loss import DetectionLoss
 from companion.perception.detector.metrics import DetectionStats
-from companion.perception.detector.model import (
-    DetectorNet,
-    ShuffleDet,
-    arch_of,
-    count_parameters,
-    load_backbone,
-    net_for_spec,
-)
+from companion.perception.detector.model import DetectorNet, arch_of, net_for_spec
 from companion.perception.detector.postprocess import Decoder
+from companion.perception.detector.shufflenet import ShuffleDet, load_backbone
 from companion.perception.detector.torch_engine import save_weights
 from companion.perception.detector.train_config import TrainConfig
 from companion.perception.detector.train_data import (

@@ -13,7 +13,8 @@ from typing import Any
 
 from companion.perception.detector.augment import AugmentConfig
 from companion.perception.detector.loss import LossConfig
-from companion.perception.detector.model import DetectorSpec, ShuffleDetSpec, arch_of
+from companion.perception.detector.model import DetectorSpec, arch_of
+from companion.perception.detector.shufflenet import ShuffleDetSpec
 
 
 @dataclass(frozen=True)

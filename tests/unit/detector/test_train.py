@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from companion.perception.detector.model import ModelSpec
+from companion.perception.detector.leadernet import ModelSpec
 from companion.perception.detector.train import lr_at, train
 from companion.perception.detector.train_config import TrainConfig
 
