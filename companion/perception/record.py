@@ -167,7 +167,7 @@ async def run_record(
     The source is read by one task and frames are written by a worker thread behind a bounded queue, so
     a slow disk or PNG encoder never stalls the reading (a live source drops what is not read).
     """
-    from companion.perception.sources.bag import RealSenseBagWriter  # noqa: PLC0415
+    from companion.perception.sources.bag_writer import RealSenseBagWriter  # noqa: PLC0415
 
     camera = parse_source(source_spec, cfg.camera).model_copy(update={"loop": False})
     writer: FolderRecorder | RealSenseBagWriter

@@ -14,7 +14,9 @@ from companion.config import CameraConfig
 from companion.errors import CameraError
 from companion.perception.record import FolderRecorder, RecordError
 from companion.perception.sources import open_source, parse_source
-from companion.perception.sources.bag import BagSource, align_depth_to_color, write_realsense_bag
+from companion.perception.sources.bag import BagSource
+from companion.perception.sources.bag_format import align_depth_to_color
+from companion.perception.sources.bag_writer import write_realsense_bag
 from companion.perception.sources.file import FolderSource, depth_to_u16
 from companion.perception.sources.realsense import RealSenseSource
 from companion.perception.types import Intrinsics, RgbdFrame
