@@ -22,72 +22,47 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
-import os
 import random
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion import __version__
 from companion.config import Config
 from companion.kernel import compat
 from companion.kernel.clock import Clock
-from companion.service.gcs import OnboardStatusBuilder
+from companion.service.ground_station import GroundStation
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
+from companion.service.parts import Parts, PartsContext, PartsFactory
 from companion.service.perception_loop import PerceptionLoop
-from companion.service.ports import FlightSnapshot, GcsPort, MissionPort, StateChange
+from companion.service.ports import FlightSnapshot, MissionPort, StateChange
+from companion.service.reports import (
+    STATUS_SCHEMA_VERSION,
+    health_msg,
+    live_health_json,
+    mqtt_severity,
+    pose_msg,
+    state_msg,
+    status_json,
+    status_line,
+)
 from companion.service.status import StatusServer
 from companion.service.supervise import Backoff, supervise
 from companion.service.sysinfo import SystemMonitor, SystemReading
 from companion.service.systemd import SystemdNotifier
 from companion.telemetry.commands import Command
 from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
-from companion.telemetry.payloads import HealthMsg, LeaderMsg, LeaderPositionMsg, PoseMsg, StateMsg
+from companion.telemetry.payloads import HealthMsg, PoseMsg, StateMsg
 
 log = logging.getLogger(__name__)
 
-STATUS_SCHEMA_VERSION = 1
+__all__ = ["STATUS_SCHEMA_VERSION", "FollowerService", "Parts", "PartsContext", "PartsFactory"]
+
 MISSION = "mission"
 MQTT = "mqtt"
 MONITOR = "monitor"
 #: The mission steps at the setpoint rate (>= 2 Hz); this long without a step means it hangs.
 _MISSION_STALE_S = 3.0
-_STATUSTEXT_QUEUE = 32
-
-
-@dataclass(slots=True)
-class Parts:
-    """The flight and perception parts, opened by a :data:`PartsFactory` on the service's exit stack."""
-
-    mission: MissionPort
-    gcs: GcsPort | None = None
-    perception: PerceptionLoop[Any] | None = None
-    #: Where leader positions received on MQTT go (``leader.shared_position = "mqtt"``).
-    on_leader_position: Callable[[LeaderPositionMsg], None] | None = None
-    #: Does the mission runner send STATUSTEXT on transitions itself? Then the service does not.
-    mission_sends_statustext: bool = False
-    #: Loops the parts need while the service runs (e.g. the link's telemetry), by task name. Critical:
-    #: if one raises, the service ends. They are cancelled when the service stops.
-    background: dict[str, Callable[[], Awaitable[None]]] = field(default_factory=dict)
-    extra_status: dict[str, Callable[[], Any]] = field(default_factory=dict)
-    #: Returns once the link to the configured vehicle is up (READY=1 waits for it); None: at once.
-    link_ready: Callable[[], Awaitable[None]] | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class PartsContext:
-    """What the service lends the parts it opens."""
-
-    clock: Clock
-    health: HealthBoard
-    latency: LatencyStats
-
-
-#: Opens the parts on the given stack (closed when the service ends).
-PartsFactory = Callable[[contextlib.AsyncExitStack, PartsContext], Awaitable[Parts]]
 
 
 class _Finished(Exception):  # noqa: N818 (a control-flow signal, not an error)
@@ -130,12 +105,15 @@ class FollowerService:
         self._rng = rng or random.Random()  # noqa: S311 (jitter, not crypto)
         self.health = HealthBoard(clock)
         self.latency = LatencyStats()
-        self._onboard = OnboardStatusBuilder()
         self._parts: Parts | None = None
         self.mqtt: MqttReporter | None = None
         self._system: SystemReading | None = None
-        self._statustext: asyncio.Queue[tuple[str, str]] = asyncio.Queue(maxsize=_STATUSTEXT_QUEUE)
-        self.statustext_dropped = 0
+        self.ground_station = GroundStation(
+            cfg.service.onboard_status_rate_hz,
+            system=lambda: self._system,
+            uptime_s=lambda: self.clock.now_s() - self._started_s,
+            wall_time_s=wall_time_s,
+        )
         self._stop_reason: str | None = None
         self._stop = asyncio.Event()
         self._mission_done = asyncio.Event()
@@ -200,7 +178,7 @@ class FollowerService:
                         tg.create_task(self._supervised(MQTT, self.mqtt.run), name="companion.mqtt")
                     tg.create_task(self._monitor(), name="companion.monitor")
                     if parts.gcs is not None:
-                        tg.create_task(self._gcs(parts.gcs), name="companion.gcs")
+                        tg.create_task(self.ground_station.run(parts.gcs), name="companion.gcs")
                     tg.create_task(self._watchdog(), name="companion.watchdog")
                     tg.create_task(self._lifecycle(parts.mission), name="companion.lifecycle")
                     tg.create_task(self._ready(parts), name="companion.ready")
@@ -368,42 +346,6 @@ class FollowerService:
                 withheld = True
             await asyncio.sleep(interval_s)
 
-    async def _gcs(self, gcs: GcsPort) -> None:
-        async with compat.TaskGroup() as tg:
-            tg.create_task(self._statustext_sender(gcs), name="companion.gcs.statustext")
-            if self.cfg.service.onboard_status_rate_hz > 0:
-                tg.create_task(self._onboard_sender(gcs), name="companion.gcs.onboard")
-
-    async def _statustext_sender(self, gcs: GcsPort) -> None:
-        failures = 0
-        while True:
-            text, severity = await self._statustext.get()
-            try:
-                await gcs.send_status_text(text, severity)
-                failures = 0
-            except Exception as exc:  # the link may be down; the mission handles that, we just count
-                failures += 1
-                if failures == 1:
-                    log.warning("STATUSTEXT not sent (%s: %s)", type(exc).__name__, exc)
-
-    async def _onboard_sender(self, gcs: GcsPort) -> None:
-        period_s = 1.0 / self.cfg.service.onboard_status_rate_hz
-        failures = 0
-        while True:
-            await asyncio.sleep(period_s)
-            if self._system is None:
-                continue
-            status = self._onboard.build(
-                self._system, self.clock.now_s() - self._started_s, self._wall_time_s()
-            )
-            try:
-                await gcs.send_onboard_computer_status(status)
-                failures = 0
-            except Exception as exc:  # as above: counted, logged once per run of failures
-                failures += 1
-                if failures == 1:
-                    log.warning("ONBOARD_COMPUTER_STATUS not sent (%s: %s)", type(exc).__name__, exc)
-
     # ---- transitions ----------------------------------------------------------------------------------
 
     def _on_change(self, change: StateChange) -> None:
@@ -413,7 +355,7 @@ class FollowerService:
             self.mqtt.event(
                 "state_change",
                 f"{change.from_state} -> {change.to_state}: {change.reason}",
-                _mqtt_severity(change.severity),
+                mqtt_severity(change.severity),
                 **{
                     "from": change.from_state,
                     "to": change.to_state,
@@ -429,10 +371,12 @@ class FollowerService:
             and not parts.mission_sends_statustext
         ):
             text = change.statustext or f"WM {change.to_state}: {change.reason}"[:50]
-            try:
-                self._statustext.put_nowait((text, change.severity))
-            except asyncio.QueueFull:
-                self.statustext_dropped += 1
+            self.ground_station.queue_statustext(text, change.severity)
+
+    @property
+    def statustext_dropped(self) -> int:
+        """STATUSTEXTs dropped because the ground station's queue was full."""
+        return self.ground_station.statustext_dropped
 
     # ---- snapshots ------------------------------------------------------------------------------------
 
@@ -440,12 +384,7 @@ class FollowerService:
         return Path(self.cfg.status.socket_path)
 
     def _status_line(self, snap: FlightSnapshot) -> str:
-        v = snap.vehicle
-        link = "link ok" if v.connected else "no link"
-        gps = f"gps fix {v.gps_fix_type}"
-        leader = snap.leader.status if snap.leader is not None else "no leader"
-        stop = f" | stopping ({self._stop_reason})" if self._stop_reason else ""
-        return f"{snap.state}: {snap.reason} | {link} | {gps} | leader {leader}{stop}"
+        return status_line(snap, self._stop_reason)
 
     def _mqtt_detail(self) -> str:
         m = self.mqtt
@@ -462,94 +401,31 @@ class FollowerService:
     def status_snapshot(self) -> dict[str, Any]:
         """The JSON the status endpoint serves (``companion status``)."""
         assert self._parts is not None  # noqa: S101 (the server starts after the parts)
-        snap = self._parts.mission.snapshot()
-        v = snap.vehicle
-        leader = None
-        if snap.leader is not None:
-            leader = _leader_msg(snap).model_dump(mode="json")
-        out: dict[str, Any] = {
-            "schema_version": STATUS_SCHEMA_VERSION,
-            "vehicle_id": self.cfg.vehicle_id,
-            "version": __version__,
-            "pid": os.getpid(),
-            "uptime_s": round(self.clock.now_s() - self._started_s, 3),
-            "stopping": self._stop_reason,
-            "mission": {
-                "state": snap.state,
-                "reason": snap.reason,
-                "detail": snap.detail,
-                "state_age_s": round(snap.state_age_s, 3),
-                #: Seconds since the mission's last control step (it steps at link.setpoint_rate_hz).
-                "step_age_s": _r(self.clock.now_s() - snap.last_step_s)
-                if snap.last_step_s is not None
-                else None,
-                "transitions": self.transitions,
-                "formation_error_ned_m": snap.formation_error_ned_m,
-            },
-            "link": {
-                "system_id": v.system_id,
-                "connected": v.connected,
-                "heartbeat_age_s": _r(v.heartbeat_age_s),
-                "armed": v.armed,
-                "in_air": v.in_air,
-                "flight_mode": v.flight_mode,
-                "offboard_loss_failsafe": v.offboard_loss_failsafe,
-            },
-            "gps": {
-                "fix_type": v.gps_fix_type,
-                "satellites": v.gps_satellites,
-                "position_valid": v.position_valid,
-            },
-            "position": {
-                "p_ned_m": v.p_ned_m,
-                "v_ned_m_s": v.v_ned_m_s,
-                "yaw_deg": _r(v.yaw_deg),
-                #: Height above home, m (up positive).
-                "altitude_m": _r(-v.p_ned_m[2]) if v.p_ned_m is not None else None,
-            },
-            "battery": {
-                "remaining_frac": _r(v.battery_remaining_frac),
-                "voltage_v": _r(v.battery_voltage_v),
-            },
-            "leader": leader,
-            "latency_ms": self.latency.summary(),
-            "frames": self.frames(),
-            "system": self._system.to_json() if self._system is not None else None,
-            "components": [c.to_json() for c in self.health.snapshot()],
-            "mqtt": self.mqtt.stats() if self.mqtt is not None else {"enabled": False},
-        }
-        for key, fn in self._parts.extra_status.items():
-            out[key] = fn()
-        return out
+        return status_json(
+            self.cfg,
+            self._parts.mission.snapshot(),
+            self.clock,
+            started_s=self._started_s,
+            stop_reason=self._stop_reason,
+            transitions=self.transitions,
+            latency_ms=self.latency.summary,
+            frames=self.frames,
+            system=self._system,
+            components=self.health.snapshot,
+            mqtt=self.mqtt.stats if self.mqtt is not None else None,
+            extra_status=self._parts.extra_status,
+        )
 
     def live_health(self) -> dict[str, Any]:
         """The running service's own checks (``companion health`` merges them with its preflight)."""
         assert self._parts is not None  # noqa: S101
         snap = self._parts.mission.snapshot()
-        v = snap.vehicle
-        checks: list[dict[str, Any]] = []
-
-        def check(name: str, ok: bool, detail: str) -> None:
-            checks.append({"name": name, "ok": ok, "detail": detail})
-
-        age = v.heartbeat_age_s
-        check(
-            "autopilot",
-            v.connected and age is not None and age < 3.0,
-            f"heartbeat {age:.1f} s ago, {v.flight_mode}" if age is not None else "never heard",
+        mqtt = self.mqtt
+        return live_health_json(
+            snap,
+            [c for c in self.health.snapshot() if c.name != MQTT],
+            (lambda: (mqtt.connected, self._mqtt_detail())) if mqtt is not None else None,
         )
-        check(
-            "gps",
-            v.gps_fix_type >= 3,
-            f"fix type {v.gps_fix_type}, {v.gps_satellites} satellites, position valid {v.position_valid}",
-        )
-        for c in self.health.snapshot():
-            if c.name == MQTT:
-                continue
-            check(c.name, c.ok, c.detail)
-        if self.mqtt is not None:
-            check("broker", self.mqtt.connected, self._mqtt_detail())
-        return {"service_running": True, "state": snap.state, "checks": checks}
 
     # ---- MQTT -----------------------------------------------------------------------------------------
 
@@ -574,76 +450,22 @@ class FollowerService:
 
     def _state_msg(self) -> StateMsg:
         assert self._parts is not None  # noqa: S101
-        snap = self._parts.mission.snapshot()
-        v = snap.vehicle
-        return StateMsg(
-            online=True,
-            state=snap.state,
-            reason=snap.reason,
-            state_age_s=round(snap.state_age_s, 3),
-            link_ok=v.connected,
-            armed=v.armed,
-            in_air=v.in_air,
-            flight_mode=v.flight_mode,
-            gps_fix_type=v.gps_fix_type,
-            gps_ok=v.gps_fix_type >= 3,
-            leader_tracked=snap.leader is not None and snap.leader.status in ("confirmed", "coasting"),
-        )
+        return state_msg(self._parts.mission.snapshot())
 
     def _pose_msg(self) -> PoseMsg | None:
         assert self._parts is not None  # noqa: S101
-        snap = self._parts.mission.snapshot()
-        v = snap.vehicle
-        if v.p_ned_m is None and snap.leader is None:
-            return None
-        return PoseMsg(
-            p_ned_m=v.p_ned_m,
-            v_ned_m_s=v.v_ned_m_s,
-            yaw_deg=v.yaw_deg,
-            lat_deg=v.lat_deg,
-            lon_deg=v.lon_deg,
-            alt_amsl_m=v.alt_amsl_m,
-            leader=_leader_msg(snap) if snap.leader is not None else None,
-        )
+        return pose_msg(self._parts.mission.snapshot())
 
     def _health_msg(self) -> HealthMsg:
-        comps = self.health.snapshot()
-        return HealthMsg(
-            healthy=all(c.ok for c in comps),
-            components=[c.to_json() for c in comps],
-            system=self._system.to_json() if self._system is not None else {},
-            latency_ms=self.latency.summary(),
-            frames=self.frames(),
-            mqtt=self.mqtt.stats() if self.mqtt is not None else {},
+        return health_msg(
+            self.health.snapshot(),
+            self._system,
+            self.latency.summary,
+            self.frames,
+            self.mqtt.stats if self.mqtt is not None else None,
         )
 
 
 async def _run_background(name: str, loop: Callable[[], Awaitable[None]]) -> None:
     await loop()
     log.info("%s finished", name)
-
-
-def _leader_msg(snap: FlightSnapshot) -> LeaderMsg:
-    assert snap.leader is not None  # noqa: S101
-    ld = snap.leader
-    return LeaderMsg(
-        status=ld.status,
-        p_rel_ned_m=_round3(ld.p_rel_ned_m),
-        v_rel_ned_m_s=_round3(ld.v_rel_ned_m_s) if ld.v_rel_ned_m_s is not None else None,
-        cov_ned_m2=ld.cov_ned_m2,
-        age_s=_r(ld.age_s),
-        range_m=_r(ld.range_m) if ld.range_m is not None else _r(math.dist(ld.p_rel_ned_m, (0.0, 0.0, 0.0))),
-    )
-
-
-def _round3(v: tuple[float, float, float]) -> tuple[float, float, float]:
-    return (round(v[0], 3), round(v[1], 3), round(v[2], 3))
-
-
-def _r(x: float | None) -> float | None:
-    return None if x is None or not math.isfinite(x) else round(x, 3)
-
-
-def _mqtt_severity(severity: str) -> Any:
-    known = ("debug", "info", "notice", "warning", "error", "critical", "emergency")
-    return severity if severity in known else ("critical" if severity == "alert" else "info")

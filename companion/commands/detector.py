@@ -154,8 +154,10 @@ def register(sub: Any) -> None:
 def _train(args: argparse.Namespace) -> int:
     load(args)
     from companion.perception.detector.augment import REAL_CAMERA, AugmentConfig
-    from companion.perception.detector.model import ModelSpec, ShuffleDetSpec
-    from companion.perception.detector.train import TrainConfig, parse_source, train
+    from companion.perception.detector.leadernet import ModelSpec
+    from companion.perception.detector.shufflenet import ShuffleDetSpec
+    from companion.perception.detector.train import train
+    from companion.perception.detector.train_config import TrainConfig, parse_source
 
     if args.crop > args.input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
@@ -205,7 +207,7 @@ def _train(args: argparse.Namespace) -> int:
 def _finetune(args: argparse.Namespace) -> int:
     cfg = load(args)
     from companion.perception.detector.finetune import FinetuneOptions, finetune, install
-    from companion.perception.detector.train import parse_source
+    from companion.perception.detector.train_config import parse_source
 
     try:
         replay = [parse_source(r) for r in args.replay]

@@ -1,6 +1,7 @@
-"""``companion replay`` and ``companion record`` (see :mod:`companion.perception.replay`).
+"""``companion replay`` and ``companion record``.
 
-Heavy imports (filterpy pulls in scipy) happen inside the handlers, so ``companion --help`` stays fast.
+See :mod:`companion.estimation.replay` and :func:`companion.perception.record.run_record`. Heavy imports
+(filterpy pulls in scipy) happen inside the handlers, so ``companion --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ def _open_out(path: str | None) -> Iterator[io.TextIOBase | None]:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from companion.perception.replay import make_detect, run_replay
+    from companion.estimation.replay import make_detect, run_replay
 
     cfg = load(args)
     stage = make_detect(
@@ -72,7 +73,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _record(args: argparse.Namespace) -> int:
-    from companion.perception.replay import run_record
+    from companion.perception.record import run_record
 
     cfg = load(args)
     result = asyncio.run(

@@ -46,11 +46,12 @@ Output: a :class:`TrackState` every step. Its ``status``:
       None. A measurement inside the gate before that resumes the track as ``CONFIRMED``; one outside
       starts a new tentative track. ``LOST`` with ``estimate=None`` also means "never acquired".
 
-``estimate`` (:class:`RelativeEstimate`) gives the same relative position in NED axes, in body FRD and
-in the camera frame (``p_body_leader_m``/``p_cam_leader_m`` are positions of the leader's centre as
-those frames see it, i.e. including the mount offset), the relative velocity in each frame's axes
-(the NED relative velocity rotated, not the velocity seen by a rotating observer), covariances in
-each frame, the camera bearing and range. Everything here is pure: time comes in as ``stamp_s``.
+``estimate`` (:class:`~companion.estimation.estimate.RelativeEstimate`) gives the same relative position in
+NED axes, in body FRD and in the camera frame (``p_body_leader_m``/``p_cam_leader_m`` are positions of the
+leader's centre as those frames see it, i.e. including the mount offset), the relative velocity in each
+frame's axes (the NED relative velocity rotated, not the velocity seen by a rotating observer),
+covariances in each frame, the camera bearing and range. Everything here is pure: time comes in as
+``stamp_s``; the motion models are in :mod:`companion.estimation.motion`.
 """
 
 from __future__ import annotations
@@ -59,21 +60,20 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
-from numpy.typing import NDArray
 
 from companion.config import TrackerConfig
-from companion.estimation.leader import LeaderEstimate, TrackStatus
+from companion.estimation.estimate import RelativeEstimate, TrackState
+from companion.estimation.leader import TrackStatus
+from companion.estimation.motion import ego_shift, mahalanobis2, new_filter, process_noise, transition
 from companion.kernel.frames import Mat3, Vec3
-from companion.perception.pose import LeaderMeasurement, bearing
+from companion.perception.pose import LeaderMeasurement
 from companion.perception.transform import CameraGeometry, rotate_cov
 
-Mat6 = NDArray[np.float64]
+__all__ = ["RelativeEstimate", "TargetTracker", "TrackState"]
 
-_EYE3 = np.eye(3)
 #: Range error (relative) a size-ranged track may carry, added to the gate when depth comes back.
 _SIZE_RANGE_GATE_REL = 0.15
 #: Scores below this are clamped before the log in the selection cost.
@@ -81,145 +81,6 @@ _MIN_SCORE = 1e-3
 #: Objects followed outside the track's gate at once: one slot held by a blinking tree kept the leader,
 #: seen in 6 straight frames beside it, from ever counting (leader-occluded seed 8).
 _MAX_CHALLENGERS = 3
-
-
-def _mahalanobis2(y: Vec3, S: Mat3) -> float:
-    """``y^T S^-1 y`` for a symmetric positive-definite 3x3 ``S`` (closed form: no LAPACK call per box)."""
-    a, b, c = float(S[0, 0]), float(S[0, 1]), float(S[0, 2])
-    d, e, f = float(S[1, 1]), float(S[1, 2]), float(S[2, 2])
-    # Adjugate of the symmetric matrix [[a b c] [b d e] [c e f]].
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A + b * B + c * C
-    if det <= 0.0:
-        return math.inf
-    y0, y1, y2 = float(y[0]), float(y[1]), float(y[2])
-    quad = A * y0 * y0 + D * y1 * y1 + F * y2 * y2 + 2.0 * (B * y0 * y1 + C * y0 * y2 + E * y1 * y2)
-    return quad / det
-
-
-@dataclass(frozen=True)
-class RelativeEstimate:
-    """The leader relative to the follower at one instant, in NED axes, body FRD and the camera frame.
-
-    Stored in NED with the attitude it was taken at; the body and camera views are computed on first
-    access (most consumers read one frame's view, and the per-frame budget is tight).
-    """
-
-    #: Leader centre minus follower centre, NED axes, m; and its rate, m/s.
-    p_ned_rel_m: Vec3
-    v_ned_rel_m_s: Vec3
-    #: 6x6 covariance of (p_ned_rel_m, v_ned_rel_m_s), m^2, m^2/s, m^2/s^2.
-    cov_ned: Mat6
-    #: The follower's attitude at the estimate's stamp, and the camera mount.
-    R_ned_body: Mat3
-    camera: CameraGeometry
-    #: The leader's own acceleration, NED m/s^2 (``leader_accel_filter``; else None).
-    a_ned_leader_m_s2: Vec3 | None = None
-
-    @property
-    def cov_ned_m2(self) -> Mat3:
-        """Position block of :attr:`cov_ned`, m^2."""
-        return self.cov_ned[:3, :3]
-
-    @cached_property
-    def p_body_leader_m(self) -> Vec3:
-        """Leader centre in body FRD (origin: the follower's centre), m."""
-        return self.R_ned_body.T @ self.p_ned_rel_m
-
-    @cached_property
-    def v_body_rel_m_s(self) -> Vec3:
-        """Relative velocity in body axes, m/s (the NED relative velocity rotated)."""
-        return self.R_ned_body.T @ self.v_ned_rel_m_s
-
-    @cached_property
-    def cov_body_m2(self) -> Mat3:
-        """Covariance of :attr:`p_body_leader_m`, m^2."""
-        return rotate_cov(self.R_ned_body.T, self.cov_ned_m2)
-
-    @cached_property
-    def p_cam_leader_m(self) -> Vec3:
-        """Leader centre in the camera frame (x right, y down, z forward), m."""
-        return self.camera.body_to_cam(self.p_body_leader_m)
-
-    @cached_property
-    def v_cam_rel_m_s(self) -> Vec3:
-        """Relative velocity in camera axes, m/s."""
-        return self.camera.R_body_cam.T @ self.v_body_rel_m_s
-
-    @cached_property
-    def cov_cam_m2(self) -> Mat3:
-        """Covariance of :attr:`p_cam_leader_m`, m^2."""
-        return rotate_cov(self.camera.R_ned_cam(self.R_ned_body).T, self.cov_ned_m2)
-
-    @cached_property
-    def azimuth_rad(self) -> float:
-        """Camera bearing of the leader, positive right, rad."""
-        return bearing(self.p_cam_leader_m)[0]
-
-    @cached_property
-    def elevation_rad(self) -> float:
-        """Camera elevation of the leader, positive up, rad."""
-        return bearing(self.p_cam_leader_m)[1]
-
-    @cached_property
-    def range_m(self) -> float:
-        """Distance from the camera to the leader's centre, m."""
-        return float(np.linalg.norm(self.p_cam_leader_m))
-
-
-@dataclass(frozen=True, slots=True)
-class TrackState:
-    """What the tracker knows after one step; consumed by the formation law and the mission."""
-
-    stamp_s: float
-    status: TrackStatus
-    #: Increments with each new track; 0 before the first.
-    track_id: int
-    #: None when there is no track (never acquired, or dropped after ``lost_timeout_s``).
-    estimate: RelativeEstimate | None
-    #: Time since the track started, s (0 without a track).
-    age_s: float
-    #: Stamp of the last measurement that updated the track, s (None without a track).
-    last_measurement_s: float | None
-    #: Measurements accepted by this track.
-    hits: int
-    #: The measurement that updated the track at this step, if any.
-    measurement: LeaderMeasurement | None
-    #: Measurements offered this step, and how many the size prior rejected.
-    n_candidates: int = 0
-    n_size_rejected: int = 0
-    #: Share of this track's last ``quality_window_frames`` frames that had a detection in its gate
-    #: (0 without a track): a phantom built of sporadic false detections stays low.
-    recent_hit_ratio: float = 0.0
-
-    @property
-    def usable(self) -> bool:
-        """Confirmed and recent: the formation law may fly on it."""
-        return self.status in (TrackStatus.CONFIRMED, TrackStatus.COASTING)
-
-    @property
-    def since_measurement_s(self) -> float:
-        """Time since the last accepted measurement, s (inf without a track)."""
-        return math.inf if self.last_measurement_s is None else self.stamp_s - self.last_measurement_s
-
-    def leader_estimate(self) -> LeaderEstimate | None:
-        """This state as the mission's input (None without a track): NED, m and m/s, service clock."""
-        est = self.estimate
-        if est is None or self.last_measurement_s is None:
-            return None
-        p, v, cov, a = est.p_ned_rel_m, est.v_ned_rel_m_s, est.cov_ned_m2, est.a_ned_leader_m_s2
-        return LeaderEstimate(
-            stamp_s=float(self.stamp_s),
-            status=self.status,
-            p_ned_rel_m=(float(p[0]), float(p[1]), float(p[2])),
-            v_ned_rel_m_s=(float(v[0]), float(v[1]), float(v[2])),
-            last_measurement_s=float(self.last_measurement_s),
-            track_age_s=float(self.age_s),
-            recent_hit_ratio=float(self.recent_hit_ratio),
-            var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
-            a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
-        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -292,9 +153,9 @@ class TargetTracker:
         if kf is None or not self._confirmed or stamp_s - self._last_meas_s > self.cfg.coast_timeout_s:
             return None
         dt = max(0.0, stamp_s - self._stamp_s)
-        F = self._F(dt, 6)
-        x = F @ kf.x[:, 0] + self._ego_shift(dt, v_ned_follower_m_s, 6)
-        P = F @ kf.P @ F.T + self._Q(dt, x[:3], 6)
+        F = transition(self.cfg, dt, 6)
+        x = F @ kf.x[:, 0] + ego_shift(dt, v_ned_follower_m_s, self._v_follower, 6)
+        P = F @ kf.P @ F.T + process_noise(self.cfg, dt, x[:3], 6, size_ranged=self._size_ranged)
         est = RelativeEstimate(x[:3], x[3:], P, R_ned_body, self.camera)
         return est.p_cam_leader_m, est.cov_cam_m2
 
@@ -389,7 +250,7 @@ class TargetTracker:
         # size calibration's error persists): depth coming back is gated with that error added.
         if self._size_ranged and c.meas.range_source == "depth":
             S = S + (_SIZE_RANGE_GATE_REL**2) * np.outer(x, x)
-        d2 = _mahalanobis2(c.p_ned_m - x, S)
+        d2 = mahalanobis2(c.p_ned_m - x, S)
         if d2 >= self.cfg.gate_chi2:
             return None
         return d2 - 2.0 * math.log(max(c.meas.score, _MIN_SCORE))
@@ -480,16 +341,7 @@ class TargetTracker:
 
     def _new_filter(self, c: _Candidate, n: int) -> KalmanFilter:
         """A filter of ``n`` states (6: p, v; 9: p, v, a) started at measurement ``c``, at rest."""
-        kf = KalmanFilter(dim_x=n, dim_z=3)
-        kf.x = np.concatenate([c.p_ned_m, np.zeros(n - 3)]).reshape(n, 1)
-        P = np.zeros((n, n))
-        P[:3, :3] = c.R_ned_m2
-        P[3:6, 3:6] = _EYE3 * self.cfg.init_velocity_std_m_s**2
-        if n == 9:
-            P[6:, 6:] = _EYE3 * self.cfg.init_accel_std_m_s2**2
-        kf.P = P
-        kf.H = np.hstack([_EYE3, np.zeros((3, n - 3))])
-        return kf
+        return new_filter(self.cfg, c.p_ned_m, c.R_ned_m2, n)
 
     def _start(self, stamp_s: float, c: _Candidate) -> None:
         self._kf = self._new_filter(c, 6)
@@ -513,74 +365,13 @@ class TargetTracker:
         for f in (kf, self._kf_acc, *(ch.kf for ch in self._chals)):
             if f is not None:
                 n = f.dim_x
-                f.predict(F=self._F(dt, n), Q=self._Q(dt, f.x[:3, 0], n))
-                f.x[:, 0] += self._ego_shift(dt, v_follower, n)
+                f.predict(
+                    F=transition(self.cfg, dt, n),
+                    Q=process_noise(self.cfg, dt, f.x[:3, 0], n, size_ranged=self._size_ranged),
+                )
+                f.x[:, 0] += ego_shift(dt, v_follower, self._v_follower, n)
         self._v_follower = None if v_follower is None else np.asarray(v_follower, dtype=np.float64)
         self._stamp_s = stamp_s
-
-    def _ego_shift(self, dt: float, v_follower: Vec3 | None, n: int) -> NDArray[np.float64]:
-        """The state change the follower's own velocity change causes over ``dt`` (linear in between).
-
-        The acceleration state (``n`` = 9) is the leader's own and is not shifted.
-        """
-        shift = np.zeros(n)
-        if v_follower is not None and self._v_follower is not None:
-            dv = np.asarray(v_follower, dtype=np.float64) - self._v_follower
-            shift[:3] = -0.5 * dt * dv
-            shift[3:6] = -dv
-        return shift
-
-    def _F(self, dt: float, n: int) -> NDArray[np.float64]:
-        """State transition over ``dt`` s: constant velocity (``n`` = 6), or a Singer acceleration (9).
-
-        Singer: the leader's acceleration decays towards zero with ``accel_tau_s`` between measurements,
-        so a filter without measurements does not extrapolate a manoeuvre for seconds.
-        """
-        if n == 6:
-            return np.kron(np.array([[1.0, dt], [0.0, 1.0]]), _EYE3)
-        tau = self.cfg.accel_tau_s
-        e = math.exp(-dt / tau)
-        per_axis = np.array(
-            [[1.0, dt, tau * tau * (dt / tau - 1.0 + e)], [0.0, 1.0, tau * (1.0 - e)], [0.0, 0.0, e]]
-        )
-        return np.kron(per_axis, _EYE3)
-
-    def _Q(self, dt: float, p_ned_m: Vec3, n: int) -> Mat6:
-        """Process noise over ``dt`` s, per axis.
-
-        Constant velocity (``n`` = 6): discrete white-noise acceleration,
-        ``[[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * q`` with ``q = process_accel_std_m_s2^2``. Singer (9):
-        white-noise jerk, ``jerk_std_m_s3^2`` times
-        ``[[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``.
-
-        While the track is ranged by box size (beyond the stereo range), the noise along the line of
-        sight ``p_ned_m`` is scaled by ``(size_range_accel_std_m_s2 / process_accel_std_m_s2)^2``: range
-        then comes from ~10 % per-frame measurements and only a smoother radial motion model averages
-        enough of them; across the line of sight the bearing stays precise.
-        """
-        cfg = self.cfg
-        if n == 6:
-            T = (cfg.process_accel_std_m_s2**2 * dt * dt) * np.array(
-                [[dt * dt / 4.0, dt / 2.0], [dt / 2.0, 1.0]]
-            )
-        else:
-            d2, d3 = dt * dt, dt * dt * dt
-            T = (cfg.jerk_std_m_s3**2) * np.array(
-                [
-                    [d3 * d2 / 20.0, d2 * d2 / 8.0, d3 / 6.0],
-                    [d2 * d2 / 8.0, d3 / 3.0, d2 / 2.0],
-                    [d3 / 6.0, d2 / 2.0, dt],
-                ]
-            )
-        r2 = p_ned_m @ p_ned_m
-        if not self._size_ranged or r2 <= 0.0:
-            Q: Mat6 = np.kron(T, _EYE3).astype(np.float64)
-            return Q
-        # Spatial shape I - (1 - k) u u^T with k = (q_los / q)^2: the radial variance scaled down.
-        k = (cfg.size_range_accel_std_m_s2 / cfg.process_accel_std_m_s2) ** 2
-        shape = _EYE3 - ((1.0 - k) / r2) * np.outer(p_ned_m, p_ned_m)
-        Qs: Mat6 = np.kron(T, shape).astype(np.float64)
-        return Qs
 
     def _update(self, kf: KalmanFilter, c: _Candidate) -> None:
         for f in (kf, self._kf_acc):

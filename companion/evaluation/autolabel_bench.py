@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from companion.config import load_config
+from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.perception.autolabel import AutoLabelConfig, auto_label
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.bench import percentiles_ms, synthetic_frames
-from companion.perception.pipeline import PerceptionPipeline
 
 
 def _p_cam(frame: RgbdFrame) -> np.ndarray:
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_config(Path(args.config) if args.config else DEFAULT_CONFIG)
     stage = load_detect(cfg, "network")
-    pipeline = PerceptionPipeline.from_config(cfg)
+    pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=None)  # the depth guard is not timed
     frames = synthetic_frames(args.block * 4, seed=3)
     p_cams = [_p_cam(f) for f in frames]
     label_cfg = AutoLabelConfig(leader_span_m=cfg.leader.span_m)

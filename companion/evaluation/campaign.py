@@ -4,8 +4,8 @@
 * :func:`run_many` runs several single runs as child processes (``companion sim`` itself), ``jobs`` at a
   time, shows one progress line for all of them, and writes ``summary.json`` / ``summary.md``.
 * :mod:`companion.evaluation.ray_executor` runs a seeded campaign as Ray tasks instead (``--executor ray``);
-  both executors share the summary (:func:`campaign_summary`), ``--resume`` (:func:`split_done`) and the
-  progress text (:func:`progress_text`).
+  both executors share the summary (:mod:`companion.evaluation.campaign_summary`), ``--resume``
+  (:func:`split_done`) and the progress text (:mod:`companion.evaluation.progress`).
 
 A child reports progress as JSON lines on its stdout (``--progress json``); everything else it says goes
 to its log file in its own output folder.
@@ -20,12 +20,13 @@ import math
 import sys
 import time
 import tomllib
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
-from companion.evaluation.metrics import monte_carlo_summary
+from companion.evaluation.campaign_summary import write_campaign_summary
+from companion.evaluation.progress import ProgressLine
 from companion.evaluation.report import write_json
 from companion.kernel.config import deep_merge
 from companion.kernel.errors import CompanionError, ConfigError
@@ -196,87 +197,6 @@ class _Child:
     wall_s: float = 0.0
 
 
-def eta_s(done: int, total: int, elapsed_s: float) -> float | None:
-    """Seconds left at the throughput so far (None before the first run ends)."""
-    if done <= 0 or total <= done:
-        return None if done <= 0 else 0.0
-    return elapsed_s / done * (total - done)
-
-
-def clock_text(seconds: float) -> str:
-    """``m:ss`` (``h:mm:ss`` past an hour)."""
-    whole = max(0, round(seconds))
-    h, rest = divmod(whole, 3600)
-    m, sec = divmod(rest, 60)
-    return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
-
-
-def progress_text(
-    done: int, failed: int, total: int, running: Sequence[str], elapsed_s: float, *, label: str = "sim"
-) -> str:
-    """One progress line: ``sim: 3/8 done, 1 failed | <running> | 1:02, ETA 1:40``."""
-    eta = eta_s(done, total, elapsed_s)
-    head = f"{label}: {done}/{total} done" + (f", {failed} failed" if failed else "")
-    tail = clock_text(elapsed_s) + (f", ETA {clock_text(eta)}" if eta is not None and done < total else "")
-    return f"{head} | {' | '.join(running) or '-'} | {tail}"
-
-
-@dataclass(slots=True)
-class StatusLine:
-    """One line, rewritten in place on a terminal (new lines elsewhere, at most every 10 s)."""
-
-    out: TextIO
-    tty: bool = False
-    _last_s: float = -math.inf
-    _width: int = 0
-
-    def write(self, text: str, force: bool = False) -> None:
-        now = time.monotonic()
-        if not self.tty and not force and now - self._last_s < 10.0:
-            return
-        self._last_s = now
-        if self.tty:
-            pad = max(0, self._width - len(text))
-            self.out.write("\r" + text + " " * pad)
-            self._width = len(text)
-        else:
-            self.out.write(text + "\n")
-        self.out.flush()
-
-    def close(self) -> None:
-        if self.tty:
-            self.out.write("\n")
-            self.out.flush()
-
-
-@dataclass(slots=True)
-class ProgressLine:
-    """The child processes' progress: done/total, failures, each running run's sim time, ETA."""
-
-    out: TextIO
-    total: int
-    tty: bool = False
-    t0_s: float = field(default_factory=time.monotonic)
-    _line: StatusLine | None = None
-
-    def show(self, children: Sequence[_Child], force: bool = False) -> None:
-        if self._line is None:
-            self._line = StatusLine(self.out, self.tty)
-        running = [
-            f"{c.name} {c.t_s:.0f}/{c.end_s:.0f} s" if math.isfinite(c.end_s) else f"{c.name} starting"
-            for c in children
-            if c.proc is not None and not c.done
-        ]
-        done = sum(c.done for c in children)
-        failed = sum(c.done and c.rc != 0 for c in children)
-        text = progress_text(done, failed, self.total, running, time.monotonic() - self.t0_s)
-        self._line.write(text, force)
-
-    def close(self) -> None:
-        if self._line is not None:
-            self._line.close()
-
-
 def child_args(spec: RunSpec) -> list[str]:
     """The ``companion sim`` command line of one child run."""
     args = [sys.executable, "-m", "companion", "sim", "--scenario", spec.scenario, "--seed", str(spec.seed)]
@@ -354,20 +274,6 @@ async def _run_children(
     return children
 
 
-#: What the Monte Carlo summary keeps of each run.
-_SEED_KEYS = (
-    "seed",
-    "outcome",
-    "relative_position_rmse_m",
-    "relative_yaw_rmse_deg",
-    "formation_rmse_m",
-    "formation_max_deviation_m",
-    "min_separation_m",
-    "min_obstacle_clearance_m",
-    "touchdown_m_s",
-)
-
-
 def run_many(
     specs: Sequence[RunSpec],
     out_dir: Path,
@@ -426,95 +332,6 @@ def split_done(specs: Sequence[RunSpec], resume: bool) -> tuple[list[RunSpec], l
         return list(specs), []
     done = [s for s in specs if (s.out_dir / "report.json").exists()]
     return [s for s in specs if s not in done], done
-
-
-def campaign_summary(
-    specs: Sequence[RunSpec],
-    reports: Mapping[str, Mapping[str, Any]],
-    failed: Sequence[str],
-    *,
-    wall_s: float,
-    executor: str,
-    resumed: int = 0,
-) -> dict[str, Any]:
-    """The Monte Carlo summary of a campaign: every seed's report (by folder name) and the failed runs.
-
-    ``wall_s`` is this invocation's; ``resumed`` counts the seeds whose reports an earlier one wrote.
-    """
-    first = specs[0] if specs else None
-    return {
-        "scenario": first.scenario if first else None,
-        "seeds": [s.seed for s in specs],
-        "harness": first.harness if first else None,
-        "detector": next(iter(reports.values())).get("detector") if reports else None,
-        "formation_duration_s": first.duration_s if first else None,
-        "executor": executor,
-        "wall_s": round(wall_s, 1),
-        "resumed": resumed,
-        "failed": list(failed),
-        **monte_carlo_summary(reports.values()),
-        "runs_by_seed": {name: {k: r.get(k) for k in _SEED_KEYS} for name, r in reports.items()},
-    }
-
-
-def write_campaign_summary(
-    specs: Sequence[RunSpec],
-    out_dir: Path,
-    *,
-    failed: Sequence[str],
-    wall_s: float,
-    executor: str,
-    resumed: int = 0,
-) -> dict[str, Any]:
-    """Read every seed's report from its folder, write ``summary.json`` / ``summary.md``; the summary."""
-    specs = sorted(specs, key=lambda s: s.seed)
-    reports: dict[str, dict[str, Any]] = {}
-    for s in specs:
-        p = s.out_dir / "report.json"
-        if p.exists():
-            reports[s.out_dir.name] = json.loads(p.read_text())
-    summary = campaign_summary(specs, reports, failed, wall_s=wall_s, executor=executor, resumed=resumed)
-    write_json(out_dir / "summary.json", summary)
-    (out_dir / "summary.md").write_text(monte_carlo_markdown(summary))
-    return summary
-
-
-def monte_carlo_markdown(summary: dict[str, Any]) -> str:
-    """The Monte Carlo summary as a page: outcomes, then percentiles of each metric."""
-    lines = [
-        f"# Monte Carlo: `{summary['scenario']}`, {summary['runs']} seeds ({summary['harness']} harness)",
-        "",
-        f"Detector: {summary.get('detector')}. Formation window: "
-        f"{summary.get('formation_duration_s') or 'the scenario default'} s.",
-        "",
-        "| outcome | runs |",
-        "|---|---|",
-    ]
-    lines += [f"| {k} | {v} |" for k, v in summary["outcomes"].items()]
-    lines += ["", "| metric | min | p5 | p50 | p95 | max |", "|---|---|---|---|---|---|"]
-    for key in (
-        "relative_position_rmse_m",
-        "relative_yaw_rmse_deg",
-        "formation_rmse_m",
-        "formation_max_deviation_m",
-        "min_separation_m",
-        "min_obstacle_clearance_m",
-        "detection_recall",
-    ):
-        v = summary.get(key)
-        if v is None:
-            lines.append(f"| {key} | n/a | n/a | n/a | n/a | n/a |")
-        else:
-            cells = " | ".join(f"{v[q]:.3f}" if q in v else "n/a" for q in ("min", "p5", "p50", "p95", "max"))
-            lines.append(f"| {key} | {cells} |")
-    if summary.get("failed"):
-        lines += ["", "Runs without a report: " + "; ".join(summary["failed"])]
-    executor = f" ({summary['executor']} executor)" if summary.get("executor") else ""
-    resumed = (
-        f"; {summary['resumed']} seeds' reports kept from an earlier run" if summary.get("resumed") else ""
-    )
-    lines += ["", f"Wall time: {summary['wall_s']:.0f} s{executor}{resumed}."]
-    return "\n".join(lines) + "\n"
 
 
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:

@@ -25,14 +25,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TextIO
 
-from companion.evaluation.campaign import (
-    RunSpec,
-    SimError,
-    StatusLine,
-    progress_text,
-    run_one,
-    write_campaign_summary,
-)
+from companion.evaluation.campaign import RunSpec, SimError, run_one
+from companion.evaluation.campaign_summary import write_campaign_summary
+from companion.evaluation.progress import StatusLine, progress_text
 from companion.kernel.errors import ConfigError
 
 log = logging.getLogger(__name__)

@@ -21,7 +21,8 @@ Two outputs share that error:
 
 Every output goes through :mod:`companion.mission.safety` last, in this order of precedence: the altitude
 band (the ground is harder than the leader), the geofence, the separation barrier, then acceleration and
-speed limits.
+speed limits. The slot's geometry is :mod:`companion.mission.geometry`; passing the depth guard's obstacle,
+:mod:`companion.mission.static_pass`.
 """
 
 from __future__ import annotations
@@ -33,6 +34,15 @@ import numpy as np
 
 from companion.config import FormationConfig
 from companion.kernel.frames import Vec3, wrap_pi
+from companion.mission.geometry import (
+    FollowerState,
+    Slot,
+    SlotError,
+    heading_to_ned,
+    ned_to_heading,
+    slot_error,
+    tilt_from_accel,
+)
 from companion.mission.safety import (
     G_M_S2,
     SafetyLimits,
@@ -43,6 +53,7 @@ from companion.mission.safety import (
     separation_limit,
     separation_limit_accel,
 )
+from companion.mission.static_pass import pass_static
 from companion.vehicle.types import AttitudeSetpoint, Vec3T, VelocityBodySetpoint, VelocityNedSetpoint
 
 #: A gap between two law updates longer than this restarts the integrators and the slew (s).
@@ -51,111 +62,6 @@ MAX_DT_S = 0.5
 #: long (one control period at the default 20 Hz): without it the first command of FOLLOW jumped straight
 #: to the full PID output, and the vehicle pitched past 40 deg and lost the leader from view (s).
 FIRST_SLEW_DT_S = 0.05
-#: Below this horizontal range the line-of-sight bearing is meaningless (m).
-MIN_BEARING_RANGE_M = 0.5
-#: PX4's velocity loop reaches a new setpoint with about this time constant (1 / MPC_XY_VEL_P_ACC), s: the
-#: depth guard's model of the path the follower will fly.
-PX4_VEL_TAU_S = 1.0 / 1.8
-#: How far ahead in time the depth guard follows that path (the guard's 4 m at 2 m/s), s.
-GUARD_HORIZON_S = 2.0
-_GUARD_T_S = np.linspace(0.0, GUARD_HORIZON_S, 21)
-#: How far the present velocity still carries at those times, s (the first-order lag's integral).
-_GUARD_LAG_S = PX4_VEL_TAU_S * (1.0 - np.exp(-_GUARD_T_S / PX4_VEL_TAU_S))
-#: How hard the follower steps aside from an obstacle it would pass too close: m/s per m short of the
-#: depth guard's corridor (at most 0.45 m/s with the defaults: corridor 0.8 m, hit radius 0.35 m).
-STATIC_SLIDE_GAIN_1_S = 1.0
-
-
-@dataclass(frozen=True, slots=True)
-class Slot:
-    """The desired leader position in the follower's level heading frame (forward, right, down), m."""
-
-    forward_m: float
-    right_m: float
-    down_m: float
-
-    @classmethod
-    def from_offset_cam(cls, offset_cam_m: tuple[float, float, float]) -> Slot:
-        x_right, y_down, z_forward = offset_cam_m
-        return cls(forward_m=z_forward, right_m=x_right, down_m=y_down)
-
-    @property
-    def range_h_m(self) -> float:
-        return math.hypot(self.forward_m, self.right_m)
-
-    @property
-    def bearing_offset_rad(self) -> float:
-        """Where the leader should sit relative to the nose, rad (positive right)."""
-        return math.atan2(self.right_m, self.forward_m)
-
-    def p_ned_m(self, yaw_rad: float) -> Vec3:
-        """The slot in local NED for a follower heading ``yaw_rad``."""
-        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        return np.array(
-            [c * self.forward_m - s * self.right_m, s * self.forward_m + c * self.right_m, self.down_m]
-        )
-
-
-@dataclass(frozen=True, slots=True)
-class SlotError:
-    """The formation error split the way the law uses it."""
-
-    #: Unit horizontal line of sight to the leader (NED, z = 0).
-    u_los: Vec3
-    bearing_rad: float
-    #: Rate of the bearing, from the relative velocity (rad/s).
-    bearing_rate_rad_s: float
-    #: Horizontal range minus the slot's range (m); positive: leader too far.
-    e_range_m: float
-    #: Its rate (m/s), from the filtered relative velocity.
-    e_range_rate_m_s: float
-    #: Leader below the slot by this much (m, NED down); positive: follower should descend.
-    e_down_m: float
-    #: The desired yaw: the bearing minus the slot's bearing offset (rad).
-    yaw_des_rad: float
-    #: Leader relative position minus the slot placed at the *current* yaw (what a camera sees), NED m.
-    error_ned_m: Vec3
-
-
-def slot_error(slot: Slot, p_ned_rel_m: Vec3, v_ned_rel_m_s: Vec3, yaw_rad: float) -> SlotError:
-    """Decompose the relative state (leader minus follower, NED) against the slot."""
-    p = np.asarray(p_ned_rel_m, dtype=np.float64)
-    v = np.asarray(v_ned_rel_m_s, dtype=np.float64)
-    r = math.hypot(p[0], p[1])
-    if r >= MIN_BEARING_RANGE_M:
-        bearing = math.atan2(p[1], p[0])
-        bearing_rate = (p[0] * v[1] - p[1] * v[0]) / (r * r)
-    else:
-        bearing = yaw_rad + slot.bearing_offset_rad
-        bearing_rate = 0.0
-    u = np.array([math.cos(bearing), math.sin(bearing), 0.0])
-    return SlotError(
-        u_los=u,
-        bearing_rad=bearing,
-        bearing_rate_rad_s=bearing_rate,
-        e_range_m=r - slot.range_h_m,
-        e_range_rate_m_s=float(np.dot(v, u)),
-        e_down_m=float(p[2] - slot.down_m),
-        yaw_des_rad=wrap_pi(bearing - slot.bearing_offset_rad),
-        error_ned_m=p - slot.p_ned_m(yaw_rad),
-    )
-
-
-@dataclass(frozen=True, slots=True)
-class FollowerState:
-    """What the law reads from the vehicle, NED and SI. ``None`` marks what is not valid now."""
-
-    yaw_rad: float
-    #: PX4's velocity estimate; only valid (not None) while its position estimate is.
-    v_ned_m_s: Vec3 | None
-    #: Vertical speed (NED down), baro-aided: valid without GPS.
-    v_down_m_s: float
-    #: Height above home (baro-aided), m.
-    alt_rel_m: float
-    #: Position relative to home, for the geofence; None when not valid.
-    p_ned_m: Vec3 | None = None
-    roll_rad: float = 0.0
-    pitch_rad: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,26 +82,6 @@ class AttitudeCommand:
     a_ned_m_s2: Vec3T
     v_down_des_m_s: float
     error: SlotError | None
-
-
-def ned_to_heading(v_ned: Vec3, yaw_rad: float) -> Vec3:
-    """Rotate a NED vector into the heading frame (forward, right, down) of ``yaw_rad``."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * v_ned[0] + s * v_ned[1], -s * v_ned[0] + c * v_ned[1], v_ned[2]])
-
-
-def heading_to_ned(v_h: Vec3, yaw_rad: float) -> Vec3:
-    """Inverse of :func:`ned_to_heading`."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * v_h[0] - s * v_h[1], s * v_h[0] + c * v_h[1], v_h[2]])
-
-
-def tilt_from_accel(a_ned_m_s2: Vec3, yaw_rad: float) -> tuple[float, float]:
-    """Roll and pitch (rad) that give a horizontal acceleration ``a_ned`` at constant altitude."""
-    a_h = ned_to_heading(a_ned_m_s2, yaw_rad)
-    pitch = -math.atan2(a_h[0], G_M_S2)
-    roll = math.atan2(a_h[1] * math.cos(pitch), G_M_S2)
-    return roll, pitch
 
 
 class ThrustController:
@@ -508,40 +394,10 @@ class FormationLaw:
         lim = self.limits
         v = separation_limit(v, p_ned_rel_m, v_leader, lim, follower.v_ned_m_s)
         if obstacle_ned_m is not None:
-            v = self._pass_static(v, np.asarray(obstacle_ned_m, dtype=np.float64), follower)
+            v = pass_static(v, np.asarray(obstacle_ned_m, dtype=np.float64), follower, lim)
         v = geofence_limit(v, follower.p_ned_m, lim)
         v[2] = altitude_limit(float(v[2]), follower.alt_rel_m, lim)
         return v
-
-    def _pass_static(self, v: Vec3, obstacle_ned_m: Vec3, follower: FollowerState) -> Vec3:
-        """The depth guard's obstacle (static, relative NED): brake for it ahead, slide past it beside.
-
-        On the path the follower will fly (:func:`path_approach`): nearer than ``hit_radius_m``, the
-        separation barrier holds it off like the leader; nearer than ``corridor_m``, the command loses any
-        part toward the obstacle's side and gains a push away of ``STATIC_SLIDE_GAIN_1_S`` times the
-        shortfall; farther, nothing.
-        """
-        lim = self.limits
-        if follower.v_ned_m_s is None:
-            if on_course(obstacle_ned_m, v, lim.corridor_m):
-                return separation_limit(v, obstacle_ned_m, None, lim, None)
-            return v
-        cpa_m, q = path_approach(obstacle_ned_m, follower.v_ned_m_s, v)
-        if cpa_m >= lim.corridor_m:
-            return v
-        # Sideways only: across the commanded direction, so the speed along it is kept.
-        q_h = np.array([q[0], q[1], 0.0])
-        v_h = np.array([v[0], v[1], 0.0])
-        s_h = float(np.linalg.norm(v_h))
-        if s_h > 1e-6:
-            q_h -= (float(np.dot(q_h, v_h)) / (s_h * s_h)) * v_h
-        n = float(np.linalg.norm(q_h))
-        if cpa_m < lim.hit_radius_m or n < 1e-6:
-            return separation_limit(v, obstacle_ned_m, None, lim, follower.v_ned_m_s)
-        u = q_h / n
-        toward = max(float(np.dot(v, u)), 0.0)
-        out: Vec3 = v - (toward + STATIC_SLIDE_GAIN_1_S * (lim.corridor_m - cpa_m)) * u
-        return out
 
     def coast_velocity(
         self,
@@ -573,45 +429,6 @@ class FormationLaw:
     def hover_velocity(self, v_down_m_s: float = 0.0, yaw_rate_rad_s: float = 0.0) -> VelocityBodySetpoint:
         """Stop in place (GPS healthy): zero horizontal velocity, a vertical speed and a yaw rate."""
         return VelocityBodySetpoint(v_body_m_s=(0.0, 0.0, v_down_m_s), yaw_rate_rad_s=yaw_rate_rad_s)
-
-
-def path_approach(p_ned_m: Vec3, v_now_ned_m_s: Vec3, v_cmd_ned_m_s: Vec3) -> tuple[float, Vec3]:
-    """Closest approach of a static point ``p_ned_m`` (relative) to the path the follower will fly.
-
-    The path: from ``v_now`` toward ``v_cmd`` as PX4's velocity loop takes it (first order,
-    :data:`PX4_VEL_TAU_S`), over :data:`GUARD_HORIZON_S`. Returns the distance (m; inf when the path
-    moves away from the point from the start: behind, or already passed) and the vector from the path's
-    nearest point to the point (NED, m). Why a path, not the command's straight ray: the command's
-    direction swings by 10 deg or more with the lateral corrections, and a ray 4 m long swings 0.7 m with
-    it, onto a pole the follower then flies past 0.8 m away.
-    """
-    p = np.asarray(p_ned_m, dtype=np.float64)
-    v0 = np.asarray(v_now_ned_m_s, dtype=np.float64)
-    vc = np.asarray(v_cmd_ned_m_s, dtype=np.float64)
-    disp = np.outer(_GUARD_T_S, vc) + np.outer(_GUARD_LAG_S, v0 - vc)
-    q = p - disp
-    d = np.linalg.norm(q, axis=1)
-    k = int(np.argmin(d))
-    if k == 0:
-        return math.inf, q[0]
-    return float(d[k]), q[k]
-
-
-def on_course(p_ned_m: Vec3, v_ned_m_s: Vec3, corridor_m: float) -> bool:
-    """Whether a static point ``p_ned_m`` (relative, m) lies ahead, within ``corridor_m`` of the path.
-
-    The path is the straight line along ``v_ned_m_s``: what the follower would hit, not what it passes beside.
-    """
-    v = np.asarray(v_ned_m_s, dtype=np.float64)
-    speed = float(np.linalg.norm(v))
-    if speed < 1e-3:
-        return False
-    p = np.asarray(p_ned_m, dtype=np.float64)
-    along = float(np.dot(p, v)) / speed
-    if along <= 0.0:
-        return False
-    perp_sq = float(np.dot(p, p)) - along * along
-    return perp_sq < corridor_m * corridor_m
 
 
 def velocity_ned_setpoint(v_ned_m_s: Vec3T, yaw_rad: float) -> VelocityNedSetpoint:

@@ -7,13 +7,14 @@ on the CPU; CUDA when present) runs the *same* frames, interleaved frame by fram
 shared machine hits them alike. Figures are p50 / p95 / p99 in ms; ``total`` is the per-frame sum from
 preprocess to filter (the camera path). A ``+window`` runtime is the same network searching the window on a
 tracked leader (:mod:`companion.perception.detector.roi`), focused on each frame's leader as the tracker
-would be. A stage whose code is not on this branch yet is reported as "not built yet", never with a number.
+would be. The pose and filter stages come from the caller (``companion bench`` hands in the estimation's
+:class:`~companion.estimation.pipeline.PerceptionPipeline`; perception does not import estimation); without
+them, and for any stage whose code is not in this build, the stage is reported as "not built yet", never
+with a number.
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import logging
 import platform
 import time
@@ -97,15 +98,8 @@ class RuntimeRun:
     detections: int = 0
 
 
-def _perception_stages(
-    cfg: Config,
-) -> tuple[Callable[[RgbdFrame, list[Detection]], Any] | None, Callable[[float, Any], Any] | None, Any]:
-    """The pose and filter stages from the perception package, when it is on this branch."""
-    if importlib.util.find_spec("companion.perception.pipeline") is None:
-        return None, None, None
-    mod: Any = importlib.import_module("companion.perception.pipeline")
-    pipeline = mod.PerceptionPipeline.from_config(cfg)
-    return pipeline.measure, pipeline.track, pipeline
+#: The pose stage (frame, detections -> measurements) and the filter stage (stamp, measurements -> track).
+PoseFilterStages = tuple[Callable[[RgbdFrame, list[Detection]], Any], Callable[[float, Any], Any]]
 
 
 def run_bench(
@@ -113,18 +107,25 @@ def run_bench(
     detectors: dict[str, Any],
     frames: list[RgbdFrame],
     warmup: int = 10,
+    *,
+    pose_filter: Callable[[Config], PoseFilterStages] | None = None,
 ) -> dict[str, Any]:
-    """Time every detector (name -> FrameDetector) and the perception stages over ``frames``."""
+    """Time every detector (name -> FrameDetector) and the perception stages over ``frames``.
+
+    ``pose_filter`` builds a fresh pose and filter stage for each runtime (each keeps its own track); None:
+    those stages are reported as not built.
+    """
     import cv2  # noqa: PLC0415
 
     encoded = [cv2.imencode(".png", f.rgb[..., ::-1])[1] for f in frames]
     runs = {name: RuntimeRun(name) for name in detectors}
-    pose_fns = {name: _perception_stages(cfg) for name in detectors}
+    none: tuple[None, None] = (None, None)
+    pose_fns = {name: none if pose_filter is None else pose_filter(cfg) for name in detectors}
     for i in range(-warmup, len(frames)):
         k = i % len(frames)
         frame = frames[k]
         for name, det in detectors.items():
-            measure, track, _ = pose_fns[name]
+            measure, track = pose_fns[name]
             t0 = time.perf_counter()
             decoded = cv2.imdecode(encoded[k], cv2.IMREAD_COLOR)
             t1 = time.perf_counter()

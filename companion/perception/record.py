@@ -1,14 +1,19 @@
-"""Write frames to the folder recording format (:mod:`companion.perception.sources.file`).
+"""Record a source to the folder recording format (:mod:`companion.perception.sources.file`) or a .bag.
 
-``companion record`` uses it to keep a field flight or a rendered sequence (with its ground truth and
-the follower's attitude) so that ``companion replay`` can run perception on it later, frame-exact.
+``companion record`` (:func:`run_record`) uses it to keep a field flight or a rendered sequence (with its
+ground truth and the follower's attitude) so that ``companion replay`` can run perception on it later,
+frame-exact. :func:`run_record` copies any source (``sim``, ``realsense``, ``file:PATH``) to the folder
+format, or to a RealSense ``.bag`` when the output ends in ``.bag``; a folder keeps the ground truth when
+the source has some (a .bag has no place for it).
 """
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import io
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
@@ -16,9 +21,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.config import Config
+from companion.kernel import compat
 from companion.kernel.camera import Intrinsics, RgbdFrame
 from companion.kernel.compat import Self
 from companion.kernel.errors import CompanionError
+from companion.perception.sources import open_source, parse_source
 from companion.perception.sources.file import (
     ATTITUDE_FILE,
     DEFAULT_DEPTH_SCALE_M,
@@ -29,6 +37,9 @@ from companion.perception.sources.file import (
     intrinsics_to_json,
     truth_to_json,
 )
+
+#: Frames waiting for the writer (about 2 MB each at 640 x 480): a few seconds of a slow disk.
+RECORD_QUEUE_FRAMES = 90
 
 
 class RecordError(CompanionError):
@@ -125,3 +136,71 @@ class FolderRecorder:
             csv.writer(self._attitude).writerow(["stamp_s", "qw", "qx", "qy", "qz"])
         row = [repr(float(stamp_s)), *(repr(float(c)) for c in q_ned_body_wxyz)]
         csv.writer(self._attitude).writerow(row)
+
+
+@dataclass(frozen=True, slots=True)
+class RecordResult:
+    """What ``record`` kept: frames written, and frames the source numbered but never delivered."""
+
+    frames: int
+    #: Gaps in the source's frame numbers: the camera (or the simulator's server, when the reader lags)
+    #: dropped them before they reached the recorder.
+    skipped_by_source: int
+    largest_gap_s: float
+
+    def line(self, out: Path) -> str:
+        """One line for the operator."""
+        if not self.skipped_by_source:
+            return f"recorded {self.frames} frames to {out}, none skipped"
+        return (
+            f"recorded {self.frames} frames to {out}; the source skipped {self.skipped_by_source} "
+            f"(gaps in its frame numbers, longest {self.largest_gap_s:.2f} s): the camera dropped them "
+            "before they were read"
+        )
+
+
+async def run_record(
+    cfg: Config, source_spec: str, out: Path, *, max_frames: int = 0, image_format: str = "png"
+) -> RecordResult:
+    """Copy frames from a source to a folder recording (or a RealSense .bag).
+
+    The source is read by one task and frames are written by a worker thread behind a bounded queue, so
+    a slow disk or PNG encoder never stalls the reading (a live source drops what is not read).
+    """
+    from companion.perception.sources.bag_writer import RealSenseBagWriter  # noqa: PLC0415
+
+    camera = parse_source(source_spec, cfg.camera).model_copy(update={"loop": False})
+    writer: FolderRecorder | RealSenseBagWriter
+    if out.suffix.lower() == ".bag":
+        writer = RealSenseBagWriter(out, fps=round(cfg.camera.fps))
+    else:
+        writer = FolderRecorder(out, image_format=image_format)
+    queue: asyncio.Queue[RgbdFrame | None] = asyncio.Queue(maxsize=RECORD_QUEUE_FRAMES)
+    n = skipped = 0
+    largest_gap_s = 0.0
+
+    async def write_all() -> None:
+        while (frame := await queue.get()) is not None:
+            await asyncio.to_thread(writer.write, frame)
+
+    with writer:
+        async with open_source(camera) as src, compat.TaskGroup() as tg:
+            tg.create_task(write_all(), name="companion.record.writer")
+            # A folder's own attitude.csv travels with it (truth-derived attitude is rebuilt on read).
+            if isinstance(writer, FolderRecorder) and (Path(camera.path) / "attitude.csv").is_file():
+                for stamp_s, q in getattr(src, "attitude", []):
+                    writer.write_attitude(stamp_s, q)
+            prev: RgbdFrame | None = None
+            try:
+                async for frame in src:
+                    if prev is not None and frame.seq > prev.seq + 1:
+                        skipped += frame.seq - prev.seq - 1
+                        largest_gap_s = max(largest_gap_s, frame.stamp_s - prev.stamp_s)
+                    prev = frame
+                    await queue.put(frame)
+                    n += 1
+                    if max_frames and n >= max_frames:
+                        break
+            finally:
+                await queue.put(None)
+    return RecordResult(n, skipped, largest_gap_s)

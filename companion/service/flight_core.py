@@ -18,12 +18,12 @@ from collections.abc import Callable
 from typing import Any
 
 from companion.config import Config
+from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock
 from companion.kernel.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
-from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.mission_runner import MissionRunner
@@ -66,7 +66,8 @@ class FlightCore:
             on_transition=on_transition,
             on_step=on_step,
         )
-        self.pipeline = PerceptionPipeline.from_config(cfg)
+        # The depth guard looks out as far as the mission's separation barrier needs to brake.
+        self.pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=self.machine.limits.brake_m_s2)
         #: The tracker's latest output (for the status endpoint).
         self.track: Any = None
         self._attitude_stamp_s = NEVER_S

@@ -17,7 +17,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from companion.app import Parts, PartsContext, PartsFactory
 from companion.config import Config
 from companion.kernel import compat
 from companion.kernel.camera import RgbdFrame
@@ -27,6 +26,7 @@ from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOut
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult
+from companion.service.parts import Parts, PartsContext, PartsFactory
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import (
     FlightSnapshot,
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 #: Perception modules the service needs, and which part of the project owns each.
 PERCEPTION_MODULES = {
     "companion.perception.detector": "detector",
-    "companion.perception.pipeline": "perception",
+    "companion.estimation.pipeline": "perception",
     "companion.perception.sources": "perception",
 }
 #: How often the follower's attitude is copied from telemetry into the perception's history.

@@ -22,13 +22,15 @@ MAVSDK quirks handled here:
   plain non-blocking sends on the loop thread; telemetry uses the asyncio subscriptions.
 * **Link loss.** A lost link is a state (``VehicleState.connected``, stale stamps), never an exception from
   telemetry; commands without a link raise :class:`~companion.kernel.errors.LinkLostError`.
+
+The subscriptions' items become one :class:`~companion.vehicle.types.VehicleState` in
+:mod:`companion.vehicle.mavsdk_telemetry`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import math
 import time
@@ -53,16 +55,13 @@ from companion.kernel.clock import Clock
 from companion.kernel.compat import Self
 from companion.kernel.errors import CommandRejectedError, LinkLostError, WrongVehicleError
 from companion.vehicle import failsafe
-from companion.vehicle.boottime import BootClockMap
 from companion.vehicle.identity import choose_autopilot
+from companion.vehicle.mavsdk_telemetry import MavsdkTelemetry
 from companion.vehicle.types import (
     AttitudeSetpoint,
     ExternalPosition,
-    FlightMode,
-    LandedState,
     Setpoint,
     Severity,
-    StatusText,
     VehicleState,
     VelocityBodySetpoint,
     VelocityNedSetpoint,
@@ -73,8 +72,6 @@ mavsdk_log = logging.getLogger("companion.vehicle.mavsdk")
 
 T = TypeVar("T")
 
-#: ESTIMATOR_STATUS flags PX4's offboard velocity/position checks depend on (VELOCITY_HORIZ | POS_HORIZ_REL).
-_EST_POS_VEL_FLAGS = 2 | 8
 #: How often the setpoint guard looks, s.
 _GUARD_PERIOD_S = 0.05
 _START_ATTEMPTS = 3
@@ -99,7 +96,6 @@ _STATUSTEXT_SEVERITY = {
     Severity.INFO: StatusTextType.INFO,
     Severity.DEBUG: StatusTextType.DEBUG,
 }
-_SEVERITY_BY_NAME = {s.name: s for s in Severity}
 
 
 def _route_mavsdk_log(level: Any, message: str, file: str | None, line: int) -> bool:
@@ -130,17 +126,16 @@ class MavsdkVehicleLink:
         #: The autopilot's system id once found.
         self.system_id: int | None = None
         self._sdk: Mavsdk | None = None
-        #: Attitude is stamped when the autopilot sampled it (see vehicle/boottime.py).
-        self._boot_clock = BootClockMap()
         self._system: Any = None
-        self._telemetry: Any = None
+        self._telemetry_plugin: Any = None
         self._action: Any = None
         self._offboard: Any = None
         self._mocap: Any = None
         self._param: Any = None
         self._server_utility: Any = None
         self._direct: Any = None
-        self._state = VehicleState()
+        #: The telemetry, one handler per subscription.
+        self.telemetry = MavsdkTelemetry(clock)
         self._stream_active = False
         self._last_setpoint_s = -math.inf
         self._ready = asyncio.Event()
@@ -195,7 +190,7 @@ class MavsdkVehicleLink:
         """Find the autopilot, then keep the telemetry snapshot current and guard the setpoint stream."""
         system = await self._discover()
         self._system = system
-        self._telemetry = TelemetryAsync(system)
+        self._telemetry_plugin = TelemetryAsync(system)
         self._param = ParamAsync(system)
         self._direct = MavlinkDirectAsync(system)
         # Commands and sends on the plain plugins (callbacks, no executor threads); mavsdk>=4,<5 keeps the
@@ -205,26 +200,25 @@ class MavsdkVehicleLink:
         self._offboard = Offboard(raw)
         self._mocap = Mocap(raw)
         self._server_utility = ServerUtility(raw)
-        self._update(connected=True, heartbeat_stamp_s=self.clock.now_s())
+        self.telemetry.update(connected=True, heartbeat_stamp_s=self.clock.now_s())
         self._ready.set()
-        t = self._telemetry
+        t = self._telemetry_plugin
+        h = self.telemetry
         streams: dict[str, Callable[[], Coroutine[Any, Any, None]]] = {
-            "connection": lambda: self._each(system.is_connected_state(), self._on_connected),
-            "flight_mode": lambda: self._each(t.subscribe_flight_mode(), self._on_flight_mode),
-            "armed": lambda: self._each(t.subscribe_armed(), self._on_armed),
-            "landed_state": lambda: self._each(t.subscribe_landed_state(), self._on_landed_state),
-            "attitude": lambda: self._each(t.subscribe_attitude_euler(), self._on_attitude),
-            "velocity": lambda: self._each(t.subscribe_velocity_ned(), self._on_velocity),
-            "position": lambda: self._each(t.subscribe_position(), self._on_position),
-            "local_position": lambda: self._each(
-                t.subscribe_position_velocity_ned(), self._on_local_position
-            ),
-            "gps": lambda: self._each(t.subscribe_gps_info(), self._on_gps),
-            "health": lambda: self._each(t.subscribe_health(), self._on_health),
-            "battery": lambda: self._each(t.subscribe_battery(), self._on_battery),
-            "status_text": lambda: self._each(t.subscribe_status_text(), self._on_status_text),
+            "connection": lambda: self._each(system.is_connected_state(), h.on_connected),
+            "flight_mode": lambda: self._each(t.subscribe_flight_mode(), h.on_flight_mode),
+            "armed": lambda: self._each(t.subscribe_armed(), h.on_armed),
+            "landed_state": lambda: self._each(t.subscribe_landed_state(), h.on_landed_state),
+            "attitude": lambda: self._each(t.subscribe_attitude_euler(), h.on_attitude),
+            "velocity": lambda: self._each(t.subscribe_velocity_ned(), h.on_velocity),
+            "position": lambda: self._each(t.subscribe_position(), h.on_position),
+            "local_position": lambda: self._each(t.subscribe_position_velocity_ned(), h.on_local_position),
+            "gps": lambda: self._each(t.subscribe_gps_info(), h.on_gps),
+            "health": lambda: self._each(t.subscribe_health(), h.on_health),
+            "battery": lambda: self._each(t.subscribe_battery(), h.on_battery),
+            "status_text": lambda: self._each(t.subscribe_status_text(), h.on_status_text),
             "estimator": lambda: self._each(
-                self._direct.subscribe_message("ESTIMATOR_STATUS"), self._on_estimator_status
+                self._direct.subscribe_message("ESTIMATOR_STATUS"), h.on_estimator_status
             ),
         }
         async with compat.TaskGroup() as tg:
@@ -285,92 +279,6 @@ class MavsdkVehicleLink:
             async for item in items:
                 handle(item)
 
-    def _update(self, **fields: Any) -> None:
-        self._state = replace(self._state, **fields)
-
-    def _on_connected(self, connected: bool) -> None:
-        if connected != self._state.connected:
-            (log.info if connected else log.error)("vehicle link: %s", "connected" if connected else "LOST")
-        self._update(connected=connected)
-
-    def _on_flight_mode(self, mode: Any) -> None:
-        # MAVSDK re-emits the mode on every HEARTBEAT: this is also the heartbeat clock.
-        try:
-            fm = FlightMode[mode.name]
-        except KeyError:
-            fm = FlightMode.UNKNOWN
-        self._update(flight_mode=fm, heartbeat_stamp_s=self.clock.now_s())
-
-    def _on_armed(self, armed: bool) -> None:
-        self._update(armed=bool(armed))
-
-    def _on_landed_state(self, state: Any) -> None:
-        try:
-            ls = LandedState[state.name]
-        except KeyError:
-            ls = LandedState.UNKNOWN
-        self._update(landed_state=ls)
-
-    def _on_attitude(self, e: Any) -> None:
-        self._update(
-            roll_rad=math.radians(e.roll_deg),
-            pitch_rad=math.radians(e.pitch_deg),
-            yaw_rad=math.radians(e.yaw_deg),
-            # MAVSDK passes ATTITUDE's time_boot_ms on as timestamp_us: stamp when it was sampled.
-            attitude_stamp_s=self._boot_clock.stamp(int(e.timestamp_us) // 1000, self.clock.now_s()),
-        )
-
-    def _on_velocity(self, v: Any) -> None:
-        self._update(v_ned_m_s=(v.north_m_s, v.east_m_s, v.down_m_s), velocity_stamp_s=self.clock.now_s())
-
-    def _on_position(self, p: Any) -> None:
-        self._update(
-            lat_deg=p.latitude_deg,
-            lon_deg=p.longitude_deg,
-            alt_amsl_m=p.absolute_altitude_m,
-            alt_rel_m=p.relative_altitude_m,
-            global_position_stamp_s=self.clock.now_s(),
-        )
-
-    def _on_local_position(self, pv: Any) -> None:
-        p = pv.position
-        self._update(p_ned_m=(p.north_m, p.east_m, p.down_m), local_position_stamp_s=self.clock.now_s())
-
-    def _on_gps(self, g: Any) -> None:
-        self._update(
-            gps_fix_type=int(g.fix_type), gps_satellites=int(g.num_satellites), gps_stamp_s=self.clock.now_s()
-        )
-
-    def _on_health(self, h: Any) -> None:
-        self._update(
-            global_position_ok=bool(h.is_global_position_ok),
-            local_position_ok=bool(h.is_local_position_ok),
-            home_position_ok=bool(h.is_home_position_ok),
-            armable=bool(h.is_armable),
-            health_stamp_s=self.clock.now_s(),
-        )
-
-    def _on_battery(self, b: Any) -> None:
-        remaining = b.remaining_percent
-        frac = remaining / 100.0 if math.isfinite(remaining) else math.nan
-        self._update(battery_remaining_frac=frac, battery_voltage_v=b.voltage_v)
-
-    def _on_status_text(self, st: Any) -> None:
-        severity = _SEVERITY_BY_NAME.get(getattr(st.type, "name", ""), Severity.INFO)
-        text = StatusText(self.clock.now_s(), severity, str(st.text))
-        log.info("autopilot: [%s] %s", severity.value, text.text)
-        self._update(last_status_text=text, status_text_seq=self._state.status_text_seq + 1)
-
-    def _on_estimator_status(self, msg: Any) -> None:
-        try:
-            flags = int(json.loads(msg.fields_json)["flags"])
-        except (ValueError, KeyError, TypeError):
-            return
-        valid = (flags & _EST_POS_VEL_FLAGS) == _EST_POS_VEL_FLAGS
-        if self._state.position_valid is not None and valid != self._state.position_valid:
-            log.warning("vehicle link: PX4 horizontal position estimate %s", "valid" if valid else "INVALID")
-        self._update(position_valid=valid, estimator_stamp_s=self.clock.now_s())
-
     async def _read_hover_thrust(self) -> None:
         """PX4's MPC_THR_HOVER, to start the attitude law's thrust from; absent is fine."""
         try:
@@ -380,7 +288,7 @@ class MavsdkVehicleLink:
             log.info("vehicle link: MPC_THR_HOVER not readable (%s); using the configured default", exc)
             return
         if 0.05 < value < 0.95:
-            self._update(hover_thrust_norm=value)
+            self.telemetry.update(hover_thrust_norm=value)
             log.info("vehicle link: hover thrust %.3f from MPC_THR_HOVER", value)
 
     async def _configure_failsafe(self) -> None:
@@ -402,20 +310,20 @@ class MavsdkVehicleLink:
                 "vehicle link: %s", failsafe.not_applied(self.cfg.offboard_loss_action, str(exc) or "timeout")
             )
             return
-        self._update(offboard_loss_param=value)
+        self.telemetry.update(offboard_loss_param=value)
         ok, line = failsafe.applied(self.cfg.offboard_loss_action, value)
         (log.info if ok else log.warning)("vehicle link: %s", line)
 
     def snapshot(self) -> VehicleState:
         """The latest telemetry; ``connected`` also requires a heartbeat within the telemetry timeout."""
         now_s = self.clock.now_s()
-        st = self._state
+        st = self.telemetry.state
         alive = st.connected and now_s - st.heartbeat_stamp_s <= max(self.cfg.telemetry_timeout_s, 3.0)
         return replace(st, stamp_s=now_s, connected=alive)
 
     # ------------------------------------------------------------------ commands
     def _require(self, plugin: Any) -> Any:
-        if plugin is None or not self._state.connected:
+        if plugin is None or not self.telemetry.state.connected:
             raise LinkLostError("no autopilot connected")
         return plugin
 

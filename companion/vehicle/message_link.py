@@ -18,7 +18,8 @@ mission sees the same vehicle through either link:
   watchdog (a non-offboard HEARTBEAT more than 3 s after start ends the stream).
 
 Time: everything is on the clock passed in (sim time in lockstep); :meth:`pump` must be called often (every
-physics step in the harness) because retries, resends and timeouts are checked there.
+physics step in the harness) because retries, resends and timeouts are checked there. Telemetry is assembled
+in :mod:`companion.vehicle.mavlink_telemetry`.
 """
 
 from __future__ import annotations
@@ -37,15 +38,19 @@ from companion.kernel.clock import Clock
 from companion.kernel.errors import CommandRejectedError, LinkLostError
 from companion.kernel.frames import quat_from_euler
 from companion.vehicle import failsafe
-from companion.vehicle.boottime import BootClockMap
+from companion.vehicle.mavlink_telemetry import (
+    AUTOPILOT_COMPONENT,
+    SEVERITY_CODE,
+    MavlinkTelemetry,
+    param_int,
+    text_of,
+)
 from companion.vehicle.types import (
     AttitudeSetpoint,
     ExternalPosition,
     FlightMode,
-    LandedState,
     Setpoint,
     Severity,
-    StatusText,
     VehicleState,
     VelocityBodySetpoint,
     VelocityNedSetpoint,
@@ -55,7 +60,6 @@ log = logging.getLogger("companion.vehicle")
 
 #: MAVSDK's companion-computer identity: the autopilot's system id, component 195.
 COMPANION_COMPONENT = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
-AUTOPILOT_COMPONENT = 1
 #: MAVSDK resends offboard setpoints at this rate.
 RESEND_PERIOD_S = 0.05
 #: MAVSDK's command protocol: COMMAND_LONG timeout and retries.
@@ -78,49 +82,6 @@ VELOCITY_NED_MASK = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW_RATE
 #: SET_ATTITUDE_TARGET: body rates ignored, attitude + thrust used.
 ATTITUDE_MASK = 1 | 2 | 4
 
-# SYS_STATUS sensor bits MAVSDK's health reads.
-_GPS_BIT, _FLOW_BIT, _VISION_BIT = 32, 64, 128
-_PREARM_BIT = 1 << 28
-#: ESTIMATOR_STATUS flags PX4's offboard velocity/position checks depend on (VELOCITY_HORIZ | POS_HORIZ_REL).
-_EST_POS_VEL_FLAGS = 2 | 8
-
-# PX4 custom modes (main << 16 | sub << 24), as MAVSDK decodes them.
-_AUTO_SUB_MODES = {
-    1: FlightMode.READY,
-    2: FlightMode.TAKEOFF,
-    3: FlightMode.HOLD,
-    4: FlightMode.MISSION,
-    5: FlightMode.RETURN_TO_LAUNCH,
-    6: FlightMode.LAND,
-    8: FlightMode.FOLLOW_ME,
-}
-_MAIN_MODES = {
-    1: FlightMode.MANUAL,
-    2: FlightMode.ALTCTL,
-    3: FlightMode.POSCTL,
-    5: FlightMode.ACRO,
-    6: FlightMode.OFFBOARD,
-    7: FlightMode.STABILIZED,
-    8: FlightMode.RATTITUDE,
-}
-_LANDED = {
-    1: LandedState.ON_GROUND,
-    2: LandedState.IN_AIR,
-    3: LandedState.TAKING_OFF,
-    4: LandedState.LANDING,
-}
-_SEVERITY = {
-    0: Severity.EMERGENCY,
-    1: Severity.ALERT,
-    2: Severity.CRITICAL,
-    3: Severity.ERROR,
-    4: Severity.WARNING,
-    5: Severity.NOTICE,
-    6: Severity.INFO,
-    7: Severity.DEBUG,
-}
-_SEVERITY_CODE = {s: c for c, s in _SEVERITY.items()}
-
 
 class MessageTransport(Protocol):
     """Carries pymavlink message objects to and from one autopilot link (e.g. ``sitl`` ``MessageLink``)."""
@@ -128,24 +89,6 @@ class MessageTransport(Protocol):
     def send(self, msg: Any, src_system: int, src_component: int) -> None: ...
 
     def receive(self) -> list[Any]: ...
-
-
-def _param_int(value: float, param_type: int) -> int:
-    """An integer PARAM_VALUE: PX4 sends INT32 bytewise in the float field; others send the number."""
-    if param_type == mavlink.MAV_PARAM_TYPE_INT32:
-        return int(struct.unpack("<i", struct.pack("<f", value))[0])
-    return round(value)
-
-
-def flight_mode_of(base_mode: int, custom_mode: int) -> FlightMode:
-    """PX4's custom mode as MAVSDK names it (UNKNOWN without the custom-mode flag or for other modes)."""
-    if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-        return FlightMode.UNKNOWN
-    main = (custom_mode >> 16) & 0xFF
-    sub = (custom_mode >> 24) & 0xFF
-    if main == 4:
-        return _AUTO_SUB_MODES.get(sub, FlightMode.UNKNOWN)
-    return _MAIN_MODES.get(main, FlightMode.UNKNOWN)
 
 
 @dataclass(slots=True)
@@ -195,7 +138,8 @@ class MessageVehicleLink:
         #: The autopilot flown (the same name the MAVSDK link uses for its chosen system).
         self.system_id = target_system
         self.own_system = target_system
-        self._state = VehicleState()
+        #: The telemetry, assembled from what arrives.
+        self.telemetry = MavlinkTelemetry(target_system)
         self._pending: list[_Pending] = []
         self._setpoint_msg: Any = None
         self._stream_active = False
@@ -209,8 +153,6 @@ class MessageVehicleLink:
         self._failsafe_tries = 0
         self._failsafe_sent_s = -math.inf
         self.counters = LinkCounters()
-        #: Attitude is stamped when the autopilot sampled it (see vehicle/boottime.py).
-        self._boot_clock = BootClockMap()
 
     # ------------------------------------------------------------------ the owner's side
     def pump(self) -> None:
@@ -231,7 +173,7 @@ class MessageVehicleLink:
                     mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3
                 )
             )
-        st = self._state
+        st = self.telemetry.state
         if st.connected:
             if not st.home_position_ok and now_s - self._last_home_request_s >= HOME_REQUEST_PERIOD_S:
                 self._last_home_request_s = now_s
@@ -284,9 +226,6 @@ class MessageVehicleLink:
         self._send(self._setpoint_msg)
 
     # ------------------------------------------------------------------ telemetry
-    def _update(self, **fields: Any) -> None:
-        self._state = replace(self._state, **fields)
-
     def _handle(self, msg: Any, now_s: float) -> None:
         # Messages that never went through a codec (a lockstep world hands over objects) carry no source
         # (0): the transport is this autopilot's link, so they are its own.
@@ -296,73 +235,14 @@ class MessageVehicleLink:
         c = self.counters
         c.messages_in += 1
         c.by_type[kind] = c.by_type.get(kind, 0) + 1
-        st = self._state
-        if kind == "HEARTBEAT":
-            if msg.get_srcComponent() not in (AUTOPILOT_COMPONENT, 0):
-                return
-            if not st.connected:
-                log.info("vehicle link: autopilot found (sysid %d)", self.target_system)
-            self._update(
-                connected=True,
-                heartbeat_stamp_s=now_s,
-                armed=bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED),
-                flight_mode=flight_mode_of(int(msg.base_mode), int(msg.custom_mode)),
-            )
-        elif kind == "ATTITUDE":
-            sampled_s = self._boot_clock.stamp(int(msg.time_boot_ms), now_s)
-            self._update(roll_rad=msg.roll, pitch_rad=msg.pitch, yaw_rad=msg.yaw, attitude_stamp_s=sampled_s)
-        elif kind == "GLOBAL_POSITION_INT":
-            self._update(
-                v_ned_m_s=(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0),
-                velocity_stamp_s=now_s,
-                lat_deg=msg.lat * 1e-7,
-                lon_deg=msg.lon * 1e-7,
-                alt_amsl_m=msg.alt / 1000.0,
-                alt_rel_m=msg.relative_alt / 1000.0,
-                global_position_stamp_s=now_s,
-            )
-        elif kind == "LOCAL_POSITION_NED":
-            self._update(p_ned_m=(msg.x, msg.y, msg.z), local_position_stamp_s=now_s, local_position_ok=True)
-        elif kind == "GPS_RAW_INT":
-            self._update(
-                gps_fix_type=int(msg.fix_type), gps_satellites=int(msg.satellites_visible), gps_stamp_s=now_s
-            )
-        elif kind == "SYS_STATUS":
-            present, health = (
-                int(msg.onboard_control_sensors_present),
-                int(msg.onboard_control_sensors_health),
-            )
-            ok = present & health
-            global_ok = bool(ok & _GPS_BIT)
-            self._update(
-                global_position_ok=global_ok,
-                local_position_ok=global_ok or bool(ok & (_FLOW_BIT | _VISION_BIT)),
-                armable=bool(health & _PREARM_BIT),
-                health_stamp_s=now_s,
-            )
-        elif kind == "HOME_POSITION":
-            self._update(home_position_ok=True)
-        elif kind == "EXTENDED_SYS_STATE":
-            self._update(landed_state=_LANDED.get(int(msg.landed_state), LandedState.UNKNOWN))
-        elif kind == "ESTIMATOR_STATUS":
-            valid = (int(msg.flags) & _EST_POS_VEL_FLAGS) == _EST_POS_VEL_FLAGS
-            self._update(position_valid=valid, estimator_stamp_s=now_s)
-        elif kind == "BATTERY_STATUS":
-            remaining = int(msg.battery_remaining)
-            self._update(
-                battery_remaining_frac=remaining / 100.0 if remaining >= 0 else math.nan,
-                battery_voltage_v=msg.voltages[0] / 1000.0 if msg.voltages[0] != 65535 else math.nan,
-            )
-        elif kind == "STATUSTEXT":
-            text = StatusText(now_s, _SEVERITY.get(int(msg.severity), Severity.INFO), _text(msg.text))
-            log.info("autopilot: [%s] %s", text.severity.value, text.text)
-            self._update(last_status_text=text, status_text_seq=st.status_text_seq + 1)
-        elif kind == "COMMAND_ACK":
+        if self.telemetry.handle(msg, kind, now_s):
+            return
+        if kind == "COMMAND_ACK":
             self._on_ack(int(msg.command), int(msg.result))
         elif kind == "PARAM_VALUE":
-            name = _text(msg.param_id)
+            name = text_of(msg.param_id)
             if name == failsafe.PARAM:
-                self._on_failsafe_param(_param_int(float(msg.param_value), int(msg.param_type)))
+                self._on_failsafe_param(param_int(float(msg.param_value), int(msg.param_type)))
             else:
                 self._on_param(name, float(msg.param_value))
 
@@ -404,16 +284,16 @@ class MessageVehicleLink:
             )
 
     def _on_failsafe_param(self, value: int) -> None:
-        if self._failsafe_done and self._state.offboard_loss_param == value:
+        if self._failsafe_done and self.telemetry.state.offboard_loss_param == value:
             return
         self._failsafe_done = True
-        self._update(offboard_loss_param=value)
+        self.telemetry.update(offboard_loss_param=value)
         ok, line = failsafe.applied(self.cfg.offboard_loss_action, value)
         (log.info if ok else log.warning)("vehicle link: %s", line)
 
     def _on_param(self, name: str, value: float) -> None:
-        if name == "MPC_THR_HOVER" and 0.05 < value < 0.95 and self._state.hover_thrust_norm is None:
-            self._update(hover_thrust_norm=value)
+        if name == "MPC_THR_HOVER" and 0.05 < value < 0.95 and self.telemetry.state.hover_thrust_norm is None:
+            self.telemetry.update(hover_thrust_norm=value)
         for p in self._pending:
             if p.param_id == name:
                 self._pending.remove(p)
@@ -424,7 +304,7 @@ class MessageVehicleLink:
     def snapshot(self) -> VehicleState:
         """The latest telemetry; ``connected`` also requires a heartbeat within the timeouts."""
         now_s = self.clock.now_s()
-        st = self._state
+        st = self.telemetry.state
         alive = st.connected and now_s - st.heartbeat_stamp_s <= max(
             self.cfg.telemetry_timeout_s, HEARTBEAT_TIMEOUT_S
         )
@@ -456,7 +336,7 @@ class MessageVehicleLink:
 
     def _mode_params(self, main: int, sub: int) -> tuple[float, float, float]:
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
-            mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self._state.armed else 0
+            mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.telemetry.state.armed else 0
         )
         return float(base), float(main), float(sub)
 
@@ -557,13 +437,7 @@ class MessageVehicleLink:
 
     async def send_status_text(self, text: str, severity: Severity) -> None:
         self._require()
-        self._send(mavlink.MAVLink_statustext_message(_SEVERITY_CODE[severity], text[:50].encode(), 0, 0))
-
-
-def _text(raw: Any) -> str:
-    if isinstance(raw, bytes):
-        raw = raw.decode("utf-8", "replace")
-    return str(raw).rstrip("\x00")
+        self._send(mavlink.MAVLink_statustext_message(SEVERITY_CODE[severity], text[:50].encode(), 0, 0))
 
 
 def _result_name(result: int) -> str:

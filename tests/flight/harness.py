@@ -31,7 +31,7 @@ from companion.evaluation.procs import Child
 from companion.evaluation.procs import SitlPorts as Ports
 from companion.kernel.clock import MonotonicClock
 from companion.kernel.frames import R_from_quat
-from companion.mission.formation import Slot, ned_to_heading
+from companion.mission.geometry import Slot, ned_to_heading
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, MissionState, SharedLeaderPosition, StepOutput, Transition
 from companion.service.mission_runner import MissionRunner

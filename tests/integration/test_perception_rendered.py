@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from companion.config import Config
+from companion.estimation.replay import make_detect, run_replay
 from companion.perception.record import FolderRecorder
-from companion.perception.replay import make_detect, run_replay
 from tests.render_sequences import frames
 
 pytestmark = pytest.mark.render

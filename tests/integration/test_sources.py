@@ -15,7 +15,9 @@ from companion.kernel.camera import Intrinsics, RgbdFrame
 from companion.kernel.errors import CameraError
 from companion.perception.record import FolderRecorder, RecordError
 from companion.perception.sources import open_source, parse_source
-from companion.perception.sources.bag import BagSource, align_depth_to_color, write_realsense_bag
+from companion.perception.sources.bag import BagSource
+from companion.perception.sources.bag_format import align_depth_to_color
+from companion.perception.sources.bag_writer import write_realsense_bag
 from companion.perception.sources.file import FolderSource, depth_to_u16
 from companion.perception.sources.realsense import RealSenseSource
 from tests.synthetic import D435_COLOR, frame_from_view, render

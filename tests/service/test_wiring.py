@@ -18,8 +18,8 @@ import pytest
 
 from companion.app import FollowerService, Parts, PartsContext
 from companion.config import Config
+from companion.estimation.estimate import RelativeEstimate, TrackState
 from companion.estimation.leader import TrackStatus
-from companion.estimation.tracker import RelativeEstimate, TrackState
 from companion.kernel import compat
 from companion.kernel.camera import MountConfig
 from companion.kernel.clock import MonotonicClock

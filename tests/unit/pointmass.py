@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.kernel.frames import wrap_pi
-from companion.mission.formation import FollowerState
+from companion.mission.geometry import FollowerState
 from companion.mission.safety import G_M_S2
 from companion.vehicle.types import AttitudeSetpoint, VelocityBodySetpoint
 

@@ -12,17 +12,13 @@ from typing import Any
 import pytest
 
 from companion.cli import main as companion_main
-from companion.evaluation.campaign import (
-    RunSpec,
-    SimError,
+from companion.evaluation.campaign import RunSpec, SimError, split_done
+from companion.evaluation.campaign_summary import (
     campaign_summary,
-    clock_text,
-    eta_s,
     monte_carlo_markdown,
-    progress_text,
-    split_done,
     write_campaign_summary,
 )
+from companion.evaluation.progress import clock_text, eta_s, progress_text
 from companion.evaluation.ray_executor import (
     RayOptions,
     RunFailedError,

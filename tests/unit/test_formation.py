@@ -10,14 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import FormationConfig, SafetyConfig
-from companion.mission.formation import (
+from companion.mission.formation import FormationLaw
+from companion.mission.geometry import (
     FollowerState,
-    FormationLaw,
     Slot,
     heading_to_ned,
     ned_to_heading,
-    on_course,
-    path_approach,
     slot_error,
     tilt_from_accel,
 )
@@ -31,6 +29,7 @@ from companion.mission.safety import (
     separation_limit,
     separation_limit_accel,
 )
+from companion.mission.static_pass import on_course, path_approach
 
 from .pointmass import Leader, PointMass
 

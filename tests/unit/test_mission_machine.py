@@ -784,7 +784,7 @@ def test_offboard_refused_without_gps_falls_to_px4_land() -> None:
     h = Harness(cfg=cfg_with(gps_loss_policy="land"), ap=ap)
     h.to_follow()
     ap.mode = FlightMode.HOLD
-    h.machine._offboard_confirmed = False  # as if offboard had never come up
+    h.machine.offboard.confirmed = False  # as if offboard had never come up
     ap.refuse[CommandKind.START_OFFBOARD] = "TIMEOUT"
     h.lose_gps()
     h.run_until(S.PX4_LAND, timeout_s=10)

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from companion.config import Config
+from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import Intrinsics, RgbdFrame
+from companion.mission.safety import SafetyLimits
 from companion.perception.obstacle import guard_range_m, nearest_ahead
-from companion.perception.pipeline import PerceptionPipeline
 
 K = Intrinsics.from_hfov(640, 480, 69.0)
 ARGS = {"max_range_m": 4.0, "window_frac": (0.6, 0.3), "min_px": 8}
@@ -64,7 +65,9 @@ def test_the_guard_looks_out_to_the_stopping_distance_within_its_bounds() -> Non
 
 def _pole_seen(v_ned_m_s: tuple[float, float, float] | None) -> bool:
     """A pole 7 m dead ahead of a level follower facing north, flying at ``v_ned_m_s``."""
-    pipeline = PerceptionPipeline.from_config(Config())
+    cfg = Config()
+    brake_m_s2 = SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2).brake_m_s2
+    pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=brake_m_s2)
     pipeline.attitude.push(0.0, (1.0, 0.0, 0.0, 0.0))
     pipeline.attitude.push(1.0, (1.0, 0.0, 0.0, 0.0))
     if v_ned_m_s is not None:

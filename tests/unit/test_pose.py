@@ -9,19 +9,9 @@ from hypothesis import strategies as st
 
 from companion.config import LeaderConfig, PoseConfig
 from companion.kernel.camera import Intrinsics
-from companion.perception.pose import (
-    LeaderMeasurement,
-    SizeCalibrator,
-    SizePrior,
-    back_project,
-    bearing,
-    box_bounds,
-    depth_sigma_m,
-    measure_leader,
-    project,
-    range_from_size,
-    robust_depth,
-)
+from companion.perception.box_depth import box_bounds, depth_sigma_m, robust_depth
+from companion.perception.pose import LeaderMeasurement, back_project, bearing, measure_leader, project
+from companion.perception.size_range import SizeCalibrator, SizePrior, range_from_size
 from companion.perception.types import Detection
 from tests.synthetic import D435_COLOR, render
 

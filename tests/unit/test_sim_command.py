@@ -16,10 +16,11 @@ from companion.evaluation.campaign import (
     RunSpec,
     child_args,
     effective_scenario,
-    monte_carlo_markdown,
     parse_overrides,
     parse_seeds,
 )
+from companion.evaluation.campaign_summary import monte_carlo_markdown
+from companion.evaluation.progress import ProgressLine
 from companion.evaluation.setup import all_scenarios, scenario_path
 from companion.kernel.errors import ConfigError
 from companion.mission.ego import EgoMotion
@@ -148,7 +149,7 @@ def test_all_flies_the_real_path_alone_then_the_lockstep_runs_side_by_side(
             ("link-loss", "lockstep"),
         )
     ]
-    line = campaign.ProgressLine(io.StringIO(), len(specs))
+    line = ProgressLine(io.StringIO(), len(specs))
     asyncio.run(campaign._run_children(specs, 2, line, {}))
     order = [name for name, _ in seen]
     assert order[:2] == ["straight", "circle"]  # the real path first, one at a time

@@ -24,7 +24,8 @@ from companion.perception.detector.augment import REAL_CAMERA
 from companion.perception.detector.dataset import find_samples, list_splits
 from companion.perception.detector.export import export_and_sign
 from companion.perception.detector.torch_engine import load_weights
-from companion.perception.detector.train import DataSource, TrainConfig, train
+from companion.perception.detector.train import train
+from companion.perception.detector.train_config import DataSource, TrainConfig
 from companion.perception.detector.weights import sha256_file
 
 

@@ -98,7 +98,7 @@ def cut_by_window(box_xyxy_px: Box, win: RoiWindow, frame_w_px: int, frame_h_px:
 def focus_box(track: Any) -> Box | None:
     """The box to centre the next window on: the measurement a confirmed track accepted this frame, else None.
 
-    ``track`` is a :class:`companion.estimation.tracker.TrackState` (typed loosely: this module stays free of
+    ``track`` is a :class:`companion.estimation.estimate.TrackState` (typed loosely: this module stays free of
     the tracker's imports).
     """
     m = getattr(track, "measurement", None)

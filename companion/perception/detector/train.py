@@ -13,278 +13,48 @@ the best one by validation mAP@0.5 (``best.pt``), exact resume with ``--resume``
 
 Everything random is derived from ``seed``: the sample order of epoch ``e`` from ``(seed, e)`` and the
 augmentation of sample ``i`` in epoch ``e`` from ``(seed, e, i)``, so a run is repeatable whatever the number
-of loader workers, and a resumed run sees the same batches it would have seen.
+of loader workers, and a resumed run sees the same batches it would have seen. The run's settings are
+:mod:`companion.perception.detector.train_config`, its data :mod:`companion.perception.detector.train_data`.
 """
 
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 import logging
 import math
 import sys
 import time
-from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor, nn
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch import nn
+from torch.utils.data import DataLoader
 
-from companion.perception.detector.augment import AugmentConfig, training_sample
 from companion.perception.detector.cache import ImageCache
-from companion.perception.detector.dataset import Sample, find_samples, list_splits
+from companion.perception.detector.layers import count_parameters
 from companion.perception.detector.letterbox import boxes_to_source, letterbox_geometry, letterbox_uint8
-from companion.perception.detector.loss import DetectionLoss, LossConfig
+from companion.perception.detector.loss import DetectionLoss
 from companion.perception.detector.metrics import DetectionStats
-from companion.perception.detector.model import (
-    DetectorNet,
-    DetectorSpec,
-    ShuffleDet,
-    ShuffleDetSpec,
-    arch_of,
-    count_parameters,
-    load_backbone,
-    net_for_spec,
-)
+from companion.perception.detector.model import DetectorNet, arch_of, net_for_spec
 from companion.perception.detector.postprocess import Decoder
+from companion.perception.detector.shufflenet import ShuffleDet, load_backbone
 from companion.perception.detector.torch_engine import save_weights
+from companion.perception.detector.train_config import TrainConfig
+from companion.perception.detector.train_data import (
+    AugmentedSet,
+    MixedBatchSampler,
+    collate,
+    source_splits,
+    worker_init,
+)
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "wingman-detector-checkpoint/1"
-
-
-@dataclass(frozen=True)
-class DataSource:
-    """One training dataset: a name (for the logs), its folder and its share of every batch."""
-
-    name: str
-    path: str
-    weight: float = 1.0
-
-
-def parse_source(text: str) -> DataSource:
-    """``[NAME=]DIR[:WEIGHT]`` -> a :class:`DataSource` (name: the folder's name; weight: 1)."""
-    name, sep, rest = text.partition("=")
-    if not sep or "/" in name:
-        name, rest = "", text
-    path, weight = rest, 1.0
-    head, colon, tail = rest.rpartition(":")
-    if colon:
-        try:
-            weight = float(tail)
-            path = head
-        except ValueError:
-            pass
-    if weight <= 0 or not math.isfinite(weight):
-        raise ValueError(f"--data {text}: the weight must be > 0")
-    return DataSource(name or Path(path).name, path, weight)
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything that defines a training run (saved in every checkpoint)."""
-
-    data: str
-    out: str
-    #: Datasets mixed in every batch; empty: ``data`` alone.
-    sources: tuple[DataSource, ...] = ()
-    #: Share of the recordings of a flat folder (no ``train``/``val`` splits) held out for validation.
-    holdout_fraction: float = 0.1
-    #: Images per epoch (0: the sum of the sources' training images).
-    epoch_images: int = 0
-    #: Pretrained ShuffleNetV2 backbone weights (``shufflenetv2-fpn`` only; empty: random initialisation).
-    backbone_weights: str = ""
-    epochs: int = 30
-    batch_size: int = 32
-    input_size_px: int = 320
-    #: Training images are crops of this size from frames scaled as at ``input_size_px`` (about 40% less
-    #: CPU per image than whole 320 px mosaics; the network is fully convolutional).
-    crop_px: int = 256
-    lr: float = 2e-3
-    final_lr_fraction: float = 0.05
-    weight_decay: float = 0.05
-    warmup_epochs: float = 2.0
-    ema_decay: float = 0.999
-    #: Mosaic is switched off for the last epochs so the model ends on whole frames, as at run time.
-    close_mosaic_epochs: int = 5
-    seed: int = 0
-    workers: int = 1
-    device: str = "auto"
-    threads: int = 2
-    train_split: str = "train"
-    val_split: str = "val"
-    val_every: int = 3
-    max_val_images: int = 600
-    #: Limit the training images (0: all); for smoke tests.
-    max_train_images: int = 0
-    #: Start a new run from these weights (a shipped ``.pt`` or a run's checkpoint; its EMA is taken),
-    #: e.g. to fine-tune on a larger dataset. Empty: random initialisation.
-    init_weights: str = ""
-    spec: DetectorSpec = field(default_factory=ShuffleDetSpec)
-    augment: AugmentConfig = field(default_factory=AugmentConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-
-    @property
-    def all_sources(self) -> tuple[DataSource, ...]:
-        return self.sources or (DataSource(Path(self.data).name or "data", self.data, 1.0),)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["spec"] = self.spec.to_dict()
-        d["arch"] = arch_of(self.spec)
-        return d
-
-
-def _held_out(group: str, fraction: float) -> bool:
-    digest = hashlib.sha1(group.encode(), usedforsecurity=False).digest()
-    return int.from_bytes(digest[:4], "big") / 2**32 < fraction
-
-
-def source_splits(src: DataSource, cfg: TrainConfig) -> tuple[list[Sample], list[Sample]]:
-    """Training and validation samples of one source (see the module docstring); raises on overlap."""
-    root = Path(src.path)
-    if not root.is_dir():
-        raise FileNotFoundError(f"dataset folder not found: {root}")
-    if cfg.train_split in list_splits(root):
-        train_samples = find_samples(root, cfg.train_split)
-        try:
-            val_samples = find_samples(root, cfg.val_split)
-        except FileNotFoundError:
-            val_samples = []
-    else:
-        every = find_samples(root, None)
-        train_samples = [s for s in every if not _held_out(s.group, cfg.holdout_fraction)]
-        val_samples = [s for s in every if _held_out(s.group, cfg.holdout_fraction)]
-        held = {s.group for s in val_samples} & {s.group for s in train_samples}
-        if held:
-            raise ValueError(f"{src.name}: recordings in both the train and val images: {sorted(held)[:3]}")
-    if cfg.max_train_images:
-        train_samples = train_samples[: cfg.max_train_images]
-    val_samples = val_samples[: cfg.max_val_images]
-    overlap = {s.key for s in train_samples} & {s.key for s in val_samples}
-    if overlap:
-        raise ValueError(f"{len(overlap)} images are in both the train and val splits")
-    if not train_samples:
-        raise FileNotFoundError(f"{src.name}: no training images in {root}")
-    return train_samples, val_samples
-
-
-#: What the sampler hands the dataset: (epoch, source, image index, draw, mosaic on); ``draw`` counts how
-#: often the image was drawn before in the epoch. The dataset keeps no per-epoch state, so persistent loader
-#: workers (separate processes) always augment for the right epoch.
-SampleKey = tuple[int, int, int, int, bool]
-
-
-class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
-    """Training samples: (3, S, S) uint8 image and (N, 4) boxes, augmented from the sample key."""
-
-    def __init__(
-        self,
-        caches: list[ImageCache] | ImageCache,
-        size_px: int,
-        ref_px: int,
-        seed: int,
-        augment: AugmentConfig,
-    ) -> None:
-        self.caches = caches if isinstance(caches, list) else [caches]
-        self.size_px = size_px
-        self.ref_px = ref_px
-        self.seed = seed
-        self.augment = augment
-        self.no_mosaic = replace(augment, mosaic_p=0.0)
-
-    def __len__(self) -> int:
-        return sum(len(c) for c in self.caches)
-
-    def __getitem__(self, key: SampleKey) -> tuple[Tensor, Tensor]:
-        epoch, source, i, draw, mosaic = key
-        rng = np.random.default_rng([self.seed, epoch, source, i, draw])
-        cfg = self.augment if mosaic else self.no_mosaic
-        img, boxes = training_sample(
-            self.caches[source], i, size_px=self.size_px, ref_px=self.ref_px, rng=rng, cfg=cfg
-        )
-        return torch.from_numpy(img).permute(2, 0, 1).contiguous(), torch.from_numpy(boxes)
-
-
-def batch_shares(weights: list[float], batch_size: int) -> list[int]:
-    """Images per batch of each source: ``weight / sum * batch`` rounded by largest remainder, each >= 1."""
-    w = np.asarray(weights, np.float64)
-    exact = w / w.sum() * batch_size
-    counts = np.floor(exact).astype(int)
-    for i in np.argsort(-(exact - counts), kind="stable")[: batch_size - int(counts.sum())]:
-        counts[i] += 1
-    while (counts == 0).any() and batch_size >= len(weights):
-        counts[int(np.argmax(counts))] -= 1
-        counts[int(np.argmin(counts))] += 1
-    return [int(c) for c in counts]
-
-
-class MixedBatchSampler(Sampler[list[SampleKey]]):
-    """Batches with a fixed share of every source (:func:`batch_shares`), drawn from ``(seed, epoch)``.
-
-    Each source is walked through in a fresh random order per pass; a small source is re-shuffled and walked
-    again when it runs out (``draw`` in the key tells the passes apart), so every source is seen in its share
-    whatever its size.
-    """
-
-    def __init__(self, sizes: list[int], weights: list[float], batch_size: int, batches: int, seed: int):
-        if len(sizes) != len(weights) or not sizes:
-            raise ValueError("one weight per source")
-        total = sum(sizes)
-        self.sizes = sizes
-        self.batch_size = min(batch_size, total)
-        self.shares = batch_shares(weights, self.batch_size)
-        self.batches = max(1, batches)
-        self.seed = seed
-        self.epoch = 0
-        self.mosaic = True
-
-    def _stream(self, source: int, count: int) -> list[tuple[int, int]]:
-        n = self.sizes[source]
-        out: list[tuple[int, int]] = []
-        draw = 0
-        while len(out) < count:
-            order = np.random.default_rng([self.seed, self.epoch, source, draw, 7]).permutation(n)
-            out.extend((int(i), draw) for i in order[: count - len(out)])
-            draw += 1
-        return out
-
-    def __iter__(self) -> Iterator[list[SampleKey]]:
-        streams = [self._stream(s, k * self.batches) for s, k in enumerate(self.shares)]
-        for b in range(self.batches):
-            batch: list[SampleKey] = []
-            for s, k in enumerate(self.shares):
-                for i, draw in streams[s][b * k : (b + 1) * k]:
-                    batch.append((self.epoch, s, i, draw, self.mosaic))
-            yield batch
-
-    def __len__(self) -> int:
-        return self.batches
-
-
-def collate(batch: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
-    """Stack images; pad boxes to (B, M, 4) with a (B, M) mask."""
-    images = torch.stack([b[0] for b in batch])
-    m = max((len(b[1]) for b in batch), default=0)
-    boxes = torch.zeros(len(batch), m, 4)
-    mask = torch.zeros(len(batch), m, dtype=torch.bool)
-    for i, (_, bx) in enumerate(batch):
-        boxes[i, : len(bx)] = bx
-        mask[i, : len(bx)] = True
-    return images, boxes, mask
-
-
-def _worker_init(_: int) -> None:
-    import cv2  # noqa: PLC0415
-
-    cv2.setNumThreads(1)
-    torch.set_num_threads(1)
 
 
 class ModelEMA:
@@ -436,7 +206,7 @@ def train(
         batch_sampler=sampler,
         num_workers=cfg.workers,
         collate_fn=collate,
-        worker_init_fn=_worker_init,
+        worker_init_fn=worker_init,
         # Spawned, not forked: a forked child can deadlock on locks that the parent's OpenMP or OpenCV
         # thread pools held at fork time (seen here: a worker stuck in a futex from its first sample).
         multiprocessing_context="spawn" if cfg.workers else None,

@@ -21,7 +21,7 @@ def shipped_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import torch
 
     from companion.perception.detector.export import export_and_sign
-    from companion.perception.detector.model import LeaderNet
+    from companion.perception.detector.leadernet import LeaderNet
     from companion.perception.detector.torch_engine import save_weights
 
     torch.manual_seed(0)

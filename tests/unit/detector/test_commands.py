@@ -46,6 +46,7 @@ def test_eval_missing_folder_is_a_usage_error(shipped_model: Path, tmp_path: Pat
 
 
 def test_bench_reports_every_stage_for_both_runtimes(shipped_model: Path) -> None:
+    from companion.commands.bench import pose_filter_stages
     from companion.config import Config
     from companion.perception.detector import load_detector
 
@@ -54,7 +55,7 @@ def test_bench_reports_every_stage_for_both_runtimes(shipped_model: Path) -> Non
     )
     dets = {"torch-cpu": load_detector(cfg.detector, runtime="torch"),
             "onnxruntime-cpu": load_detector(cfg.detector, runtime="onnx")}  # fmt: skip
-    result = run_bench(cfg, dets, synthetic_frames(4), warmup=1)
+    result = run_bench(cfg, dets, synthetic_frames(4), warmup=1, pose_filter=pose_filter_stages)
     assert result["frame_size_px"] == [640, 480]
     for name in dets:
         stages = result["runtimes"][name]
@@ -62,6 +63,8 @@ def test_bench_reports_every_stage_for_both_runtimes(shipped_model: Path) -> Non
             v = stages[stage]
             assert v == NOT_BUILT or (v["n"] == 4 and v["p50_ms"] <= v["p95_ms"] <= v["p99_ms"])
         assert isinstance(stages["inference"], dict)
+        assert isinstance(stages["pose"], dict)
+        assert isinstance(stages["filter"], dict)
 
 
 def test_percentiles() -> None:

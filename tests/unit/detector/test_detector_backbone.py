@@ -10,14 +10,14 @@ import torch
 from torch import nn
 
 from companion.kernel.errors import ModelError
-from companion.perception.detector.model import (
+from companion.perception.detector.layers import count_parameters
+from companion.perception.detector.leadernet import LeaderNet
+from companion.perception.detector.model import build_net
+from companion.perception.detector.shufflenet import (
     ARCH_SHUFFLE,
-    LeaderNet,
     ShuffleDet,
     ShuffleDetSpec,
     ShuffleV2Block,
-    build_net,
-    count_parameters,
     load_backbone,
 )
 from companion.perception.detector.torch_engine import load_weights, save_weights

@@ -7,14 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.perception.detector.train import (
-    DataSource,
-    MixedBatchSampler,
-    TrainConfig,
-    batch_shares,
-    parse_source,
-    source_splits,
-)
+from companion.perception.detector.train_config import DataSource, TrainConfig, parse_source
+from companion.perception.detector.train_data import MixedBatchSampler, batch_shares, source_splits
 
 
 def test_parse_source() -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from companion.config import DetectorConfig
 from companion.perception.detector.finetune import FinetuneOptions, finetune, install, sources_for
-from companion.perception.detector.train import DataSource
+from companion.perception.detector.train_config import DataSource
 from tests.unit.detector.synthetic import make_dataset
 
 

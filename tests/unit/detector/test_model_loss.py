@@ -3,6 +3,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from companion.perception.detector.layers import count_parameters
+from companion.perception.detector.leadernet import LeaderNet, ModelSpec
 from companion.perception.detector.loss import (
     DetectionLoss,
     LossConfig,
@@ -11,7 +13,6 @@ from companion.perception.detector.loss import (
     box_iou_pairwise,
     ciou,
 )
-from companion.perception.detector.model import LeaderNet, ModelSpec, count_parameters
 
 torch.set_num_threads(2)
 

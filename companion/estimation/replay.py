@@ -1,32 +1,26 @@
-"""Replay perception over a recording (errors against ground truth), and record a source to disk.
+"""Replay perception over a recording: errors of the pose stage and the tracker against ground truth.
 
-replay: frames from ``--source`` -> detector -> pose -> tracker, one CSV row per frame (``--out``),
-and a summary on stdout: position RMSE by range bin, bearing RMSE, the raw measurement's RMSE, the
-paper's centre-patch depth on the same boxes, and per-stage time. ``--detector truth`` uses the
-recording's ground-truth boxes (with ``--box-jitter-px``) to measure pose + tracker on their own.
-
-record: any source (``sim``, ``realsense``, ``file:PATH``) to the folder format, or to a RealSense
-``.bag`` when ``--out`` ends in ``.bag``; a folder keeps the ground truth when the source has
-some (a .bag has no place for it).
+frames from ``--source`` -> detector -> pose -> tracker, one CSV row per frame (``--out``), and a summary
+on stdout: position RMSE by range bin, bearing RMSE, the raw measurement's RMSE, the paper's centre-patch
+depth on the same boxes, and per-stage time. ``--detector truth`` uses the recording's ground-truth boxes
+(with ``--box-jitter-px``) to measure pose + tracker on their own. Recording a source is
+:func:`companion.perception.record.run_record`.
 """
 
 from __future__ import annotations
 
-import asyncio
 import csv
 import importlib
 import io
 import math
 import time
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from companion.config import Config
-from companion.estimation.tracker import TrackState
-from companion.kernel import compat
+from companion.estimation.estimate import TrackState
+from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.errors import ModelError
 from companion.perception.evaluate import (
@@ -36,14 +30,10 @@ from companion.perception.evaluate import (
     angle_between_deg,
     paper_centre_depth_m,
 )
-from companion.perception.pipeline import PerceptionPipeline
 from companion.perception.pose import back_project
 from companion.perception.sources import open_source, parse_source
 from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.perception.types import DetectorResult, DetectStage
-
-#: Frames waiting for the writer (about 2 MB each at 640 x 480): a few seconds of a slow disk.
-RECORD_QUEUE_FRAMES = 90
 
 CSV_FIELDS = [
     "seq",
@@ -225,72 +215,3 @@ async def run_replay(
             if writer is not None:
                 writer.writerow(row)
     return summary
-
-
-@dataclass(frozen=True, slots=True)
-class RecordResult:
-    """What ``record`` kept: frames written, and frames the source numbered but never delivered."""
-
-    frames: int
-    #: Gaps in the source's frame numbers: the camera (or the simulator's server, when the reader lags)
-    #: dropped them before they reached the recorder.
-    skipped_by_source: int
-    largest_gap_s: float
-
-    def line(self, out: Path) -> str:
-        """One line for the operator."""
-        if not self.skipped_by_source:
-            return f"recorded {self.frames} frames to {out}, none skipped"
-        return (
-            f"recorded {self.frames} frames to {out}; the source skipped {self.skipped_by_source} "
-            f"(gaps in its frame numbers, longest {self.largest_gap_s:.2f} s): the camera dropped them "
-            "before they were read"
-        )
-
-
-async def run_record(
-    cfg: Config, source_spec: str, out: Path, *, max_frames: int = 0, image_format: str = "png"
-) -> RecordResult:
-    """Copy frames from a source to a folder recording (or a RealSense .bag).
-
-    The source is read by one task and frames are written by a worker thread behind a bounded queue, so
-    a slow disk or PNG encoder never stalls the reading (a live source drops what is not read).
-    """
-    from companion.perception.record import FolderRecorder  # noqa: PLC0415
-    from companion.perception.sources.bag import RealSenseBagWriter  # noqa: PLC0415
-
-    camera = parse_source(source_spec, cfg.camera).model_copy(update={"loop": False})
-    writer: FolderRecorder | RealSenseBagWriter
-    if out.suffix.lower() == ".bag":
-        writer = RealSenseBagWriter(out, fps=round(cfg.camera.fps))
-    else:
-        writer = FolderRecorder(out, image_format=image_format)
-    queue: asyncio.Queue[RgbdFrame | None] = asyncio.Queue(maxsize=RECORD_QUEUE_FRAMES)
-    n = skipped = 0
-    largest_gap_s = 0.0
-
-    async def write_all() -> None:
-        while (frame := await queue.get()) is not None:
-            await asyncio.to_thread(writer.write, frame)
-
-    with writer:
-        async with open_source(camera) as src, compat.TaskGroup() as tg:
-            tg.create_task(write_all(), name="companion.record.writer")
-            # A folder's own attitude.csv travels with it (truth-derived attitude is rebuilt on read).
-            if isinstance(writer, FolderRecorder) and (Path(camera.path) / "attitude.csv").is_file():
-                for stamp_s, q in getattr(src, "attitude", []):
-                    writer.write_attitude(stamp_s, q)
-            prev: RgbdFrame | None = None
-            try:
-                async for frame in src:
-                    if prev is not None and frame.seq > prev.seq + 1:
-                        skipped += frame.seq - prev.seq - 1
-                        largest_gap_s = max(largest_gap_s, frame.stamp_s - prev.stamp_s)
-                    prev = frame
-                    await queue.put(frame)
-                    n += 1
-                    if max_frames and n >= max_frames:
-                        break
-            finally:
-                await queue.put(None)
-    return RecordResult(n, skipped, largest_gap_s)

@@ -1,9 +1,10 @@
 """Perception after the detector: pose stage + attitude lookup + track stage, for one frame at a time.
 
 The service, ``companion replay`` and ``companion bench`` all drive perception through
-:class:`PerceptionPipeline`. The two stages are separate methods so they can be timed separately::
+:class:`PerceptionPipeline`. It sits in estimation because it ends in the tracker: perception (pose, depth
+guard) never imports estimation. The two stages are separate methods so they can be timed separately::
 
-    pipeline = PerceptionPipeline.from_config(cfg)
+    pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=limits.brake_m_s2)
     pipeline.attitude.push(stamp_s, q_ned_body)                 # from telemetry, as it arrives
     pipeline.velocity.push(stamp_s, v_ned_m_s)                  # optional: ego-motion for the tracker
     measurements = pipeline.measure(frame, result.detections)   # pose stage (pure, per detection)
@@ -21,13 +22,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import Config, LeaderConfig, PoseConfig, SafetyConfig, TrackerConfig
+from companion.estimation.estimate import TrackState
 from companion.estimation.leader import ObstacleAhead, TrackStatus
-from companion.estimation.tracker import TargetTracker, TrackState
+from companion.estimation.tracker import TargetTracker
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.frames import Mat3
-from companion.mission.safety import SafetyLimits
 from companion.perception.obstacle import MIN_RANGE_M, guard_range_m, nearest_ahead
-from companion.perception.pose import LeaderMeasurement, SizeCalibrator, measure_all
+from companion.perception.pose import LeaderMeasurement, measure_all
+from companion.perception.size_range import SizeCalibrator
 from companion.perception.transform import AttitudeHistory, CameraGeometry, VelocityHistory
 from companion.perception.types import Detection
 
@@ -81,14 +83,20 @@ class PerceptionPipeline:
         self._att_R: Mat3 | None = None
 
     @classmethod
-    def from_config(cls, cfg: Config) -> PerceptionPipeline:
+    def from_config(cls, cfg: Config, *, guard_brake_m_s2: float | None) -> PerceptionPipeline:
+        """The pipeline the config describes, its depth guard on ``safety``.
+
+        ``guard_brake_m_s2``: the separation barrier's braking deceleration (the mission's
+        :class:`~companion.mission.safety.SafetyLimits` ``brake_m_s2``), which sets how far ahead the guard
+        looks at speed; None: ``depth_guard_range_m`` whatever the speed.
+        """
         return cls(
             cfg.leader,
             cfg.pose,
             cfg.tracker,
             CameraGeometry.from_mount(cfg.camera.mount),
             safety=cfg.safety,
-            guard_brake_m_s2=SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2).brake_m_s2,
+            guard_brake_m_s2=guard_brake_m_s2,
         )
 
     def measure(self, frame: RgbdFrame, detections: Sequence[Detection]) -> list[LeaderMeasurement]:

@@ -1,0 +1,116 @@
+"""A campaign's Monte Carlo summary: every seed's report, percentiles of each metric, ``summary.json/.md``."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from companion.evaluation.metrics import monte_carlo_summary
+from companion.evaluation.report import write_json
+
+if TYPE_CHECKING:
+    from companion.evaluation.campaign import RunSpec
+
+#: What the Monte Carlo summary keeps of each run.
+SEED_KEYS = (
+    "seed",
+    "outcome",
+    "relative_position_rmse_m",
+    "relative_yaw_rmse_deg",
+    "formation_rmse_m",
+    "formation_max_deviation_m",
+    "min_separation_m",
+    "min_obstacle_clearance_m",
+    "touchdown_m_s",
+)
+
+
+def campaign_summary(
+    specs: Sequence[RunSpec],
+    reports: Mapping[str, Mapping[str, Any]],
+    failed: Sequence[str],
+    *,
+    wall_s: float,
+    executor: str,
+    resumed: int = 0,
+) -> dict[str, Any]:
+    """The Monte Carlo summary of a campaign: every seed's report (by folder name) and the failed runs.
+
+    ``wall_s`` is this invocation's; ``resumed`` counts the seeds whose reports an earlier one wrote.
+    """
+    first = specs[0] if specs else None
+    return {
+        "scenario": first.scenario if first else None,
+        "seeds": [s.seed for s in specs],
+        "harness": first.harness if first else None,
+        "detector": next(iter(reports.values())).get("detector") if reports else None,
+        "formation_duration_s": first.duration_s if first else None,
+        "executor": executor,
+        "wall_s": round(wall_s, 1),
+        "resumed": resumed,
+        "failed": list(failed),
+        **monte_carlo_summary(reports.values()),
+        "runs_by_seed": {name: {k: r.get(k) for k in SEED_KEYS} for name, r in reports.items()},
+    }
+
+
+def write_campaign_summary(
+    specs: Sequence[RunSpec],
+    out_dir: Path,
+    *,
+    failed: Sequence[str],
+    wall_s: float,
+    executor: str,
+    resumed: int = 0,
+) -> dict[str, Any]:
+    """Read every seed's report from its folder, write ``summary.json`` / ``summary.md``; the summary."""
+    specs = sorted(specs, key=lambda s: s.seed)
+    reports: dict[str, dict[str, Any]] = {}
+    for s in specs:
+        p = s.out_dir / "report.json"
+        if p.exists():
+            reports[s.out_dir.name] = json.loads(p.read_text())
+    summary = campaign_summary(specs, reports, failed, wall_s=wall_s, executor=executor, resumed=resumed)
+    write_json(out_dir / "summary.json", summary)
+    (out_dir / "summary.md").write_text(monte_carlo_markdown(summary))
+    return summary
+
+
+def monte_carlo_markdown(summary: dict[str, Any]) -> str:
+    """The Monte Carlo summary as a page: outcomes, then percentiles of each metric."""
+    lines = [
+        f"# Monte Carlo: `{summary['scenario']}`, {summary['runs']} seeds ({summary['harness']} harness)",
+        "",
+        f"Detector: {summary.get('detector')}. Formation window: "
+        f"{summary.get('formation_duration_s') or 'the scenario default'} s.",
+        "",
+        "| outcome | runs |",
+        "|---|---|",
+    ]
+    lines += [f"| {k} | {v} |" for k, v in summary["outcomes"].items()]
+    lines += ["", "| metric | min | p5 | p50 | p95 | max |", "|---|---|---|---|---|---|"]
+    for key in (
+        "relative_position_rmse_m",
+        "relative_yaw_rmse_deg",
+        "formation_rmse_m",
+        "formation_max_deviation_m",
+        "min_separation_m",
+        "min_obstacle_clearance_m",
+        "detection_recall",
+    ):
+        v = summary.get(key)
+        if v is None:
+            lines.append(f"| {key} | n/a | n/a | n/a | n/a | n/a |")
+        else:
+            cells = " | ".join(f"{v[q]:.3f}" if q in v else "n/a" for q in ("min", "p5", "p50", "p95", "max"))
+            lines.append(f"| {key} | {cells} |")
+    if summary.get("failed"):
+        lines += ["", "Runs without a report: " + "; ".join(summary["failed"])]
+    executor = f" ({summary['executor']} executor)" if summary.get("executor") else ""
+    resumed = (
+        f"; {summary['resumed']} seeds' reports kept from an earlier run" if summary.get("resumed") else ""
+    )
+    lines += ["", f"Wall time: {summary['wall_s']:.0f} s{executor}{resumed}."]
+    return "\n".join(lines) + "\n"

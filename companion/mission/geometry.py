@@ -1,0 +1,133 @@
+"""The formation's geometry: the slot, the error against it, and the heading frame; pure.
+
+The slot is the leader's desired position in the follower's level heading frame (forward, right, down),
+from ``FormationConfig.offset_cam_m`` (x right, y down, z forward). :func:`slot_error` splits the relative
+state the way :class:`~companion.mission.formation.FormationLaw` uses it: a radial and a vertical error,
+and the yaw that keeps the leader at the slot's bearing. :class:`FollowerState` is what the law reads of
+the vehicle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.kernel.frames import Vec3, wrap_pi
+from companion.mission.safety import G_M_S2
+
+#: Below this horizontal range the line-of-sight bearing is meaningless (m).
+MIN_BEARING_RANGE_M = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class Slot:
+    """The desired leader position in the follower's level heading frame (forward, right, down), m."""
+
+    forward_m: float
+    right_m: float
+    down_m: float
+
+    @classmethod
+    def from_offset_cam(cls, offset_cam_m: tuple[float, float, float]) -> Slot:
+        x_right, y_down, z_forward = offset_cam_m
+        return cls(forward_m=z_forward, right_m=x_right, down_m=y_down)
+
+    @property
+    def range_h_m(self) -> float:
+        return math.hypot(self.forward_m, self.right_m)
+
+    @property
+    def bearing_offset_rad(self) -> float:
+        """Where the leader should sit relative to the nose, rad (positive right)."""
+        return math.atan2(self.right_m, self.forward_m)
+
+    def p_ned_m(self, yaw_rad: float) -> Vec3:
+        """The slot in local NED for a follower heading ``yaw_rad``."""
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        return np.array(
+            [c * self.forward_m - s * self.right_m, s * self.forward_m + c * self.right_m, self.down_m]
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class SlotError:
+    """The formation error split the way the law uses it."""
+
+    #: Unit horizontal line of sight to the leader (NED, z = 0).
+    u_los: Vec3
+    bearing_rad: float
+    #: Rate of the bearing, from the relative velocity (rad/s).
+    bearing_rate_rad_s: float
+    #: Horizontal range minus the slot's range (m); positive: leader too far.
+    e_range_m: float
+    #: Its rate (m/s), from the filtered relative velocity.
+    e_range_rate_m_s: float
+    #: Leader below the slot by this much (m, NED down); positive: follower should descend.
+    e_down_m: float
+    #: The desired yaw: the bearing minus the slot's bearing offset (rad).
+    yaw_des_rad: float
+    #: Leader relative position minus the slot placed at the *current* yaw (what a camera sees), NED m.
+    error_ned_m: Vec3
+
+
+def slot_error(slot: Slot, p_ned_rel_m: Vec3, v_ned_rel_m_s: Vec3, yaw_rad: float) -> SlotError:
+    """Decompose the relative state (leader minus follower, NED) against the slot."""
+    p = np.asarray(p_ned_rel_m, dtype=np.float64)
+    v = np.asarray(v_ned_rel_m_s, dtype=np.float64)
+    r = math.hypot(p[0], p[1])
+    if r >= MIN_BEARING_RANGE_M:
+        bearing = math.atan2(p[1], p[0])
+        bearing_rate = (p[0] * v[1] - p[1] * v[0]) / (r * r)
+    else:
+        bearing = yaw_rad + slot.bearing_offset_rad
+        bearing_rate = 0.0
+    u = np.array([math.cos(bearing), math.sin(bearing), 0.0])
+    return SlotError(
+        u_los=u,
+        bearing_rad=bearing,
+        bearing_rate_rad_s=bearing_rate,
+        e_range_m=r - slot.range_h_m,
+        e_range_rate_m_s=float(np.dot(v, u)),
+        e_down_m=float(p[2] - slot.down_m),
+        yaw_des_rad=wrap_pi(bearing - slot.bearing_offset_rad),
+        error_ned_m=p - slot.p_ned_m(yaw_rad),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class FollowerState:
+    """What the law reads from the vehicle, NED and SI. ``None`` marks what is not valid now."""
+
+    yaw_rad: float
+    #: PX4's velocity estimate; only valid (not None) while its position estimate is.
+    v_ned_m_s: Vec3 | None
+    #: Vertical speed (NED down), baro-aided: valid without GPS.
+    v_down_m_s: float
+    #: Height above home (baro-aided), m.
+    alt_rel_m: float
+    #: Position relative to home, for the geofence; None when not valid.
+    p_ned_m: Vec3 | None = None
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+
+
+def ned_to_heading(v_ned: Vec3, yaw_rad: float) -> Vec3:
+    """Rotate a NED vector into the heading frame (forward, right, down) of ``yaw_rad``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([c * v_ned[0] + s * v_ned[1], -s * v_ned[0] + c * v_ned[1], v_ned[2]])
+
+
+def heading_to_ned(v_h: Vec3, yaw_rad: float) -> Vec3:
+    """Inverse of :func:`ned_to_heading`."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([c * v_h[0] - s * v_h[1], s * v_h[0] + c * v_h[1], v_h[2]])
+
+
+def tilt_from_accel(a_ned_m_s2: Vec3, yaw_rad: float) -> tuple[float, float]:
+    """Roll and pitch (rad) that give a horizontal acceleration ``a_ned`` at constant altitude."""
+    a_h = ned_to_heading(a_ned_m_s2, yaw_rad)
+    pitch = -math.atan2(a_h[0], G_M_S2)
+    roll = math.atan2(a_h[1] * math.cos(pitch), G_M_S2)
+    return roll, pitch

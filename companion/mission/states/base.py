@@ -1,0 +1,260 @@
+"""What every state handler of the mission machine shares: its memory, transitions and the abort ladder.
+
+:class:`MachineBase` holds the machine's state (the monitors, the command book, the offboard stream, and
+each state's memory) and the moves between states that more than one handler makes: into FOLLOW or
+FOLLOW_VISION, into HOVER or REACQUIRE, down to a PX4 mode or the controlled landing. The handlers
+themselves are grouped by flight phase in the sibling modules; :class:`~companion.mission.machine.
+MissionMachine` puts them together.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.config import Config
+from companion.estimation.leader import LeaderEstimate
+from companion.kernel.frames import Vec3, wrap_pi
+from companion.mission.ego import EgoMotion
+from companion.mission.formation import FormationLaw
+from companion.mission.geometry import FollowerState
+from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
+from companion.mission.offboard import CommandBook, OffboardStream
+from companion.mission.safety import SafetyLimits
+from companion.mission.types import (
+    CommandKind,
+    CommandResult,
+    MissionInputs,
+    MissionState,
+    Reason,
+    Transition,
+    VisionMode,
+)
+from companion.vehicle.types import VehicleState
+
+#: States in which the companion flies the vehicle through offboard setpoints.
+OFFBOARD_STATES = frozenset(
+    {
+        MissionState.FOLLOW,
+        MissionState.FOLLOW_VISION,
+        MissionState.REACQUIRE,
+        MissionState.HOVER,
+        MissionState.CONTROLLED_LANDING,
+    }
+)
+#: States in which the vehicle is (or may be) flying.
+AIRBORNE_STATES = OFFBOARD_STATES | {
+    MissionState.TAKEOFF,
+    MissionState.ACQUIRE,
+    MissionState.PX4_HOLD,
+    MissionState.PX4_LAND,
+    MissionState.PX4_RTL,
+    MissionState.PX4_IN_CONTROL,
+}
+PX4_STATES = frozenset(
+    {MissionState.PX4_HOLD, MissionState.PX4_LAND, MissionState.PX4_RTL, MissionState.PX4_IN_CONTROL}
+)
+#: States where the companion has nothing of the vehicle's to hand back on shutdown.
+NOT_IN_CONTROL = frozenset(
+    {
+        MissionState.WAIT_LINK,
+        MissionState.PREFLIGHT,
+        MissionState.OBSERVE,
+        MissionState.DISARMED,
+        MissionState.LINK_LOST,
+    }
+)
+
+#: Retry an arm, or a LAND that PX4 refused, this long after the last try, s.
+ARM_RETRY_S = 2.0
+#: A depth-guard reading older than this is dropped (the camera runs at 15-30 Hz), s.
+OBSTACLE_STALE_S = 0.5
+
+
+class MachineBase:
+    """The mission machine's memory and the transitions its state handlers share."""
+
+    def __init__(self, cfg: Config, law: FormationLaw | None = None) -> None:
+        self.cfg = cfg
+        self.m = cfg.mission
+        self.limits = SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2)
+        self.law = law or FormationLaw(cfg.formation, self.limits, cfg.mission.hover_thrust_norm)
+        self.state = MissionState.WAIT_LINK
+        self.entered_s = 0.0
+        self.vision_mode: VisionMode | None = None
+        # Per-step scratch.
+        self._now_s = 0.0
+        self._transitions: list[Transition] = []
+        # Commands of this tick, in flight, and the last result of each kind; the offboard stream.
+        self.book = CommandBook()
+        self.offboard = OffboardStream(self.book)
+        self._attempts = 0
+        self._last_attempt_s = -math.inf
+        # Health checks.
+        self.gps = GpsMonitor(cfg.mission)
+        self.link = LinkMonitor(cfg.link, cfg.formation)
+        self.track = TrackMonitor(cfg.mission)
+        # Per-state memory.
+        self._attitude_kind = False
+        self._last_leader: LeaderEstimate | None = None
+        #: The follower's own velocity history, to bring camera-time estimates to the control instant.
+        self._ego = EgoMotion()
+        self._leader_lost_p_ned_m: Vec3 | None = None
+        self._leader_lost_v_ned_m_s: Vec3 | None = None
+        self._scan_sign = 1.0
+        self._alt_hold_m = math.nan
+        self._ext_valid_since: float | None = None
+        self._ext_since: float | None = None
+        self._ext_gave_up = False
+        self._ext_reset_counter = 0
+        self._touchdown_since: float | None = None
+        self._shutting_down = False
+        self._start_latched = False
+        self._prev_start = False
+        self._takeover_latched = False
+        self._prev_takeover = False
+        self._home_hover_thrust_seeded = False
+
+    # ------------------------------------------------------------------ plumbing
+    def _go(self, state: MissionState, reason: Reason, detail: str = "") -> None:
+        if state == self.state and reason != Reason.VISION_MODE_CHANGED:
+            return
+        self._transitions.append(Transition(self._now_s, self.state, state, reason, detail))
+        if state != self.state:
+            self.state = state
+            self.entered_s = self._now_s
+            self._attempts = 0
+            self._last_attempt_s = -math.inf
+            self._touchdown_since = None
+            self.law.reset()
+
+    def _t_in_state(self) -> float:
+        return self._now_s - self.entered_s
+
+    def _send(self, kind: CommandKind, altitude_m: float | None = None) -> None:
+        self.book.send(kind, self._now_s, altitude_m)
+
+    def _in_flight(self, kind: CommandKind) -> bool:
+        return self.book.in_flight(kind, self._now_s)
+
+    def _failed(self, kind: CommandKind) -> CommandResult | None:
+        return self.book.failed(kind)
+
+    def _link_ok(self, veh: VehicleState) -> bool:
+        return self.link.ok(veh, self._now_s)
+
+    def _fresh(self, est: LeaderEstimate | None) -> bool:
+        return self.track.fresh(est, self._now_s)
+
+    def _tracked(self, inp: MissionInputs, *, confirmed_only: bool = False) -> bool:
+        return self.track.tracked(inp.leader, self._now_s, confirmed_only=confirmed_only)
+
+    def _follower(self, veh: VehicleState, *, velocity_valid: bool) -> FollowerState:
+        return FollowerState(
+            yaw_rad=veh.yaw_rad,
+            v_ned_m_s=np.array(veh.v_ned_m_s) if velocity_valid else None,
+            v_down_m_s=veh.v_ned_m_s[2],
+            alt_rel_m=veh.alt_rel_m,
+            p_ned_m=np.array(veh.p_ned_m) if velocity_valid else None,
+            roll_rad=veh.roll_rad,
+            pitch_rad=veh.pitch_rad,
+        )
+
+    def _obstacle_now(self, inp: MissionInputs) -> Vec3 | None:
+        """The depth guard's obstacle relative to the follower now (static: shifted by our own motion)."""
+        ob = inp.obstacle
+        if ob is None or not 0.0 <= self._now_s - ob.stamp_s <= OBSTACLE_STALE_S:
+            return None
+        p = np.array(ob.p_ned_rel_m)
+        disp = self._ego.displacement(ob.stamp_s, self._now_s)
+        return p if disp is None else p - disp
+
+    # ------------------------------------------------------------------ shared transitions
+    def _go_px4(self, state: MissionState, reason: Reason, detail: str = "") -> None:
+        """Hand the vehicle to one of PX4's own modes (Hold, Land, RTL); the stream stops the same tick."""
+        self._go(state, reason, detail)
+        kind = {
+            MissionState.PX4_HOLD: CommandKind.HOLD,
+            MissionState.PX4_LAND: CommandKind.LAND,
+            MissionState.PX4_RTL: CommandKind.RTL,
+        }[state]
+        self._send(kind)
+
+    def _abort(self, reason: Reason, detail: str = "") -> None:
+        """The configured abort: a PX4 mode while GPS is healthy, our controlled landing when it is not."""
+        if not self.gps.ok:
+            self._go(MissionState.CONTROLLED_LANDING, reason, detail or "no GPS")
+            return
+        target = {
+            "hold": MissionState.PX4_HOLD,
+            "land": MissionState.PX4_LAND,
+            "rtl": MissionState.PX4_RTL,
+        }[self.cfg.mission.leader_lost_action]
+        self._go_px4(target, reason, detail)
+
+    def _flying_attitude(self) -> bool:
+        """Whether the current flight uses attitude setpoints (no GPS, or vision on attitude)."""
+        if not self.gps.ok:
+            return True
+        return self.state == MissionState.FOLLOW_VISION and self.vision_mode == VisionMode.ATTITUDE
+
+    def _enter_follow(self, inp: MissionInputs, reason: Reason, detail: str = "") -> None:
+        """Go to FOLLOW or FOLLOW_VISION, whichever the GPS allows."""
+        if self.gps.ok:
+            self._go(MissionState.FOLLOW, reason, detail)
+            self.law.seed_velocity(np.array(inp.vehicle.v_ned_m_s))
+        elif self.m.gps_loss_policy == "land":
+            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
+        else:
+            self.vision_mode = VisionMode.ATTITUDE
+            self._reset_external()
+            self._go(MissionState.FOLLOW_VISION, reason, detail or f"policy {self.m.gps_loss_policy}")
+
+    def _on_gps_lost(self, inp: MissionInputs) -> None:
+        """GPS went bad in flight: vision formation if the policy and the leader allow it, else land."""
+        veh = inp.vehicle
+        if self.m.gps_loss_policy == "land":
+            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
+        elif not self._tracked(inp):
+            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "leader not tracked")
+        elif not self.link.attitude_available(veh, self._now_s):
+            self._go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
+        else:
+            self.vision_mode = VisionMode.ATTITUDE
+            self._reset_external()
+            self._go(MissionState.FOLLOW_VISION, Reason.GPS_LOST, f"policy {self.m.gps_loss_policy}")
+
+    def _reset_external(self) -> None:
+        self._ext_valid_since = None
+        self._ext_since = None
+        self._ext_gave_up = False
+
+    def _enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
+        """Leader lost: remember where it was going (coast) and which way to scan, then REACQUIRE."""
+        veh = inp.vehicle
+        self._attitude_kind = self._flying_attitude()
+        last = self._last_leader
+        if last is not None:
+            p_rel, v_rel = np.array(last.p_ned_rel_m), np.array(last.v_ned_rel_m_s)
+            age = max(0.0, self._now_s - last.stamp_s)
+            self._leader_lost_p_ned_m = (
+                np.array(veh.p_ned_m) + p_rel + (np.array(veh.v_ned_m_s) + v_rel) * age
+            )
+            self._leader_lost_v_ned_m_s = np.array(veh.v_ned_m_s) + v_rel
+            bearing = math.atan2(p_rel[1], p_rel[0])
+            self._scan_sign = 1.0 if wrap_pi(bearing - veh.yaw_rad) >= 0.0 else -1.0
+        else:
+            self._leader_lost_p_ned_m = None
+            self._leader_lost_v_ned_m_s = None
+            self._scan_sign = 1.0
+        self._alt_hold_m = veh.alt_rel_m
+        self._go(MissionState.REACQUIRE, Reason.LEADER_LOST, detail)
+
+    def _enter_hover(self, inp: MissionInputs) -> None:
+        """The estimate went stale: hover on the vehicle's own telemetry (HOVER)."""
+        self._attitude_kind = self._flying_attitude()
+        self._alt_hold_m = inp.vehicle.alt_rel_m
+        est = inp.leader
+        age = "never" if est is None else f"{self._now_s - est.stamp_s:.2f} s old"
+        self._go(MissionState.HOVER, Reason.PERCEPTION_STALL, age)
