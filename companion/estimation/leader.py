@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass
 
 from companion.kernel.compat import StrEnum
-from companion.vehicle.types import Vec3T
+from companion.kernel.flight import Vec3T
 
 
 class TrackStatus(StrEnum):

@@ -16,11 +16,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.kernel.camera import RgbdFrame
+from companion.kernel.flight import Vec3T, VehicleState
 from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, box_iou
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.service.autolabel_tap import label_frame
-from companion.vehicle.types import Vec3T, VehicleState
 
 #: IoU a label must reach against the true box to count as right.
 GOOD_IOU = 0.7

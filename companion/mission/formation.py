@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import FormationConfig
+from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint, VelocityNedSetpoint
 from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.geometry import (
     FollowerState,
@@ -54,7 +55,6 @@ from companion.mission.safety import (
     separation_limit_accel,
 )
 from companion.mission.static_pass import pass_static
-from companion.vehicle.types import AttitudeSetpoint, Vec3T, VelocityBodySetpoint, VelocityNedSetpoint
 
 #: A gap between two law updates longer than this restarts the integrators and the slew (s).
 MAX_DT_S = 0.5

@@ -32,6 +32,7 @@ import math
 
 import numpy as np
 
+from companion.kernel.flight import ExternalPosition, FlightMode, Setpoint, VehicleState
 from companion.kernel.frames import Vec3
 from companion.mission.ego import HOLD_S as EGO_STALE_S
 from companion.mission.geometry import Slot
@@ -55,7 +56,6 @@ from companion.mission.types import (
     StepOutput,
     Transition,
 )
-from companion.vehicle.types import ExternalPosition, FlightMode, Setpoint, VehicleState
 
 __all__ = ["AIRBORNE_STATES", "OFFBOARD_STATES", "PX4_STATES", "MissionMachine"]
 

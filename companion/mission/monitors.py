@@ -12,8 +12,8 @@ import numpy as np
 
 from companion.config import FormationConfig, LinkConfig, MissionConfig
 from companion.estimation.leader import LeaderEstimate, TrackStatus
+from companion.kernel.flight import VehicleState
 from companion.kernel.frames import Vec3
-from companion.vehicle.types import VehicleState
 
 #: GPS fix data older than this counts as no fix, s.
 GPS_STALE_S = 2.0

@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from companion.kernel.flight import FlightMode, VehicleState
 from companion.mission.types import Command, CommandKind, CommandResult
-from companion.vehicle.types import FlightMode, VehicleState
 
 #: Re-send a command that got no result after this long (the link's own timeouts are shorter), s.
 COMMAND_STALE_S = 10.0

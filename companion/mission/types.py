@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 from companion.estimation.leader import LeaderEstimate, ObstacleAhead
 from companion.kernel.compat import StrEnum
-from companion.vehicle.types import ExternalPosition, Setpoint, Severity, Vec3T, VehicleState
+from companion.kernel.flight import ExternalPosition, Setpoint, Severity, Vec3T, VehicleState
 
 
 @dataclass(frozen=True, slots=True)

@@ -16,11 +16,11 @@ from numpy.typing import NDArray
 
 from companion.config import Config
 from companion.kernel.camera import RgbdFrame
+from companion.kernel.flight import VehicleState
 from companion.mission.types import SharedLeaderPosition
 from companion.perception.autolabel import AutoLabel, AutoLabelConfig, auto_label, leader_in_camera
 from companion.perception.autolabel_writer import AutoLabelCounts, AutoLabelWriter
 from companion.perception.transform import AttitudeHistory, CameraGeometry
-from companion.vehicle.types import VehicleState
 
 
 def label_frame(

@@ -21,6 +21,7 @@ from companion.config import Config
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock
+from companion.kernel.flight import NEVER_S
 from companion.kernel.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
@@ -28,7 +29,6 @@ from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
-from companion.vehicle.types import NEVER_S
 
 
 class FlightCore:

@@ -18,6 +18,7 @@ from companion.estimation.leader import LeaderEstimate, ObstacleAhead
 from companion.kernel import compat
 from companion.kernel.clock import Clock
 from companion.kernel.errors import CommandRejectedError, CompanionError, LinkLostError
+from companion.kernel.flight import Setpoint, Severity
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     Command,
@@ -31,7 +32,6 @@ from companion.mission.types import (
     Transition,
 )
 from companion.vehicle.link import VehicleLink
-from companion.vehicle.types import Setpoint, Severity
 
 log = logging.getLogger("companion.mission")
 

@@ -22,6 +22,7 @@ from companion.kernel import compat
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock, MonotonicClock
 from companion.kernel.errors import CompanionError, NotBuiltError, first_companion_error
+from companion.kernel.flight import NEVER_S, Severity, VehicleState
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
@@ -40,7 +41,6 @@ from companion.telemetry.leader import OriginTracker
 from companion.telemetry.payloads import LeaderPositionMsg
 from companion.vehicle import failsafe
 from companion.vehicle.link import VehicleLink
-from companion.vehicle.types import NEVER_S, Severity, VehicleState
 
 log = logging.getLogger(__name__)
 

@@ -24,9 +24,9 @@ from pydantic import ValidationError
 
 from companion.config import MqttConfig
 from companion.kernel import compat
+from companion.kernel.backoff import Backoff
 from companion.kernel.clock import Clock
 from companion.kernel.errors import ConfigError
-from companion.service.supervise import Backoff
 from companion.telemetry.commands import Command, CommandRejectedError, CommandVerifier
 from companion.telemetry.payloads import (
     EventMsg,

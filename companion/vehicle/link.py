@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from companion.vehicle.types import ExternalPosition, Setpoint, Severity, VehicleState
+from companion.kernel.flight import ExternalPosition, Setpoint, Severity, VehicleState
 
 
 class VehicleLink(Protocol):

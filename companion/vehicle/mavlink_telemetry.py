@@ -16,8 +16,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.kernel.flight import FlightMode, LandedState, Severity, StatusText, VehicleState
 from companion.vehicle.boottime import BootClockMap
-from companion.vehicle.types import FlightMode, LandedState, Severity, StatusText, VehicleState
 
 log = logging.getLogger("companion.vehicle")
 

@@ -23,7 +23,7 @@ MAVSDK quirks handled here:
 * **Link loss.** A lost link is a state (``VehicleState.connected``, stale stamps), never an exception from
   telemetry; commands without a link raise :class:`~companion.kernel.errors.LinkLostError`.
 
-The subscriptions' items become one :class:`~companion.vehicle.types.VehicleState` in
+The subscriptions' items become one :class:`~companion.kernel.flight.VehicleState` in
 :mod:`companion.vehicle.mavsdk_telemetry`.
 """
 
@@ -54,10 +54,7 @@ from companion.kernel import compat
 from companion.kernel.clock import Clock
 from companion.kernel.compat import Self
 from companion.kernel.errors import CommandRejectedError, LinkLostError, WrongVehicleError
-from companion.vehicle import failsafe
-from companion.vehicle.identity import choose_autopilot
-from companion.vehicle.mavsdk_telemetry import MavsdkTelemetry
-from companion.vehicle.types import (
+from companion.kernel.flight import (
     AttitudeSetpoint,
     ExternalPosition,
     Setpoint,
@@ -66,6 +63,9 @@ from companion.vehicle.types import (
     VelocityBodySetpoint,
     VelocityNedSetpoint,
 )
+from companion.vehicle import failsafe
+from companion.vehicle.identity import choose_autopilot
+from companion.vehicle.mavsdk_telemetry import MavsdkTelemetry
 
 log = logging.getLogger("companion.vehicle")
 mavsdk_log = logging.getLogger("companion.vehicle.mavsdk")

@@ -14,8 +14,8 @@ from dataclasses import replace
 from typing import Any
 
 from companion.kernel.clock import Clock
+from companion.kernel.flight import FlightMode, LandedState, Severity, StatusText, VehicleState
 from companion.vehicle.boottime import BootClockMap
-from companion.vehicle.types import FlightMode, LandedState, Severity, StatusText, VehicleState
 
 log = logging.getLogger("companion.vehicle")
 

@@ -36,16 +36,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.config import LinkConfig
 from companion.kernel.clock import Clock
 from companion.kernel.errors import CommandRejectedError, LinkLostError
-from companion.kernel.frames import quat_from_euler
-from companion.vehicle import failsafe
-from companion.vehicle.mavlink_telemetry import (
-    AUTOPILOT_COMPONENT,
-    SEVERITY_CODE,
-    MavlinkTelemetry,
-    param_int,
-    text_of,
-)
-from companion.vehicle.types import (
+from companion.kernel.flight import (
     AttitudeSetpoint,
     ExternalPosition,
     FlightMode,
@@ -54,6 +45,15 @@ from companion.vehicle.types import (
     VehicleState,
     VelocityBodySetpoint,
     VelocityNedSetpoint,
+)
+from companion.kernel.frames import quat_from_euler
+from companion.vehicle import failsafe
+from companion.vehicle.mavlink_telemetry import (
+    AUTOPILOT_COMPONENT,
+    SEVERITY_CODE,
+    MavlinkTelemetry,
+    param_int,
+    text_of,
 )
 
 log = logging.getLogger("companion.vehicle")

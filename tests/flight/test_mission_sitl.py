@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from companion.config import Config, MissionConfig
+from companion.kernel.flight import FlightMode
 from companion.mission.types import MissionState
-from companion.vehicle.types import FlightMode
 
 from .harness import Flight, fly, inject_gps, rmse, sitl_missing_reason
 from .wiretap import CUSTOM_MODE_AUTO_LAND

@@ -17,7 +17,7 @@ from mavsdk.plugins.offboard import OffboardResult
 
 from companion.config import Config
 from companion.kernel.errors import CommandRejectedError
-from companion.vehicle.types import (
+from companion.kernel.flight import (
     AttitudeSetpoint,
     FlightMode,
     LandedState,

@@ -23,6 +23,7 @@ from companion.estimation.leader import TrackStatus
 from companion.kernel import compat
 from companion.kernel.camera import MountConfig
 from companion.kernel.clock import MonotonicClock
+from companion.kernel.flight import NEVER_S, FlightMode, LandedState, VehicleState
 from companion.mission.types import CommandKind
 from companion.perception.transform import CameraGeometry
 from companion.service.status import query_status
@@ -30,7 +31,6 @@ from companion.service.systemd import NotifyConfig, SystemdNotifier
 from companion.service.wiring import FlightAdapter, LinkGcs, vehicle_summary
 from companion.telemetry.leader import GeoOrigin
 from companion.telemetry.payloads import LeaderPositionMsg
-from companion.vehicle.types import NEVER_S, FlightMode, LandedState, VehicleState
 from tests.unit.mission_harness import FakeAutopilot, leader
 from tests.unit.test_mission_runner import RecordingLink
 

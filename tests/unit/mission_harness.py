@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from companion.config import Config
 from companion.estimation.leader import LeaderEstimate, ObstacleAhead, TrackStatus
 from companion.kernel.clock import ManualClock
+from companion.kernel.flight import FlightMode, LandedState, VehicleState
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     Command,
@@ -26,7 +27,6 @@ from companion.mission.types import (
     StepOutput,
     Transition,
 )
-from companion.vehicle.types import FlightMode, LandedState, VehicleState
 
 DT_S = 0.05
 

@@ -11,10 +11,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.kernel.flight import AttitudeSetpoint, VelocityBodySetpoint
 from companion.kernel.frames import wrap_pi
 from companion.mission.geometry import FollowerState
 from companion.mission.safety import G_M_S2
-from companion.vehicle.types import AttitudeSetpoint, VelocityBodySetpoint
 
 PX4_YAW_P = 2.8
 

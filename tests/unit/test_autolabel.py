@@ -176,10 +176,10 @@ def test_the_writer_refuses_a_folder_with_data(tmp_path: Path) -> None:
 
 def test_the_service_tap_labels_only_with_gps_and_a_fresh_share(tmp_path: Path) -> None:
     from companion.config import Config
+    from companion.kernel.flight import VehicleState
     from companion.mission.types import SharedLeaderPosition
     from companion.perception.transform import AttitudeHistory, CameraGeometry
     from companion.service.autolabel_tap import AutoLabelTap
-    from companion.vehicle.types import VehicleState
 
     cfg = Config.model_validate({"autolabel": {"enabled": True, "out_dir": str(tmp_path)}})
     geometry = CameraGeometry(np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]]), np.zeros(3))  # cam z = body x

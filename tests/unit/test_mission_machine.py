@@ -10,15 +10,15 @@ from hypothesis import strategies as st
 
 from companion.config import Config, MissionConfig
 from companion.estimation.leader import TrackStatus
-from companion.mission.safety import SafetyLimits, barrier_speed_m_s
-from companion.mission.types import CommandKind, MissionState, OperatorCommand, Reason, VisionMode
-from companion.vehicle.types import (
+from companion.kernel.flight import (
     AttitudeSetpoint,
     FlightMode,
     LandedState,
     VelocityBodySetpoint,
     VelocityNedSetpoint,
 )
+from companion.mission.safety import SafetyLimits, barrier_speed_m_s
+from companion.mission.types import CommandKind, MissionState, OperatorCommand, Reason, VisionMode
 
 from .mission_harness import DT_S, FakeAutopilot, Harness, all_commands
 

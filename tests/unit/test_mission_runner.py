@@ -12,10 +12,10 @@ from companion.config import Config, MissionConfig
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.kernel.errors import CommandRejectedError
+from companion.kernel.flight import ExternalPosition, Setpoint, Severity, VehicleState
 from companion.mission.machine import MissionMachine
 from companion.mission.types import Command, CommandKind, MissionState, Transition
 from companion.service.mission_runner import MissionRunner
-from companion.vehicle.types import ExternalPosition, Setpoint, Severity, VehicleState
 
 from .mission_harness import FakeAutopilot, leader
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.estimation.leader import LeaderEstimate
+from companion.kernel.flight import VehicleState
 from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.ego import EgoMotion
 from companion.mission.formation import FormationLaw
@@ -31,7 +32,6 @@ from companion.mission.types import (
     Transition,
     VisionMode,
 )
-from companion.vehicle.types import VehicleState
 
 #: States in which the companion flies the vehicle through offboard setpoints.
 OFFBOARD_STATES = frozenset(

@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 
 from companion.estimation.leader import LeaderEstimate, TrackStatus
+from companion.kernel.flight import ExternalPosition, Setpoint
 from companion.kernel.frames import Vec3
 from companion.mission.states.base import MachineBase
 from companion.mission.types import MissionInputs, MissionState, Reason, VisionMode
-from companion.vehicle.types import ExternalPosition, Setpoint
 
 #: PX4 must report a valid estimate this long before velocity setpoints ride on an external fix, s.
 EXTERNAL_PROBATION_S = 1.0

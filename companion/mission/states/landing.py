@@ -12,9 +12,9 @@ import math
 
 import numpy as np
 
+from companion.kernel.flight import AttitudeSetpoint, LandedState, Setpoint, VehicleState, VelocityNedSetpoint
 from companion.mission.states.base import ARM_RETRY_S, MachineBase
 from companion.mission.types import CommandKind, MissionInputs, MissionState, Reason
-from companion.vehicle.types import AttitudeSetpoint, LandedState, Setpoint, VehicleState, VelocityNedSetpoint
 
 DISARM_RETRY_S = 2.0
 #: Touchdown: PX4's land detector, or no vertical motion (|v| below this) while commanding a descent.

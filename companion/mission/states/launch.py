@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import math
 
+from companion.kernel.flight import FlightMode, LandedState, VehicleState
 from companion.mission.states.base import ARM_RETRY_S, MachineBase
 from companion.mission.types import CommandKind, MissionInputs, MissionState, Reason
-from companion.vehicle.types import FlightMode, LandedState, VehicleState
 
 ARM_ATTEMPTS = 3
 #: Takeoff counts as done at this fraction of the target altitude.

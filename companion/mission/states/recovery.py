@@ -13,10 +13,10 @@ import math
 import numpy as np
 
 from companion.estimation.leader import TrackStatus
+from companion.kernel.flight import Setpoint, VehicleState
 from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.states.base import MachineBase
 from companion.mission.types import MissionInputs, MissionState, Reason
-from companion.vehicle.types import Setpoint, VehicleState
 
 #: Altitude-hold gain of the attitude hover (1/s).
 ALT_HOLD_KP_1_S = 0.8
