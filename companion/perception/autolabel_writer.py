@@ -11,8 +11,10 @@ waited for. Writing stops at ``max_bytes`` (counted as ``over_budget``).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
+import os
 import queue
 import threading
 from dataclasses import dataclass, field
@@ -27,6 +29,9 @@ from companion.perception.autolabel import AutoLabel, Verdict
 from companion.perception.detector.dataset import format_yolo_labels
 
 log = logging.getLogger(__name__)
+
+#: The writer thread's nice value (0 = as the flight loop, 19 = lowest).
+WRITER_NICE = 10
 
 MANIFEST_COLUMNS = (
     "image",
@@ -141,6 +146,10 @@ class AutoLabelWriter:
                 self.counts.dropped += 1
 
     def _run(self) -> None:
+        # Below the flight loop: on Linux a thread has its own nice value, so encoding yields the cores to
+        # the detector whenever both want them.
+        with contextlib.suppress(AttributeError, OSError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICE)
         while True:
             item = self._queue.get()
             if item is None:
