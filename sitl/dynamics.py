@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import importlib.resources
 import math
 import os
 import sys
@@ -28,7 +29,9 @@ from numpy.typing import NDArray
 from companion.kernel.frames import R_from_euler, quat_from_R
 from sitl.geo import LocalProjection
 
-MODEL_ROOT = Path(__file__).resolve().parent / "models"
+#: The JSBSim aircraft files ship inside the package (package data: found the same way in a checkout and in
+#: an installed wheel).
+MODEL_ROOT = Path(str(importlib.resources.files("sitl") / "models"))
 MODEL_NAME = "wingman_quad"
 
 _FT = 0.3048

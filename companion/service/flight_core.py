@@ -14,6 +14,7 @@ this class; they differ only in the clock and the link they hand it and in how o
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -29,6 +30,8 @@ from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
+
+log = logging.getLogger(__name__)
 
 
 class FlightCore:
@@ -119,8 +122,14 @@ class FlightCore:
 
     async def run(self) -> None:
         """The mission until its shutdown action is under way."""
-        if self.autolabel is None:
+        if self.autolabel is not None:
+            try:
+                self.autolabel.__enter__()
+            except OSError as exc:  # a full disk or a folder it may not write: fly on without labels
+                log.warning("auto-labels off: %s", exc)
+                self.autolabel = None
+        try:
             await self.runner.run()
-            return
-        with self.autolabel:
-            await self.runner.run()
+        finally:
+            if self.autolabel is not None:
+                self.autolabel.__exit__(None, None, None)

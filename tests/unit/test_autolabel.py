@@ -203,3 +203,31 @@ def test_the_service_tap_labels_only_with_gps_and_a_fresh_share(tmp_path: Path) 
     label = (out / "labels" / f"{out.name}_f000007.txt").read_text().split()
     cx = float(label[1]) * 640
     assert cx == pytest.approx((box[0] + box[2]) / 2, abs=0.5)
+
+
+async def test_a_folder_it_may_not_write_turns_labels_off_not_the_flight(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from companion.config import Config
+    from companion.kernel.clock import ManualClock
+    from companion.service.flight_core import FlightCore
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")  # the labels' folder would have to be inside a file
+    cfg = Config.model_validate({"autolabel": {"enabled": True, "out_dir": str(blocker / "labels")}})
+
+    class _Stage:
+        def after_track(self, _track: object) -> None:
+            pass
+
+    core = FlightCore(cfg, object(), ManualClock(0.0), _Stage())  # type: ignore[arg-type]
+    ran: list[bool] = []
+
+    async def mission() -> None:
+        ran.append(True)
+
+    core.runner.run = mission  # type: ignore[method-assign]
+    await core.run()
+    assert ran == [True]
+    assert core.autolabel is None
+    assert "auto-labels off" in caplog.text
