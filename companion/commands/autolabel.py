@@ -1,7 +1,7 @@
 """``companion autolabel``: fly scenarios in lockstep, label the leader from its shared position and depth.
 
 The labels are written as a detector dataset (one folder per flight) and scored against the renderer's true
-boxes (:mod:`companion.evaluation.autolabel_check`). Heavy imports happen inside the handler.
+boxes (:mod:`companion.lab.evaluation.autolabel_check`). Heavy imports happen inside the handler.
 """
 
 from __future__ import annotations
@@ -52,18 +52,18 @@ def _seeds(text: str) -> list[int]:
 
 
 def _autolabel(args: argparse.Namespace) -> int:
-    from companion.evaluation.autolabel_check import write_sheet
-    from companion.evaluation.campaign import effective_scenario, parse_overrides
-    from companion.evaluation.lockstep import LockstepOptions
-    from companion.evaluation.setup import (
+    from companion.kernel.config import deep_merge
+    from companion.kernel.errors import CompanionError
+    from companion.lab.evaluation.autolabel_check import write_sheet
+    from companion.lab.evaluation.campaign import effective_scenario, parse_overrides
+    from companion.lab.evaluation.lockstep import LockstepOptions
+    from companion.lab.evaluation.setup import (
         load_detect,
         run_lockstep,
         scenario_path,
         service_config,
     )
-    from companion.evaluation.tomlw import dumps
-    from companion.kernel.config import deep_merge
-    from companion.kernel.errors import CompanionError
+    from companion.lab.evaluation.tomlw import dumps
 
     setup_logging("human", "WARNING")
     try:

@@ -34,7 +34,7 @@ def _bench(args: argparse.Namespace) -> int:
     cfg = load(args)
     import importlib.util
 
-    from companion.perception.bench import format_bench, run_bench
+    from companion.lab.bench import format_bench, run_bench
     from companion.perception.detector import load_detector
     from companion.perception.detector.roi import RoiDetector
 
@@ -76,7 +76,7 @@ def pose_filter_stages(cfg: Any) -> tuple[Any, Any]:
 
 
 def _frames(args: argparse.Namespace, cfg: Any) -> list[Any]:
-    from companion.perception.bench import synthetic_frames
+    from companion.lab.bench import synthetic_frames
 
     if args.data is None:
         return synthetic_frames(args.frames)

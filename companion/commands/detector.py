@@ -153,11 +153,11 @@ def register(sub: Any) -> None:
 
 def _train(args: argparse.Namespace) -> int:
     load(args)
-    from companion.perception.detector.augment import REAL_CAMERA, AugmentConfig
+    from companion.lab.training.augment import REAL_CAMERA, AugmentConfig
+    from companion.lab.training.train import train
+    from companion.lab.training.train_config import TrainConfig, parse_source
     from companion.perception.detector.leadernet import ModelSpec
     from companion.perception.detector.shufflenet import ShuffleDetSpec
-    from companion.perception.detector.train import train
-    from companion.perception.detector.train_config import TrainConfig, parse_source
 
     if args.crop > args.input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
@@ -206,8 +206,8 @@ def _train(args: argparse.Namespace) -> int:
 
 def _finetune(args: argparse.Namespace) -> int:
     cfg = load(args)
-    from companion.perception.detector.finetune import FinetuneOptions, finetune, install
-    from companion.perception.detector.train_config import parse_source
+    from companion.lab.training.finetune import FinetuneOptions, finetune, install
+    from companion.lab.training.train_config import parse_source
 
     try:
         replay = [parse_source(r) for r in args.replay]
@@ -252,9 +252,9 @@ def _finetune(args: argparse.Namespace) -> int:
 
 def _eval(args: argparse.Namespace) -> int:
     cfg = load(args)
+    from companion.lab.training.evaluate import evaluate
+    from companion.lab.training.metrics import format_summary
     from companion.perception.detector.dataset import find_samples, list_splits
-    from companion.perception.detector.evaluate import evaluate
-    from companion.perception.detector.metrics import format_summary
 
     det_cfg = cfg.detector
     updates: dict[str, Any] = {}
@@ -368,7 +368,7 @@ def _json_ready(v: Any) -> Any:
 
 def _export(args: argparse.Namespace) -> int:
     cfg = load(args)
-    from companion.perception.detector.export import export_and_sign
+    from companion.lab.training.export import export_and_sign
 
     weights = Path(args.weights or Path(cfg.detector.model_path).with_suffix(".pt"))
     onnx_path, side = export_and_sign(weights, Path(args.out) if args.out else None, args.opset)

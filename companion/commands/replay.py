@@ -1,6 +1,6 @@
 """``companion replay`` and ``companion record``.
 
-See :mod:`companion.estimation.replay` and :func:`companion.perception.record.run_record`. Heavy imports
+See :mod:`companion.lab.replay` and :func:`companion.perception.record.run_record`. Heavy imports
 (filterpy pulls in scipy) happen inside the handlers, so ``companion --help`` stays fast.
 """
 
@@ -57,7 +57,7 @@ def _open_out(path: str | None) -> Iterator[io.TextIOBase | None]:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from companion.estimation.replay import make_detect, run_replay
+    from companion.lab.replay import make_detect, run_replay
 
     cfg = load(args)
     stage = make_detect(

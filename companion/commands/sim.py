@@ -77,7 +77,7 @@ def register(sub: Any) -> None:
 
 
 def _sim(args: argparse.Namespace) -> int:
-    from companion.evaluation.campaign import (
+    from companion.lab.evaluation.campaign import (
         RunSpec,
         parse_seeds,
         require_weights,
@@ -85,8 +85,8 @@ def _sim(args: argparse.Namespace) -> int:
         run_one,
         split_done,
     )
-    from companion.evaluation.report import summary_markdown
-    from companion.evaluation.setup import all_scenarios, scenario_path
+    from companion.lab.evaluation.report import summary_markdown
+    from companion.lab.evaluation.setup import all_scenarios, scenario_path
 
     out: Path = args.out
     harness = args.harness or ("lockstep" if args.seeds else "real")
@@ -120,7 +120,7 @@ def _sim(args: argparse.Namespace) -> int:
         if done:
             print(f"sim: {len(done)} of {len(specs)} seeds already have a report in {out}; running the rest")
         if args.executor == "ray":
-            from companion.evaluation.ray_executor import RayOptions, run_campaign
+            from companion.lab.evaluation.ray_executor import RayOptions, run_campaign
 
             options = RayOptions(
                 address=args.ray_address,
@@ -160,7 +160,7 @@ def _sim(args: argparse.Namespace) -> int:
             print(f"\rsim: {spec.scenario} {_progress_line(t_s, end_s[0], time.monotonic() - wall0_s)}",
                   end="", flush=True)  # fmt: skip
 
-    from companion.evaluation.campaign import effective_scenario
+    from companion.lab.evaluation.campaign import effective_scenario
 
     end_s[0] = effective_scenario(scenario_path(spec.scenario), spec.duration_s).run.duration_s
     report = run_one(spec, progress)

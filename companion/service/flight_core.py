@@ -1,8 +1,8 @@
 """``FlightCore``: from a frame, telemetry and operator commands to setpoints, once for every harness.
 
 The service (:mod:`companion.service.wiring`, MAVSDK over UDP or serial, wall clock) and the lockstep
-evaluation harness (:mod:`companion.evaluation.lockstep`, MAVLink message objects, simulated clock) both fly
-this class; they differ only in the clock and the link they hand it and in how often they call it:
+evaluation harness (:mod:`companion.lab.evaluation.lockstep`, MAVLink message objects, simulated clock) both
+fly this class; they differ only in the clock and the link they hand it and in how often they call it:
 
 * :meth:`on_frame` for every detector result (pose, tracker, the detector's feedback, the mission's leader
   estimate and the depth guard's reading);

@@ -327,7 +327,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
 def load_detect(cfg: Config) -> DetectStage:
     """The per-frame detection ``detector.runtime`` selects (blocking: loads the weights)."""
     if cfg.detector.runtime == "truth":
-        evaluate: Any = importlib.import_module("companion.perception.evaluate")
+        evaluate: Any = importlib.import_module("companion.lab.perception_eval")
         truth = evaluate.TruthDetector()
         log.warning(
             "detector: ground-truth boxes from the simulator (detector.runtime = truth), not the network"

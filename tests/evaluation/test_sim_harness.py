@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.evaluation.campaign import RunSpec, run_one
-from companion.evaluation.report import missing_keys, summary_markdown, write_summary
+from companion.lab.evaluation.campaign import RunSpec, run_one
+from companion.lab.evaluation.report import missing_keys, summary_markdown, write_summary
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from companion.config import Config
-from companion.estimation.replay import make_detect, run_replay
+from companion.lab.replay import make_detect, run_replay
 from companion.perception.record import FolderRecorder
 from tests.render_sequences import frames
 

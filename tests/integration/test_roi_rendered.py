@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.config import DetectorConfig
-from companion.evaluation.scoring import DETECTED_IOU, iou
+from companion.lab.evaluation.scoring import DETECTED_IOU, iou
 from companion.perception.detector import load_detector
 from companion.perception.detector.roi import RoiDetector
 from tests.render_sequences import frames

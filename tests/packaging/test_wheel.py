@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.evaluation.procs import Child
+from companion.lab.evaluation.procs import Child
 
 pytestmark = [pytest.mark.lab, pytest.mark.slow, pytest.mark.timeout(600)]
 

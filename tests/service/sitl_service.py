@@ -14,8 +14,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.evaluation.procs import Child
-from companion.evaluation.procs import SitlPorts as Ports
+from companion.lab.evaluation.procs import Child
+from companion.lab.evaluation.procs import SitlPorts as Ports
 
 REPO = Path(__file__).resolve().parents[2]
 

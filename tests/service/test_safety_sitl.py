@@ -36,8 +36,8 @@ from typing import Any
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.evaluation.procs import Child
 from companion.kernel import compat
+from companion.lab.evaluation.procs import Child
 from companion.service.status import ServiceNotRunningError, query_status
 from companion.telemetry.commands import sign_command
 from tests.mosquitto import Collector, Mosquitto

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.evaluation.procs import Child
+from companion.lab.evaluation.procs import Child
 
 pytestmark = [pytest.mark.sitl, pytest.mark.mqtt_broker, pytest.mark.slow, pytest.mark.timeout(420)]
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.evaluation.autolabel_check import LeaderShare
 from companion.kernel.camera import Intrinsics, RgbdFrame
+from companion.lab.evaluation.autolabel_check import LeaderShare
 from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, auto_label, box_iou
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.detector.dataset import find_samples, read_labels

@@ -12,14 +12,14 @@ from typing import Any
 import pytest
 
 from companion.cli import main as companion_main
-from companion.evaluation.campaign import RunSpec, SimError, split_done
-from companion.evaluation.campaign_summary import (
+from companion.lab.evaluation.campaign import RunSpec, SimError, split_done
+from companion.lab.evaluation.campaign_summary import (
     campaign_summary,
     monte_carlo_markdown,
     write_campaign_summary,
 )
-from companion.evaluation.progress import clock_text, eta_s, progress_text
-from companion.evaluation.ray_executor import (
+from companion.lab.evaluation.progress import clock_text, eta_s, progress_text
+from companion.lab.evaluation.ray_executor import (
     RayOptions,
     RunFailedError,
     error_line,
@@ -164,7 +164,7 @@ def test_sim_refuses_executor_options_that_do_not_apply(
 def test_neither_the_cli_nor_the_executor_module_imports_ray(repo_root: Path) -> None:
     code = (
         "import sys; from companion.cli import build_parser; build_parser(); "
-        "import companion.evaluation.ray_executor; sys.exit('ray' in sys.modules)"
+        "import companion.lab.evaluation.ray_executor; sys.exit('ray' in sys.modules)"
     )
     r = subprocess.run(
         [sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, check=False
@@ -173,7 +173,7 @@ def test_neither_the_cli_nor_the_executor_module_imports_ray(repo_root: Path) ->
 
 
 def test_a_cluster_address_that_refuses_is_one_line_not_a_hang() -> None:
-    from companion.evaluation.ray_executor import _check_reachable
+    from companion.lab.evaluation.ray_executor import _check_reachable
 
     with socket.socket() as s:  # a port nothing listens on: bound, never listening
         s.bind(("127.0.0.1", 0))

@@ -122,7 +122,7 @@ def test_sim_all_prints_the_paper_table(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """`sim --scenario all` ends with the paper's table beside ours on stdout (the runs are stood in for)."""
-    from companion.evaluation import campaign
+    from companion.lab.evaluation import campaign
 
     report = {
         "outcome": "completed",

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.evaluation.log import FlightRecorder
-from companion.evaluation.metrics import compute_metrics, monte_carlo_summary
-from companion.evaluation.plots import Snapshot, desired_follower_ned, write_plots
-from companion.evaluation.report import build_report, missing_keys, summary_markdown, write_report
+from companion.lab.evaluation.log import FlightRecorder
+from companion.lab.evaluation.metrics import compute_metrics, monte_carlo_summary
+from companion.lab.evaluation.plots import Snapshot, desired_follower_ned, write_plots
+from companion.lab.evaluation.report import build_report, missing_keys, summary_markdown, write_report
 
 OFFSET = (0.0, 0.0, 5.0)
 

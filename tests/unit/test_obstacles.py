@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from companion.evaluation.obstacles import Envelopes
-from companion.evaluation.outcome import TruthMonitor
-from companion.evaluation.setup import scenario_path
+from companion.lab.evaluation.obstacles import Envelopes
+from companion.lab.evaluation.outcome import TruthMonitor
+from companion.lab.evaluation.setup import scenario_path
 from sitl.render import world as render_world
 from sitl.render.config import OccluderSpec, VisualConfig, visual_from_mapping
 from sitl.render.structures import solid_structures

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.evaluation.log import FlightLog
-from companion.evaluation.plots import slot_error_body, write_plots
+from companion.lab.evaluation.log import FlightLog
+from companion.lab.evaluation.plots import slot_error_body, write_plots
 
 
 def _log() -> FlightLog:
@@ -55,7 +55,7 @@ def test_every_plot_is_written(tmp_path: Path) -> None:
 def test_the_mission_states_are_drawn_as_labelled_bands() -> None:
     from matplotlib.figure import Figure
 
-    from companion.evaluation.plots import _state_bands
+    from companion.lab.evaluation.plots import _state_bands
 
     ax = Figure().subplots()
     _state_bands(ax, _log())

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.evaluation.procs import Child, SimRunError, SitlPorts, udp_port_free
+from companion.lab.evaluation.procs import Child, SimRunError, SitlPorts, udp_port_free
 
 
 def test_a_picked_port_block_is_free_and_the_same_for_the_same_draw() -> None:

@@ -11,18 +11,18 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion.evaluation import campaign
-from companion.evaluation.campaign import (
+from companion.kernel.errors import ConfigError
+from companion.lab.evaluation import campaign
+from companion.lab.evaluation.campaign import (
     RunSpec,
     child_args,
     effective_scenario,
     parse_overrides,
     parse_seeds,
 )
-from companion.evaluation.campaign_summary import monte_carlo_markdown
-from companion.evaluation.progress import ProgressLine
-from companion.evaluation.setup import all_scenarios, scenario_path
-from companion.kernel.errors import ConfigError
+from companion.lab.evaluation.campaign_summary import monte_carlo_markdown
+from companion.lab.evaluation.progress import ProgressLine
+from companion.lab.evaluation.setup import all_scenarios, scenario_path
 from companion.mission.ego import EgoMotion
 
 

@@ -20,7 +20,7 @@ def shipped_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A randomly initialised default-spec model saved as models/leader_detector.{pt,onnx,sha256}."""
     import torch
 
-    from companion.perception.detector.export import export_and_sign
+    from companion.lab.training.export import export_and_sign
     from companion.perception.detector.leadernet import LeaderNet
     from companion.perception.detector.torch_engine import save_weights
 

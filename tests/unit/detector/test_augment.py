@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.perception.detector.augment import (
+from companion.lab.training.augment import (
     AugmentConfig,
     cutout,
     hflip,
@@ -14,7 +14,7 @@ from companion.perception.detector.augment import (
     random_placement,
     training_sample,
 )
-from companion.perception.detector.cache import ImageCache
+from companion.lab.training.cache import ImageCache
 from companion.perception.detector.dataset import find_samples
 
 GEOMETRY_ONLY = AugmentConfig(hsv_gain=(0, 0, 0), blur_p=0, noise_p=0, jpeg_p=0, gray_p=0, cutout_p=0)

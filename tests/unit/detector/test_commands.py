@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from companion.cli import main
-from companion.perception.bench import NOT_BUILT, percentiles_ms, run_bench, synthetic_frames
+from companion.lab.bench import NOT_BUILT, percentiles_ms, run_bench, synthetic_frames
 
 
 def test_eval_command_writes_every_figure(

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.perception.detector.augment import (
+from companion.lab.training.augment import (
     REAL_CAMERA,
     codec,
     defocus,
@@ -15,7 +15,7 @@ from companion.perception.detector.augment import (
     training_sample,
     white_balance,
 )
-from companion.perception.detector.cache import ImageCache
+from companion.lab.training.cache import ImageCache
 from companion.perception.detector.dataset import find_samples
 
 
@@ -72,7 +72,7 @@ def test_real_camera_recipe_is_a_pure_function_of_the_seed(tiny_dataset: Path, t
 
 def test_default_recipe_draws_blur_and_noise_as_without_the_camera_model() -> None:
     img = _img()
-    from companion.perception.detector.augment import blur
+    from companion.lab.training.augment import blur
 
     for seed in range(6):
         a = blur(img, np.random.default_rng(seed), with_defocus=False)

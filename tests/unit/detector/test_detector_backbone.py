@@ -124,7 +124,7 @@ def test_weights_file_names_its_architecture(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_onnx_export_matches_torch(tmp_path: Path) -> None:
-    from companion.perception.detector.export import export_and_sign, max_output_difference
+    from companion.lab.training.export import export_and_sign, max_output_difference
 
     torch.manual_seed(1)
     pt = tmp_path / "leader_detector.pt"

@@ -7,9 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from companion.lab.training.evaluate import contact_sheet, group_summaries, worst_cases
+from companion.lab.training.metrics import DetectionStats
 from companion.perception.detector.dataset import Sample
-from companion.perception.detector.evaluate import contact_sheet, group_summaries, worst_cases
-from companion.perception.detector.metrics import DetectionStats
 
 
 def _box(*v: float) -> np.ndarray:

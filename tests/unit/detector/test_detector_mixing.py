@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.perception.detector.train_config import DataSource, TrainConfig, parse_source
-from companion.perception.detector.train_data import MixedBatchSampler, batch_shares, source_splits
+from companion.lab.training.train_config import DataSource, TrainConfig, parse_source
+from companion.lab.training.train_data import MixedBatchSampler, batch_shares, source_splits
 
 
 def test_parse_source() -> None:

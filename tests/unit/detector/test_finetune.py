@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from companion.config import DetectorConfig
-from companion.perception.detector.finetune import FinetuneOptions, finetune, install, sources_for
-from companion.perception.detector.train_config import DataSource
+from companion.lab.training.finetune import FinetuneOptions, finetune, install, sources_for
+from companion.lab.training.train_config import DataSource
 from tests.unit.detector.synthetic import make_dataset
 
 

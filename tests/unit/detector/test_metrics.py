@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.perception.detector.metrics import DetectionStats, average_precision, format_summary, match
+from companion.lab.training.metrics import DetectionStats, average_precision, format_summary, match
 
 E = np.zeros((0, 4), np.float32)
 

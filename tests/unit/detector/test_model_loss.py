@@ -3,9 +3,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from companion.perception.detector.layers import count_parameters
-from companion.perception.detector.leadernet import LeaderNet, ModelSpec
-from companion.perception.detector.loss import (
+from companion.lab.training.loss import (
     DetectionLoss,
     LossConfig,
     anchor_points,
@@ -13,6 +11,8 @@ from companion.perception.detector.loss import (
     box_iou_pairwise,
     ciou,
 )
+from companion.perception.detector.layers import count_parameters
+from companion.perception.detector.leadernet import LeaderNet, ModelSpec
 
 torch.set_num_threads(2)
 

@@ -11,8 +11,8 @@ import pytest
 
 from companion.config import DetectorConfig
 from companion.kernel.errors import ModelError
+from companion.lab.training.export import max_output_difference
 from companion.perception.detector import choose_runtime, load_detector
-from companion.perception.detector.export import max_output_difference
 from companion.perception.detector.letterbox import Letterboxer
 
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from companion.lab.training.train import lr_at, train
+from companion.lab.training.train_config import TrainConfig
 from companion.perception.detector.leadernet import ModelSpec
-from companion.perception.detector.train import lr_at, train
-from companion.perception.detector.train_config import TrainConfig
 
 SMALL = ModelSpec(widths=(16, 16, 24, 32, 48), neck_widths=(16, 24, 32), head_width=16)
 

@@ -1,9 +1,9 @@
 """What auto-labelling costs the flight loop: the per-frame path with and without it, side by side.
 
-    python -m companion.evaluation.autolabel_bench [--frames 300] [--config config/wingman.toml]
+    python -m companion.lab.evaluation.autolabel_bench [--frames 300] [--config config/wingman.toml]
 
 The flight loop's per-frame work (the configured detector, pose and tracker) runs over the same synthetic
-frames (:func:`companion.perception.bench.synthetic_frames`) in alternating blocks, once alone and once
+frames (:func:`companion.lab.bench.synthetic_frames`) in alternating blocks, once alone and once
 followed by the labeller and a hand-over to the running background writer (which encodes and writes the
 JPEGs in its own thread, competing for the same cores). Reported: p50 / p95 per frame and frames per second
 of each, and what the writer did. By default frames come at the camera's 30 per second, so the writer
@@ -25,9 +25,9 @@ import numpy as np
 from companion.config import load_config
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
+from companion.lab.bench import percentiles_ms, synthetic_frames
 from companion.perception.autolabel import AutoLabelConfig, auto_label
 from companion.perception.autolabel_writer import AutoLabelWriter
-from companion.perception.bench import percentiles_ms, synthetic_frames
 
 
 def _p_cam(frame: RgbdFrame) -> np.ndarray:
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", default=None, help="service config (default: the shipped one)")
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args(argv)
-    from companion.evaluation.setup import DEFAULT_CONFIG, load_detect  # noqa: PLC0415 (the detector)
+    from companion.lab.evaluation.setup import DEFAULT_CONFIG, load_detect  # noqa: PLC0415 (the detector)
 
     cfg = load_config(Path(args.config) if args.config else DEFAULT_CONFIG)
     stage = load_detect(cfg, "network")

@@ -14,7 +14,7 @@ What differs from the real path (``companion sim`` over UDP with MAVSDK) and why
   detection; the real path measures its own).
 * The camera renders only once the follower is armed (nothing before takeoff reaches the mission).
 
-Truth reaches only the :class:`~companion.evaluation.scoring.RunScorer`.
+Truth reaches only the :class:`~companion.lab.evaluation.scoring.RunScorer`.
 """
 
 from __future__ import annotations
@@ -32,13 +32,13 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.evaluation.autolabel_check import AutoLabelCheck
-from companion.evaluation.log import FlightLog
-from companion.evaluation.plots import Snapshot
-from companion.evaluation.scoring import RunScorer
-from companion.evaluation.trace import RunObserver
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import ManualClock
+from companion.lab.evaluation.autolabel_check import AutoLabelCheck
+from companion.lab.evaluation.log import FlightLog
+from companion.lab.evaluation.plots import Snapshot
+from companion.lab.evaluation.scoring import RunScorer
+from companion.lab.evaluation.trace import RunObserver
 from companion.mission.types import MissionInputs, StepOutput, Transition
 from companion.perception.autolabel import AutoLabelConfig
 from companion.perception.types import DetectorResult, DetectStage

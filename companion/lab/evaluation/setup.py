@@ -13,14 +13,14 @@ from typing import Any
 from pydantic import ValidationError
 
 from companion.config import Config
-from companion.evaluation.lockstep import LockstepOptions, LockstepRun, RunResult
-from companion.evaluation.log import save_log
-from companion.evaluation.metrics import compute_metrics
-from companion.evaluation.plots import write_plots
-from companion.evaluation.report import build_report, write_report
 from companion.kernel.config import deep_merge, format_validation_error, read_toml
 from companion.kernel.errors import ConfigError
 from companion.kernel.shipped import project_root
+from companion.lab.evaluation.lockstep import LockstepOptions, LockstepRun, RunResult
+from companion.lab.evaluation.log import save_log
+from companion.lab.evaluation.metrics import compute_metrics
+from companion.lab.evaluation.plots import write_plots
+from companion.lab.evaluation.report import build_report, write_report
 from companion.perception.types import DetectStage
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ def load_detect(cfg: Config, runtime: str) -> DetectStage:
     and the report says so.
     """
     if runtime == "truth":
-        from companion.perception.evaluate import TruthDetector  # noqa: PLC0415 (only for this mode)
+        from companion.lab.perception_eval import TruthDetector  # noqa: PLC0415 (only for this mode)
 
         truth = TruthDetector()
         return DetectStage(truth.detect_frame, description="ground-truth boxes (NOT the network)")

@@ -4,7 +4,7 @@ Truth is used here and nowhere else: the service (or the lockstep cores) never s
 A harness calls :meth:`RunScorer.tick` each control step, :meth:`RunScorer.frame` for each camera frame once
 perception has processed it, :meth:`RunScorer.truth` with the follower's true state (for crashes and
 landings), and :meth:`RunScorer.transition` for each mission transition; :meth:`RunScorer.freeze` gives the
-:class:`~companion.evaluation.log.FlightLog` the metrics read.
+:class:`~companion.lab.evaluation.log.FlightLog` the metrics read.
 
 Definitions (the report documents them):
 
@@ -25,12 +25,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion.evaluation.log import FlightLog, FlightRecorder, Vec3T
-from companion.evaluation.metrics import FORMATION_STATES
-from companion.evaluation.obstacles import Envelopes
-from companion.evaluation.outcome import TruthMonitor
-from companion.evaluation.plots import Snapshot
 from companion.kernel.camera import GroundTruth, RgbImage
+from companion.lab.evaluation.log import FlightLog, FlightRecorder, Vec3T
+from companion.lab.evaluation.metrics import FORMATION_STATES
+from companion.lab.evaluation.obstacles import Envelopes
+from companion.lab.evaluation.outcome import TruthMonitor
+from companion.lab.evaluation.plots import Snapshot
 from companion.perception.types import Detection
 
 MIN_VISIBLE_FRACTION = 0.25

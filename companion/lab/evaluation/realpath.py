@@ -3,8 +3,8 @@
 One run (:func:`run_real`):
 
 1. ``sitl serve`` starts with the scenario, the leader spawned in the follower's slot, a private block of UDP
-   ports, and :mod:`companion.evaluation.sitl_components` inside it (sim clock, truth recorder, the rendered
-   camera on a Unix socket).
+   ports, and :mod:`companion.lab.evaluation.sitl_components` inside it (sim clock, truth recorder, the
+   rendered camera on a Unix socket).
 2. :class:`~companion.app.FollowerService` runs here with the parts ``companion run`` builds
    (:func:`companion.service.wiring.make_parts_factory`): MAVSDK 4 over UDP, the simulator frame source, the
    detector, pose, tracker, mission runner. Its clock is the simulator's (:class:`SimClock`), so ``--speed``
@@ -13,7 +13,8 @@ One run (:func:`run_real`):
    every processed frame (detections, the tracker's estimate, the frame's ground truth). Neither feeds
    anything back.
 4. At the scenario's end (or when the mission is over) the service is cancelled and the simulator stopped;
-   the run is scored offline against the recorded truth (:class:`~companion.evaluation.scoring.RunScorer`).
+   the run is scored offline against the recorded truth
+   (:class:`~companion.lab.evaluation.scoring.RunScorer`).
 
 Every process started here is stopped here, by its PID, whatever happens.
 """
@@ -36,21 +37,21 @@ from pathlib import Path
 from typing import Any, cast
 
 from companion.config import Config
-from companion.evaluation.lockstep import RunResult
-from companion.evaluation.procs import REPO, Child, SimRunError
-from companion.evaluation.procs import SitlPorts as Ports
-from companion.evaluation.scoring import RunScorer, snapshot_times
-from companion.evaluation.simclock import SimClock
-from companion.evaluation.sitl_components import RUN_ENV
-from companion.evaluation.tomlw import toml_value
-from companion.evaluation.trace import RunObserver, TraceFrame
-from companion.evaluation.truthlog import TruthTrack, follower_of, leader_of
+from companion.lab.evaluation.lockstep import RunResult
+from companion.lab.evaluation.procs import REPO, Child, SimRunError
+from companion.lab.evaluation.procs import SitlPorts as Ports
+from companion.lab.evaluation.scoring import RunScorer, snapshot_times
+from companion.lab.evaluation.simclock import SimClock
+from companion.lab.evaluation.sitl_components import RUN_ENV
+from companion.lab.evaluation.tomlw import toml_value
+from companion.lab.evaluation.trace import RunObserver, TraceFrame
+from companion.lab.evaluation.truthlog import TruthTrack, follower_of, leader_of
 from companion.mission.types import MissionInputs, StepOutput
 
 log = logging.getLogger(__name__)
 
 SITL_BASE_CONFIG = REPO / "config" / "sitl.toml"
-COMPONENT = "companion.evaluation.sitl_components:run"
+COMPONENT = "companion.lab.evaluation.sitl_components:run"
 #: Truth samples per sim second (crash and landing detection, tick scoring).
 TRUTH_RATE_HZ = 50.0
 #: Wall time allowed for ``sitl serve`` (and its camera worker) to come up.
@@ -226,7 +227,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
 
 
 def _snapshot(fr: TraceFrame) -> Any:
-    from companion.evaluation.plots import Snapshot  # noqa: PLC0415
+    from companion.lab.evaluation.plots import Snapshot  # noqa: PLC0415
 
     best = max(fr.detections, key=lambda d: d.score, default=None)
     assert fr.rgb is not None  # noqa: S101 (filtered by the caller)

@@ -23,7 +23,7 @@ from companion.estimation.estimate import TrackState
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.errors import ModelError
-from companion.perception.evaluate import (
+from companion.lab.perception_eval import (
     FrameError,
     Summary,
     TruthDetector,

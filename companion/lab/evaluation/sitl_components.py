@@ -3,8 +3,8 @@
 Three tasks beside the simulation, configured by the JSON file named in ``$WINGMAN_SIM_RUN`` (written by
 ``companion sim`` for this run; read once here, at the component's edge):
 
-* ``clock``: publishes the sim time for the service (:mod:`companion.evaluation.simclock`);
-* ``truth``: records both vehicles' truth for scoring (:mod:`companion.evaluation.truthlog`);
+* ``clock``: publishes the sim time for the service (:mod:`companion.lab.evaluation.simclock`);
+* ``truth``: records both vehicles' truth for scoring (:mod:`companion.lab.evaluation.truthlog`);
 * ``camera``: the renderer's :class:`~sitl.render.server.CameraServer` for the follower at the scenario's
   camera rate, blind to the leader inside the scenario's ``[run] leader_hidden_s`` windows.
 
@@ -21,9 +21,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from companion.evaluation.simclock import SimClockWriter
-from companion.evaluation.truthlog import TruthWriter, truth_row
 from companion.kernel.camera import MountConfig
+from companion.lab.evaluation.simclock import SimClockWriter
+from companion.lab.evaluation.truthlog import TruthWriter, truth_row
 
 RUN_ENV = "WINGMAN_SIM_RUN"
 #: How often the clock is published, sim s (the simulation advances in 5 ms physics steps).

@@ -25,10 +25,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TextIO
 
-from companion.evaluation.campaign import RunSpec, SimError, run_one
-from companion.evaluation.campaign_summary import write_campaign_summary
-from companion.evaluation.progress import StatusLine, progress_text
 from companion.kernel.errors import ConfigError
+from companion.lab.evaluation.campaign import RunSpec, SimError, run_one
+from companion.lab.evaluation.campaign_summary import write_campaign_summary
+from companion.lab.evaluation.progress import StatusLine, progress_text
 
 log = logging.getLogger(__name__)
 
@@ -139,7 +139,7 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
 def _init(ray: Any, options: RayOptions) -> None:
     runtime_env: dict[str, Any] = {}
     if options.ship:
-        from companion.evaluation.setup import REPO  # noqa: PLC0415
+        from companion.lab.evaluation.setup import REPO  # noqa: PLC0415
 
         runtime_env["working_dir"] = str(REPO)
         runtime_env["excludes"] = list(SHIP_EXCLUDES)

@@ -14,8 +14,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from companion.evaluation.log import FlightLog
-from companion.evaluation.metrics import PAPER_ROW_NAMES, PAPER_TABLE, TARGETS, FlightMetrics
+from companion.lab.evaluation.log import FlightLog
+from companion.lab.evaluation.metrics import PAPER_ROW_NAMES, PAPER_TABLE, TARGETS, FlightMetrics
 
 REQUIRED_KEYS = (
     "scenario",

@@ -12,8 +12,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 from numpy.typing import NDArray
 
-from companion.evaluation.log import F64, FlightLog
-from companion.evaluation.metrics import offset_cam_to_level_body
+from companion.lab.evaluation.log import F64, FlightLog
+from companion.lab.evaluation.metrics import offset_cam_to_level_body
 
 
 @dataclass(frozen=True, slots=True)

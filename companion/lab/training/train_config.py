@@ -1,7 +1,7 @@
 """What defines a detector training run: :class:`TrainConfig` (saved in every checkpoint) and its datasets.
 
 ``--data [NAME=]DIR[:WEIGHT]`` names one :class:`DataSource` (:func:`parse_source`); see
-:mod:`companion.perception.detector.train` for how they mix.
+:mod:`companion.lab.training.train` for how they mix.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion.perception.detector.augment import AugmentConfig
-from companion.perception.detector.loss import LossConfig
+from companion.lab.training.augment import AugmentConfig
+from companion.lab.training.loss import LossConfig
 from companion.perception.detector.model import DetectorSpec, arch_of
 from companion.perception.detector.shufflenet import ShuffleDetSpec
 

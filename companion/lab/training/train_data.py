@@ -18,10 +18,10 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, Sampler
 
-from companion.perception.detector.augment import AugmentConfig, training_sample
-from companion.perception.detector.cache import ImageCache
+from companion.lab.training.augment import AugmentConfig, training_sample
+from companion.lab.training.cache import ImageCache
+from companion.lab.training.train_config import DataSource, TrainConfig
 from companion.perception.detector.dataset import Sample, find_samples, list_splits
-from companion.perception.detector.train_config import DataSource, TrainConfig
 
 
 def _held_out(group: str, fraction: float) -> bool:

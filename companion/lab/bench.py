@@ -319,11 +319,11 @@ def format_comparison(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m companion.perception.bench NAME=MODEL.onnx ...``: time ONNX models side by side."""
+    """``python -m companion.lab.bench NAME=MODEL.onnx ...``: time ONNX models side by side."""
     import argparse  # noqa: PLC0415
     import json  # noqa: PLC0415
 
-    p = argparse.ArgumentParser(prog="python -m companion.perception.bench", description=main.__doc__)
+    p = argparse.ArgumentParser(prog="python -m companion.lab.bench", description=main.__doc__)
     p.add_argument("models", nargs="+", metavar="NAME=MODEL.onnx")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--input-size", type=int, default=320, help="letterbox size of Wingman exports, px")

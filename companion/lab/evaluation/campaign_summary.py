@@ -7,11 +7,11 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from companion.evaluation.metrics import monte_carlo_summary
-from companion.evaluation.report import write_json
+from companion.lab.evaluation.metrics import monte_carlo_summary
+from companion.lab.evaluation.report import write_json
 
 if TYPE_CHECKING:
-    from companion.evaluation.campaign import RunSpec
+    from companion.lab.evaluation.campaign import RunSpec
 
 #: What the Monte Carlo summary keeps of each run.
 SEED_KEYS = (

@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.lab.training.metrics import DetectionStats
 from companion.perception.detector.dataset import Sample, read_labels, read_rgb
-from companion.perception.detector.metrics import DetectionStats
 from companion.perception.detector.postprocess import box_iou
 from companion.perception.detector.runtime import FrameDetector
 

@@ -2,7 +2,7 @@
 
 :func:`progress_text` is the line both executors print (child processes, Ray tasks); :class:`StatusLine`
 rewrites it in place on a terminal; :class:`ProgressLine` builds it from the child processes of
-:func:`companion.evaluation.campaign.run_many`.
+:func:`companion.lab.evaluation.campaign.run_many`.
 """
 
 from __future__ import annotations

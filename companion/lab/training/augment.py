@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.perception.detector.cache import ImageCache
+from companion.lab.training.cache import ImageCache
 from companion.perception.detector.dataset import Boxes
 from companion.perception.detector.letterbox import PAD_VALUE, resize_image
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion.evaluation.obstacles import Envelopes
+from companion.lab.evaluation.obstacles import Envelopes
 
 #: The quad's centre of gravity rests this far above the ground (``sitl`` model, world NED z = -0.094 m).
 REST_HEIGHT_M = 0.094

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.evaluation.log import F64, FlightLog
+from companion.lab.evaluation.log import F64, FlightLog
 
 #: The paper's Table (position RMSE m, yaw RMSE deg, maximum deviation m).
 PAPER_TABLE: Mapping[str, tuple[float, float, float]] = {

@@ -14,7 +14,7 @@ the best one by validation mAP@0.5 (``best.pt``), exact resume with ``--resume``
 Everything random is derived from ``seed``: the sample order of epoch ``e`` from ``(seed, e)`` and the
 augmentation of sample ``i`` in epoch ``e`` from ``(seed, e, i)``, so a run is repeatable whatever the number
 of loader workers, and a resumed run sees the same batches it would have seen. The run's settings are
-:mod:`companion.perception.detector.train_config`, its data :mod:`companion.perception.detector.train_data`.
+:mod:`companion.lab.training.train_config`, its data :mod:`companion.lab.training.train_data`.
 """
 
 from __future__ import annotations
@@ -34,23 +34,23 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader
 
-from companion.perception.detector.cache import ImageCache
-from companion.perception.detector.layers import count_parameters
-from companion.perception.detector.letterbox import boxes_to_source, letterbox_geometry, letterbox_uint8
-from companion.perception.detector.loss import DetectionLoss
-from companion.perception.detector.metrics import DetectionStats
-from companion.perception.detector.model import DetectorNet, arch_of, net_for_spec
-from companion.perception.detector.postprocess import Decoder
-from companion.perception.detector.shufflenet import ShuffleDet, load_backbone
-from companion.perception.detector.torch_engine import save_weights
-from companion.perception.detector.train_config import TrainConfig
-from companion.perception.detector.train_data import (
+from companion.lab.training.cache import ImageCache
+from companion.lab.training.loss import DetectionLoss
+from companion.lab.training.metrics import DetectionStats
+from companion.lab.training.train_config import TrainConfig
+from companion.lab.training.train_data import (
     AugmentedSet,
     MixedBatchSampler,
     collate,
     source_splits,
     worker_init,
 )
+from companion.perception.detector.layers import count_parameters
+from companion.perception.detector.letterbox import boxes_to_source, letterbox_geometry, letterbox_uint8
+from companion.perception.detector.model import DetectorNet, arch_of, net_for_spec
+from companion.perception.detector.postprocess import Decoder
+from companion.perception.detector.shufflenet import ShuffleDet, load_backbone
+from companion.perception.detector.torch_engine import save_weights
 
 log = logging.getLogger(__name__)
 

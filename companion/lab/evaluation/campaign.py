@@ -3,9 +3,9 @@
 * :func:`run_one` flies one scenario (real path by default, or lockstep) and writes its report and plots.
 * :func:`run_many` runs several single runs as child processes (``companion sim`` itself), ``jobs`` at a
   time, shows one progress line for all of them, and writes ``summary.json`` / ``summary.md``.
-* :mod:`companion.evaluation.ray_executor` runs a seeded campaign as Ray tasks instead (``--executor ray``);
-  both executors share the summary (:mod:`companion.evaluation.campaign_summary`), ``--resume``
-  (:func:`split_done`) and the progress text (:mod:`companion.evaluation.progress`).
+* :mod:`companion.lab.evaluation.ray_executor` runs a seeded campaign as Ray tasks instead
+  (``--executor ray``); both executors share the summary (:mod:`companion.lab.evaluation.campaign_summary`),
+  ``--resume`` (:func:`split_done`) and the progress text (:mod:`companion.lab.evaluation.progress`).
 
 A child reports progress as JSON lines on its stdout (``--progress json``); everything else it says goes
 to its log file in its own output folder.
@@ -25,11 +25,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
-from companion.evaluation.campaign_summary import write_campaign_summary
-from companion.evaluation.progress import ProgressLine
-from companion.evaluation.report import write_json
 from companion.kernel.config import deep_merge
 from companion.kernel.errors import CompanionError, ConfigError
+from companion.lab.evaluation.campaign_summary import write_campaign_summary
+from companion.lab.evaluation.progress import ProgressLine
+from companion.lab.evaluation.report import write_json
 
 log = logging.getLogger(__name__)
 
@@ -81,16 +81,16 @@ def effective_scenario(path: Path, duration_s: float | None) -> Any:
 
 def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> dict[str, Any]:
     """Fly one scenario and write ``report.json``, ``report.md`` and the plots; returns the report."""
-    from companion.evaluation.lockstep import LockstepOptions  # noqa: PLC0415 (numpy, the cores)
-    from companion.evaluation.realpath import RealOptions, run_real  # noqa: PLC0415
-    from companion.evaluation.setup import (  # noqa: PLC0415
+    from companion.lab.evaluation.lockstep import LockstepOptions  # noqa: PLC0415 (numpy, the cores)
+    from companion.lab.evaluation.realpath import RealOptions, run_real  # noqa: PLC0415
+    from companion.lab.evaluation.setup import (  # noqa: PLC0415
         load_detect,
         run_lockstep,
         scenario_path,
         service_config,
         write_run,
     )
-    from companion.evaluation.tomlw import dumps  # noqa: PLC0415
+    from companion.lab.evaluation.tomlw import dumps  # noqa: PLC0415
 
     path = scenario_path(spec.scenario)
     scenario = effective_scenario(path, spec.duration_s)
@@ -132,9 +132,9 @@ def write_run_without_plots(
     out_dir: Path, name: str, seed: int, result: Any, cfg: Any, *, wall_s: float, extra: dict[str, Any]
 ) -> dict[str, Any]:
     """The report alone (Monte Carlo runs: fifty sets of plots would cost more than the runs' insight)."""
-    from companion.evaluation.log import save_log  # noqa: PLC0415
-    from companion.evaluation.metrics import compute_metrics  # noqa: PLC0415
-    from companion.evaluation.report import build_report, write_report  # noqa: PLC0415
+    from companion.lab.evaluation.log import save_log  # noqa: PLC0415
+    from companion.lab.evaluation.metrics import compute_metrics  # noqa: PLC0415
+    from companion.lab.evaluation.report import build_report, write_report  # noqa: PLC0415
 
     metrics = compute_metrics(result.log, cfg.formation.offset_cam_m)
     report = build_report(name, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **extra})
@@ -156,13 +156,13 @@ def _runtime_override(detector: DetectorChoice) -> dict[str, Any]:
 
 def require_weights(overrides: Sequence[str] = ()) -> None:
     """Fail with one line when the network detector has no weights (checked before any run starts)."""
-    from companion.evaluation.setup import service_config  # noqa: PLC0415
+    from companion.lab.evaluation.setup import service_config  # noqa: PLC0415
 
     _require_weights(service_config({}, parse_overrides(overrides)))
 
 
 def _require_weights(cfg: Any) -> None:
-    from companion.evaluation.setup import REPO  # noqa: PLC0415
+    from companion.lab.evaluation.setup import REPO  # noqa: PLC0415
     from companion.perception.detector import model_files  # noqa: PLC0415
 
     pt, onnx = model_files(cfg.detector, REPO)
@@ -175,7 +175,7 @@ def _require_weights(cfg: Any) -> None:
 
 
 def _describe(cfg: Any) -> str:
-    from companion.evaluation.setup import REPO  # noqa: PLC0415
+    from companion.lab.evaluation.setup import REPO  # noqa: PLC0415
     from companion.perception.detector import choose_runtime, window_note  # noqa: PLC0415
 
     runtime, path = choose_runtime(cfg.detector, REPO)
@@ -216,7 +216,7 @@ async def _run_child(child: _Child, env: dict[str, str], line: ProgressLine, chi
     (child.spec.out_dir / "report.json").unlink(missing_ok=True)  # a failed rerun leaves no stale report
     child.started_s = time.monotonic()
     with (child.spec.out_dir / "sim.log").open("ab") as err:
-        from companion.evaluation.procs import die_with_parent  # noqa: PLC0415
+        from companion.lab.evaluation.procs import die_with_parent  # noqa: PLC0415
 
         child.proc = await asyncio.create_subprocess_exec(
             *child_args(child.spec),
@@ -288,7 +288,7 @@ def run_many(
 
     ``already_done``: a resumed campaign's seeds that have their report already (in the summary, not run).
     """
-    from companion.evaluation.report import write_summary  # noqa: PLC0415
+    from companion.lab.evaluation.report import write_summary  # noqa: PLC0415
 
     out_dir.mkdir(parents=True, exist_ok=True)
     line = ProgressLine(stream, len(specs), tty=stream.isatty())

@@ -20,12 +20,12 @@ from pathlib import Path
 from typing import Any
 
 from companion.config import DetectorConfig
-from companion.perception.detector.augment import REAL_CAMERA
+from companion.lab.training.augment import REAL_CAMERA
+from companion.lab.training.export import export_and_sign
+from companion.lab.training.train import train
+from companion.lab.training.train_config import DataSource, TrainConfig
 from companion.perception.detector.dataset import find_samples, list_splits
-from companion.perception.detector.export import export_and_sign
 from companion.perception.detector.torch_engine import load_weights
-from companion.perception.detector.train import train
-from companion.perception.detector.train_config import DataSource, TrainConfig
 from companion.perception.detector.weights import sha256_file
 
 
@@ -62,8 +62,8 @@ def sources_for(
 
 def _score(det_cfg: DetectorConfig, weights: Path, eval_sets: Sequence[Path]) -> dict[str, Any]:
     """The ONNX export beside ``weights`` (pinned by its sidecar) on the held-out recordings."""
+    from companion.lab.training.evaluate import evaluate  # noqa: PLC0415
     from companion.perception.detector import load_detector  # noqa: PLC0415 (runtimes)
-    from companion.perception.detector.evaluate import evaluate  # noqa: PLC0415
 
     detector = load_detector(
         det_cfg.model_copy(update={"model_path": str(weights), "model_sha256": "", "runtime": "onnx"})
