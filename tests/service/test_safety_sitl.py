@@ -222,7 +222,10 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
                 rc, out, _ = await cli(env, "start")
                 assert rc == 0, out
                 await until(lambda: mission_state(sock) == "follow", 90, "FOLLOW after the start", logs)
-                assert mux.control_to(2, since_s=t_restart)
+                # The state turns before the first setpoint has crossed the link: wait for it to arrive.
+                await until(
+                    lambda: bool(mux.control_to(2, since_s=t_restart)), 20, "control after the start", logs
+                )
 
                 # -- 4. operator commands over MQTT go through the mission machine
                 await publish(broker.port, key_bytes, {"cmd": "set_offset", "offset_cam_m": [0.0, 0.0, 1.5]})
