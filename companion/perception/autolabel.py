@@ -157,12 +157,3 @@ def auto_label(
     if quality < cfg.min_quality:
         return AutoLabel(Verdict.REJECTED, "low quality", box, quality, expected, z)
     return AutoLabel(Verdict.LABEL, "", box, quality, expected, z)
-
-
-def box_iou(a: BoxT, b: BoxT) -> float:
-    """Intersection over union of two xyxy boxes."""
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0.0 else 0.0

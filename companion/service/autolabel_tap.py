@@ -43,12 +43,41 @@ def label_frame(
     return auto_label(frame.depth_m, frame.intrinsics, p_cam, cfg)
 
 
+class SharedLeaderTrack:
+    """The leader's shared positions, as they arrive, moved to a frame's time.
+
+    A share carries no velocity: the last two give it. Older than ``max_age_s`` at the frame: no position.
+    """
+
+    def __init__(self, max_age_s: float) -> None:
+        self.max_age_s = max_age_s
+        self._last: SharedLeaderPosition | None = None
+        self._prev: SharedLeaderPosition | None = None
+
+    def add(self, position: SharedLeaderPosition) -> None:
+        """A shared leader position (stamped on the frames' clock); one older than the last is ignored."""
+        if self._last is None or position.stamp_s > self._last.stamp_s:
+            self._prev, self._last = self._last, position
+
+    def at(self, stamp_s: float) -> NDArray[np.float64] | None:
+        """The leader's position at ``stamp_s``: the last share moved along the last two shares' velocity."""
+        last = self._last
+        if last is None or abs(stamp_s - last.stamp_s) > self.max_age_s:
+            return None
+        p = np.asarray(last.p_ned_m, np.float64)
+        prev = self._prev
+        if prev is not None and 0.0 < last.stamp_s - prev.stamp_s <= 1.0:
+            v = (p - np.asarray(prev.p_ned_m, np.float64)) / (last.stamp_s - prev.stamp_s)
+            p = p + (stamp_s - last.stamp_s) * v
+        return p
+
+
 class AutoLabelTap:
     """The service's auto-labeller: shares in, frames in, a dataset out (``[autolabel]`` in the config)."""
 
     def __init__(self, cfg: Config, geometry: CameraGeometry, now_wall_s: float | None = None) -> None:
         a = cfg.autolabel
-        self.max_age_s = a.share_max_age_s
+        self.leader = SharedLeaderTrack(a.share_max_age_s)
         self.cfg = AutoLabelConfig(
             leader_span_m=cfg.leader.span_m,
             position_sigma_m=a.position_sigma_m,
@@ -63,8 +92,6 @@ class AutoLabelTap:
             max_bytes=a.max_bytes,
             negative_every=a.negative_every,
         )
-        self._last: SharedLeaderPosition | None = None
-        self._prev: SharedLeaderPosition | None = None
         self.gated_out = 0
 
     def __enter__(self) -> AutoLabelTap:
@@ -80,24 +107,11 @@ class AutoLabelTap:
 
     def share(self, position: SharedLeaderPosition) -> None:
         """A shared leader position (its stamp on the frames' clock)."""
-        if self._last is None or position.stamp_s > self._last.stamp_s:
-            self._prev, self._last = self._last, position
-
-    def leader_at(self, stamp_s: float) -> NDArray[np.float64] | None:
-        """The leader's position at ``stamp_s``: the last share moved along the last two shares' velocity."""
-        last = self._last
-        if last is None or abs(stamp_s - last.stamp_s) > self.max_age_s:
-            return None
-        p = np.asarray(last.p_ned_m, np.float64)
-        prev = self._prev
-        if prev is not None and 0.0 < last.stamp_s - prev.stamp_s <= 1.0:
-            v = (p - np.asarray(prev.p_ned_m, np.float64)) / (last.stamp_s - prev.stamp_s)
-            p = p + (stamp_s - last.stamp_s) * v
-        return p
+        self.leader.add(position)
 
     def on_frame(self, frame: RgbdFrame, vehicle: VehicleState, attitude: AttitudeHistory) -> None:
         label = label_frame(
-            frame, vehicle, attitude, self.leader_at(frame.stamp_s), geometry=self.geometry, cfg=self.cfg
+            frame, vehicle, attitude, self.leader.at(frame.stamp_s), geometry=self.geometry, cfg=self.cfg
         )
         if label is None:
             self.gated_out += 1

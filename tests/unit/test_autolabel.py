@@ -11,7 +11,8 @@ import pytest
 
 from companion.kernel.camera import Intrinsics, RgbdFrame
 from companion.lab.evaluation.autolabel_check import LeaderShare
-from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, auto_label, box_iou
+from companion.lab.evaluation.scoring import iou
+from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, auto_label
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.detector.dataset import find_samples, read_labels
 
@@ -50,7 +51,7 @@ def test_the_guess_may_be_off_by_the_gps_errors() -> None:
     depth, box = _scene((0.9, 0.2, 6.0))
     label = auto_label(depth, INTR, np.array([0.3, 0.2, 6.0]), CFG)
     assert label.verdict is Verdict.LABEL
-    assert box_iou(label.box_xyxy_px, box) == 1.0  # type: ignore[arg-type]
+    assert iou(label.box_xyxy_px, box) == 1.0  # type: ignore[arg-type]
     assert 0.35 < label.quality < 0.6  # 1.2 sigma off: a middling score
     # 0.8 m off (1.6 sigma): too doubtful to keep.
     depth, _ = _scene((1.1, 0.2, 6.0))
@@ -114,15 +115,24 @@ def test_a_leader_at_another_range_is_not_labelled() -> None:
 
 
 def test_the_share_arrives_late_and_is_extrapolated_to_the_frame() -> None:
+    from companion.service.autolabel_tap import SharedLeaderTrack
+
     share = LeaderShare(rate_hz=10.0, latency_s=0.1)
-    share.sample(1.0, (10.0, 0.0, -5.0), (2.0, 0.0, 0.0), valid=True)
-    assert share.at(1.05, 1.05) is None  # not arrived yet
-    p = share.at(1.1, 1.25)
+    track = SharedLeaderTrack(max_age_s=0.5)
+
+    def at(t_s: float, stamp_s: float) -> np.ndarray | None:
+        for position in share.arrived(t_s):
+            track.add(position)
+        return track.at(stamp_s)
+
+    share.sample(1.0, (10.0, 0.0, -5.0), valid=True)
+    assert at(1.05, 1.05) is None  # not arrived yet
+    share.sample(1.05, (99.0, 0.0, 0.0), valid=True)  # before the next sample time: ignored
+    share.sample(1.1, (10.2, 0.0, -5.0), valid=True)  # 2 m/s north
+    p = at(1.2, 1.25)
     assert p is not None
     assert p[0] == pytest.approx(10.5)
-    share.sample(1.05, (99.0, 0.0, 0.0), (0.0, 0.0, 0.0), valid=True)  # before the next sample time: ignored
-    assert share.at(1.3, 1.3)[0] == pytest.approx(10.6)  # type: ignore[index]
-    assert share.at(3.0, 3.0) is None  # stale
+    assert at(3.0, 3.0) is None  # stale
 
 
 def _frame(seq: int) -> RgbdFrame:

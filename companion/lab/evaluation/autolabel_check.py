@@ -8,30 +8,24 @@ image. The renderer's truth reaches only the score.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.flight import Vec3T, VehicleState
-from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict, box_iou
+from companion.lab.evaluation.scoring import iou
+from companion.mission.types import SharedLeaderPosition
+from companion.perception.autolabel import AutoLabel, AutoLabelConfig, Verdict
 from companion.perception.autolabel_writer import AutoLabelWriter
 from companion.perception.transform import AttitudeHistory, CameraGeometry
-from companion.service.autolabel_tap import label_frame
+from companion.service.autolabel_tap import SharedLeaderTrack, label_frame
 
 #: IoU a label must reach against the true box to count as right.
 GOOD_IOU = 0.7
-
-
-@dataclass(frozen=True, slots=True)
-class _Share:
-    arrives_s: float
-    stamp_s: float
-    p_ned_m: Vec3T
-    v_ned_m_s: Vec3T
 
 
 @dataclass(slots=True)
@@ -39,32 +33,33 @@ class LeaderShare:
     """The leader's shared position as it reaches the follower: its own estimate, sampled and delayed.
 
     Positions are in the follower's local NED frame (the leader's local estimate moved by the offset
-    between both EKF origins, as the service does with geodetic positions).
+    between both EKF origins, as the service does with geodetic positions). What arrives goes into the
+    service's own :class:`~companion.service.autolabel_tap.SharedLeaderTrack`.
     """
 
     rate_hz: float = 10.0
     latency_s: float = 0.1
-    _pending: list[_Share] = field(default_factory=list)
-    _latest: _Share | None = None
+    _pending: deque[tuple[float, SharedLeaderPosition]] = field(default_factory=deque)
     _next_s: float = 0.0
 
-    def sample(self, t_s: float, p_ned_m: Vec3T, v_ned_m_s: Vec3T, valid: bool) -> None:
-        """Offer the leader's estimate at ``t_s``; kept at ``rate_hz`` while its GPS is good."""
-        if t_s + 1e-9 < self._next_s:
+    def due(self, t_s: float) -> bool:
+        """Whether a share is sent at ``t_s`` (``rate_hz``): look up the leader's estimate only then."""
+        return t_s + 1e-9 >= self._next_s
+
+    def sample(self, t_s: float, p_ned_m: Vec3T, valid: bool) -> None:
+        """Send the leader's estimate at ``t_s`` when due; nothing while its GPS is not good."""
+        if not self.due(t_s):
             return
         self._next_s = t_s + 1.0 / self.rate_hz
         if valid:
-            self._pending.append(_Share(t_s + self.latency_s, t_s, p_ned_m, v_ned_m_s))
+            self._pending.append((t_s + self.latency_s, SharedLeaderPosition(t_s, p_ned_m)))
 
-    def at(self, t_s: float, stamp_s: float, max_age_s: float = 0.5) -> NDArray[np.float64] | None:
-        """The leader's position at ``stamp_s`` from the shares that arrived by ``t_s`` (None: stale)."""
-        while self._pending and self._pending[0].arrives_s <= t_s + 1e-9:
-            self._latest = self._pending.pop(0)
-        s = self._latest
-        if s is None or stamp_s - s.stamp_s > max_age_s:
-            return None
-        dt = stamp_s - s.stamp_s
-        return np.asarray(s.p_ned_m, np.float64) + dt * np.asarray(s.v_ned_m_s, np.float64)
+    def arrived(self, t_s: float) -> list[SharedLeaderPosition]:
+        """The shares that reached the follower by ``t_s``, oldest first."""
+        out = []
+        while self._pending and self._pending[0][0] <= t_s + 1e-9:
+            out.append(self._pending.popleft()[1])
+        return out
 
 
 @dataclass(slots=True)
@@ -97,6 +92,7 @@ class AutoLabelCheck:
         self.cfg = cfg
         self.geometry = geometry
         self.share = LeaderShare()
+        self.leader = SharedLeaderTrack(max_age_s=0.5)
         self.score = _Score()
         self.writer = AutoLabelWriter(out_dir, sequence=sequence) if out_dir is not None else None
         #: Every frame with the renderer's own box (an evaluation set; never a training set for a product).
@@ -128,7 +124,9 @@ class AutoLabelCheck:
                 else AutoLabel(Verdict.NEGATIVE, "truth")
             )
             self.truth_writer.offer(frame, truth_label)
-        leader = self.share.at(t_s, frame.stamp_s)
+        for position in self.share.arrived(t_s):
+            self.leader.add(position)
+        leader = self.leader.at(frame.stamp_s)
         label = label_frame(frame, vehicle, attitude, leader, geometry=self.geometry, cfg=self.cfg)
         if label is None:
             sc.gated_out += 1
@@ -144,9 +142,9 @@ class AutoLabelCheck:
             if true_box is None or label.box_xyxy_px is None:
                 sc.false_labels += 1
             else:
-                iou = box_iou(label.box_xyxy_px, true_box)
-                sc.ious.append(iou)
-                sc.good += iou >= GOOD_IOU
+                overlap = iou(label.box_xyxy_px, true_box)
+                sc.ious.append(overlap)
+                sc.good += overlap >= GOOD_IOU
         elif label.verdict is Verdict.NEGATIVE:
             sc.negatives += 1
             sc.negatives_with_leader += true_box is not None
@@ -236,7 +234,7 @@ def write_sheet(
         if r["truth_box_xyxy_px"]:
             truth = tuple(float(v) for v in r["truth_box_xyxy_px"].split())
             rect(truth, (255, 80, 0), at)
-            caption += f"  IoU {box_iou(box, truth):.2f}"  # type: ignore[arg-type]
+            caption += f"  IoU {iou(box, truth):.2f}"
         rect(box, (0, 200, 0), at)
         canvas = np.full((tile_px + 16, tile_px, 3), 255, np.uint8)
         canvas[:tile_px] = big

@@ -221,7 +221,7 @@ class LockstepRun:
 
     def _share_leader(self, t_s: float) -> None:
         """The leader's own EKF estimate, moved into the follower's local frame, as MQTT would share it."""
-        if self.autolabel is None:
+        if self.autolabel is None or not self.autolabel.share.due(t_s):
             return
         est = self.world.autopilot("leader").est
         off_l = self.world.origin_offset_ned_m("leader")
@@ -231,8 +231,7 @@ class LockstepRun:
             float(est.e_m + off_l[1] - off_f[1]),
             float(est.d_m + off_l[2] - off_f[2]),
         )
-        v = (float(est.vn_m_s), float(est.ve_m_s), float(est.vd_m_s))
-        self.autolabel.share.sample(t_s, p, v, bool(est.global_valid))
+        self.autolabel.share.sample(t_s, p, bool(est.global_valid))
 
     def _capture(self, t_s: float) -> None:
         follower = self.world.truth("follower")
