@@ -21,6 +21,10 @@ Schema (all times are sim seconds from simulator start; all keys optional unless
     [companion]                       # opaque to the simulator: service config overrides for companion sim
     mission = { gps_loss_policy = "land" }
 
+    [formation]                       # opaque to the simulator: one leader and a follower per plan slot
+    plan = "v"                        # config/formations/v.toml; followers named as in the plan
+    leader_spawn_ned_m = [12.0, 0.0, 0.0]
+
     [leader]                          # flown through the leader's own autopilot (offboard)
     type = "straight"                 # none | straight | circle | figure8 | waypoints
     start_s = 35.0                    # the leader holds at its hover point until then
@@ -269,6 +273,8 @@ class Scenario(Section):
     visual: dict[str, Any] = Field(default_factory=dict)
     #: Opaque to the simulator: service config overrides (``companion sim`` validates them).
     companion: dict[str, Any] = Field(default_factory=dict)
+    #: Opaque to the simulator: a formation of followers (``companion sim`` flies one service per follower).
+    formation: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("schema_version")
     @classmethod

@@ -89,7 +89,7 @@ def _sim(args: argparse.Namespace) -> int:
     from companion.lab.evaluation.setup import all_scenarios, scenario_path
 
     out: Path = args.out
-    harness = args.harness or ("lockstep" if args.seeds else "real")
+    harness = args.harness or ("lockstep" if args.seeds or _is_formation(args.scenario) else "real")
     common: dict[str, Any] = {
         "harness": harness,
         "detector": args.detector,
@@ -183,6 +183,16 @@ def _all_harness(name: str, forced: str | None) -> str:
     if forced is not None:
         return forced
     return "real" if name in PAPER_SCENARIOS else "lockstep"
+
+
+def _is_formation(name: str) -> bool:
+    """Whether a scenario flies a formation (those fly in lockstep by default)."""
+    if name == "all":
+        return False
+    from companion.lab.evaluation.campaign import effective_scenario
+    from companion.lab.evaluation.setup import scenario_path
+
+    return bool(effective_scenario(scenario_path(name), None).formation)
 
 
 def _progress_line(t_s: float, end_s: float, wall_s: float) -> str:

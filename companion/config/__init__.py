@@ -7,6 +7,7 @@ Overrides use double underscores between levels and TOML literals as values, e.g
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from companion.config.flight import FormationConfig, MissionConfig, SafetyConfig
+from companion.config.formation_plan import FormationPlan, load_plan
 from companion.config.perception import CameraConfig, DetectorConfig, LeaderConfig, PoseConfig, TrackerConfig
 from companion.config.service import (
     AutoLabelSection,
@@ -34,6 +36,7 @@ __all__ = [
     "Config",
     "DetectorConfig",
     "FormationConfig",
+    "FormationPlan",
     "LeaderConfig",
     "LinkConfig",
     "LoggingConfig",
@@ -44,7 +47,9 @@ __all__ = [
     "ServiceConfig",
     "StatusConfig",
     "TrackerConfig",
+    "apply_plan",
     "load_config",
+    "load_plan",
     "url_problem",
 ]
 
@@ -101,6 +106,39 @@ def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> 
     data = read_toml(path) if path is not None else {}
     data = deep_merge(data, env_overrides(os.environ if environ is None else environ))
     try:
-        return Config.model_validate(data)
+        cfg = Config.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(str(path or "<defaults>"), format_validation_error(exc)) from None
+    if cfg.formation.plan:
+        cfg = apply_plan(cfg, _plan_path(cfg.formation.plan, path))
+    return cfg
+
+
+def _plan_path(name: str, config_path: Path | None) -> Path:
+    p = Path(name)
+    if not p.is_absolute() and config_path is not None and (config_path.parent / p).exists():
+        return config_path.parent / p
+    return p
+
+
+def apply_plan(cfg: Config, plan_path: Path) -> Config:
+    """``cfg`` flying its ``vehicle_id``'s slot of the plan: facing the leader at the slot's range.
+
+    The follower keeps the leader in the middle of the image (a wide V puts it outside the camera's field of
+    view if the follower faced the leader's heading); ``slot_leader_m`` holds its place around the leader.
+    """
+    plan = load_plan(plan_path)
+    try:
+        slot = plan.slot(cfg.vehicle_id)
+    except KeyError as exc:
+        raise ConfigError(str(plan_path), [f"vehicle_id: {exc.args[0]}"]) from None
+    forward, right, down = slot.offset_m
+    formation = cfg.formation.model_copy(
+        update={
+            "plan": str(plan_path),
+            "offset_cam_m": (0.0, -down, math.hypot(forward, right)),
+            "slot_leader_m": slot.offset_m,
+            "neighbour_slots_m": tuple(s.offset_m for s in plan.slots if s.follower != cfg.vehicle_id),
+        }
+    )
+    return cfg.model_copy(update={"formation": formation})

@@ -63,6 +63,22 @@ class FormationConfig(Section):
     steady_link_age_s: float = Field(0.02, gt=0)
     steady_link_hold_s: float = Field(3.0, ge=0)
     steady_hit_ratio: float = Field(0.8, ge=0.0, le=1.0)
+    #: A formation plan (``config/formations/*.toml``; relative to the config file's folder, then to the
+    #: working folder). Empty: a lone follower on ``offset_cam_m``. With a plan the service flies the slot
+    #: named by ``vehicle_id``: ``offset_cam_m`` and ``slot_leader_m`` are set from it at load time.
+    plan: str = ""
+    #: The follower's place in the leader's level heading frame (forward, right, down), m. With the leader's
+    #: shared heading the follower holds this place as the leader turns; without it (or None) only the range
+    #: and the bearing of ``offset_cam_m`` are held and the follower trails where it is.
+    slot_leader_m: tuple[float, float, float] | None = None
+    #: The other followers' slots in the same plan (forward, right, down), m: where neighbours should be,
+    #: which tells the leader from a look-alike neighbour after GPS loss. Set from ``plan``.
+    neighbour_slots_m: tuple[tuple[float, float, float], ...] = ()
+    #: How fast an error across the line of sight to the slot is corrected, 1/s (the range has ``kp_xy``).
+    kp_slot_1_s: float = Field(1.5, ge=0.0, le=5.0)
+    #: The slot's own acceleration (as it turns with the leader) fed forward as a velocity lead, s; the
+    #: same reason as ``leader_accel_ff_s``. 0 turns it off.
+    slot_accel_ff_s: float = Field(0.35, ge=0.0, le=2.0)
 
 
 class MissionConfig(Section):

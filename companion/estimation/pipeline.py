@@ -23,10 +23,11 @@ import numpy as np
 
 from companion.config import Config, LeaderConfig, PoseConfig, SafetyConfig, TrackerConfig
 from companion.estimation.estimate import TrackState
+from companion.estimation.identity import LeaderIdentity
 from companion.estimation.leader import ObstacleAhead, TrackStatus
 from companion.estimation.tracker import TargetTracker
 from companion.kernel.camera import RgbdFrame
-from companion.kernel.frames import Mat3
+from companion.kernel.frames import Mat3, Vec3
 from companion.perception.obstacle import MIN_RANGE_M, guard_range_m, nearest_ahead
 from companion.perception.pose import LeaderMeasurement, measure_all
 from companion.perception.size_range import SizeCalibrator
@@ -69,6 +70,8 @@ class PerceptionPipeline:
         #: The follower's own velocity from telemetry (ego-motion for the tracker); may stay empty.
         self.velocity = VelocityHistory()
         self.counters = PipelineCounters()
+        #: Formations: keeps the track on the leader among look-alike neighbours (None: a lone follower).
+        self.identity: LeaderIdentity | None = None
         self.size = (
             SizeCalibrator(
                 leader.span_m,
@@ -142,10 +145,27 @@ class PerceptionPipeline:
             measurements = ()
             R = self._last_R_ned_body
         self._last_R_ned_body = R
+        ident = self.identity
+        if ident is not None and measurements:
+            measurements = [
+                m for m in measurements if ident.keep(*self._ned_rel(m.p_cam_leader_m, m.cov_cam_m2, R))
+            ]
         state = self.tracker.step(stamp_s, measurements, R, self.velocity.v_at(stamp_s))
+        if ident is not None and state.status == TrackStatus.CONFIRMED and state.estimate is not None:
+            est = state.estimate
+            sigma = math.sqrt(max(float(np.trace(est.cov_ned_m2)), 0.0))
+            if ident.check_track(stamp_s, est.p_ned_rel_m, sigma):
+                # Start again from this frame's measurements that fit the leader.
+                self.tracker.reset()
+                state = self.tracker.step(stamp_s, measurements, R, self.velocity.v_at(stamp_s))
         if self.size is not None and state.measurement is not None and state.status == TrackStatus.CONFIRMED:
             self.size.update(state.measurement)
         return state
+
+    def _ned_rel(self, p_cam_m: Vec3, cov_cam_m2: Mat3, R_ned_body: Mat3) -> tuple[Vec3, float]:
+        """A camera-frame measurement relative to the follower in NED, m, and its 1-sigma, m."""
+        sigma_m = math.sqrt(max(float(np.trace(cov_cam_m2)), 0.0))
+        return self.camera.cam_to_ned_rel(p_cam_m, R_ned_body), sigma_m
 
     def process(self, frame: RgbdFrame, detections: Sequence[Detection]) -> TrackState:
         """Both stages for one frame."""

@@ -44,6 +44,7 @@ from companion.mission.geometry import (
     slot_error,
     tilt_from_accel,
 )
+from companion.mission.plan_slot import NeighbourNow, SlotTarget
 from companion.mission.safety import (
     G_M_S2,
     SafetyLimits,
@@ -140,6 +141,11 @@ class FormationLaw:
         self._v_prev: Vec3 | None = None
         self._v_leader_prev: Vec3 | None = None
         self._a_leader = np.zeros(3)
+        #: The other followers relative to this one now (formations), set by the machine every step; the
+        #: separation barrier holds against each.
+        self.neighbours: list[NeighbourNow] = []
+        self._v_slot_prev: Vec3 | None = None
+        self._a_slot = np.zeros(3)
 
     def reset(self) -> None:
         """Forget integrators and slew history (the hover-thrust estimate is a vehicle property: kept)."""
@@ -150,6 +156,8 @@ class FormationLaw:
         self._v_prev = None
         self._v_leader_prev = None
         self._a_leader = np.zeros(3)
+        self._v_slot_prev = None
+        self._a_slot = np.zeros(3)
 
     def _leader_accel(self, v_leader: Vec3 | None, dt: float, a_track: Vec3T | None = None) -> Vec3:
         """The leader's acceleration, bounded by the law's acceleration cap.
@@ -219,6 +227,7 @@ class FormationLaw:
         obstacle_ned_m: Vec3 | None = None,
         slew_m_s2: float | None = None,
         coasting: bool = False,
+        slot_target: SlotTarget | None = None,
     ) -> VelocityCommand:
         """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
 
@@ -227,6 +236,8 @@ class FormationLaw:
         guard's nearest thing ahead (relative NED, m), held off like the leader but taken as static.
         ``slew_m_s2``: how fast the command may change (default ``command_slew_m_s2``). ``coasting``: the
         track has no detection now (the lead is dropped unless ``accel_lead_while_coasting``).
+        ``slot_target``: a formation plan's slot turned with the leader; the error across the line of sight
+        to it is flown out too, and the slot's own motion fed forward.
         """
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
@@ -246,6 +257,11 @@ class FormationLaw:
         v_range = cfg.kp_xy * err.e_range_m + cfg.kd_xy * err.e_range_rate_m_s + self._i_range_m_s
         v_down = cfg.kp_z * err.e_down_m + self._i_down_m_s
         raw = ff + v_range * err.u_los + np.array([0.0, 0.0, v_down])
+        if slot_target is not None:
+            raw += self._slot_velocity(np.asarray(p_ned_rel_m, dtype=np.float64), err.u_los, slot_target)
+            raw[:2] += cfg.slot_accel_ff_s * self._slot_accel(slot_target, dt)[:2]
+        else:
+            self._v_slot_prev = None
 
         v = clamp_speed(raw, lim)
         if self._v_prev is not None:
@@ -282,12 +298,43 @@ class FormationLaw:
         )
         return VelocityCommand(sp, (float(v[0]), float(v[1]), float(v[2])), yaw_rate, err)
 
+    def _slot_accel(self, target: SlotTarget, dt: float) -> Vec3:
+        """The slot's own acceleration as the follower sees it (low-passed derivative), m/s^2.
+
+        Fed forward as a velocity lead, as the leader's is: PX4's velocity loop lags a turning slot as it
+        lags an accelerating leader.
+        """
+        v = -np.asarray(target.v_ned_rel_m_s, dtype=np.float64)
+        if self._v_slot_prev is not None and dt > 0.0:
+            k = dt / (self.cfg.leader_accel_tau_s + dt)
+            a = self._a_slot + k * ((v - self._v_slot_prev) / dt - self._a_slot)
+            n = float(np.linalg.norm(a))
+            limit = self.cfg.max_accel_m_s2
+            self._a_slot = a * (limit / n) if n > limit else a
+        self._v_slot_prev = v
+        return self._a_slot
+
+    def _slot_velocity(self, p_rel: Vec3, u_los: Vec3, target: SlotTarget) -> Vec3:
+        """The follower's velocity that flies out the error across the line of sight to a turning slot.
+
+        The range is the radial law's; this adds ``kp_slot`` times the cross-range error and the slot's
+        own motion (the relative velocity the slot asks for, with the follower's sign), horizontal only.
+        """
+        e = p_rel - np.asarray(target.p_ned_rel_m)
+        e[2] = 0.0
+        e_cross = e - float(np.dot(e, u_los)) * u_los
+        v = self.cfg.kp_slot_1_s * e_cross - np.asarray(target.v_ned_rel_m_s)
+        v[2] = 0.0
+        return v
+
     def attitude(
         self,
         p_ned_rel_m: Vec3,
         v_ned_rel_m_s: Vec3,
         follower: FollowerState,
         now_s: float,
+        *,
+        slot_target: SlotTarget | None = None,
     ) -> AttitudeCommand:
         """The GPS-lost law: attitude and thrust from the relative estimate and the baro (see module doc)."""
         dt = self._dt(now_s)
@@ -298,6 +345,9 @@ class FormationLaw:
 
         # Outer loop: the relative velocity we want (radial only; tangential relative motion is unwanted).
         v_rel_des = -(cfg.kp_xy * err.e_range_m + self._i_range_m_s) * err.u_los
+        if slot_target is not None:
+            # The follower's velocity for the slot is minus the relative velocity it needs.
+            v_rel_des = v_rel_des - self._slot_velocity(p, err.u_los, slot_target)
         dv = v_rel - v_rel_des
         dv[2] = 0.0
         dv_h = ned_to_heading(dv, follower.yaw_rad)
@@ -309,6 +359,8 @@ class FormationLaw:
         if h > a_max:
             a[:2] *= a_max / h
         a = separation_limit_accel(a, p, v_rel, lim)
+        for n in self.neighbours:
+            a = separation_limit_accel(a, n.p_ned_rel_m, n.v_ned_rel_m_s, lim)
         a = clamp_horizontal_accel(a, lim)
         saturated = float(np.linalg.norm(raw_a - a)) > 1e-3
 
@@ -368,6 +420,8 @@ class FormationLaw:
             a[:2] = -self.KV_XY_1_S * v[:2]
         if p_ned_rel_m is not None and v_ned_rel_m_s is not None:
             a = separation_limit_accel(a, np.asarray(p_ned_rel_m), np.asarray(v_ned_rel_m_s), lim)
+        for n in self.neighbours:
+            a = separation_limit_accel(a, n.p_ned_rel_m, n.v_ned_rel_m_s, lim)
         a_max = min(self.cfg.max_accel_m_s2, lim.max_horizontal_accel_m_s2) * 0.5
         h = math.hypot(a[0], a[1])
         if h > a_max:
@@ -388,11 +442,13 @@ class FormationLaw:
     ) -> Vec3:
         """The velocity laws' last limits, in precedence order: separation, geofence, altitude band.
 
-        Separation holds against the leader (with its velocity) and against the depth guard's obstacle
-        (static: nothing is known of its motion).
+        Separation holds against the leader (with its velocity), the neighbours (with theirs) and the depth
+        guard's obstacle (static: nothing is known of its motion).
         """
         lim = self.limits
         v = separation_limit(v, p_ned_rel_m, v_leader, lim, follower.v_ned_m_s)
+        for n in self.neighbours:
+            v = separation_limit(v, n.p_ned_rel_m, n.v_ned_m_s, lim, follower.v_ned_m_s)
         if obstacle_ned_m is not None:
             v = pass_static(v, np.asarray(obstacle_ned_m, dtype=np.float64), follower, lim)
         v = geofence_limit(v, follower.p_ned_m, lim)

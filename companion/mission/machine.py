@@ -86,6 +86,7 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
         self._prev_takeover = inp.takeover_requested
         if inp.leader is not None and inp.leader.usable and self._fresh(inp.leader):
             self._last_leader = inp.leader
+        self._update_neighbours(inp)
 
         self._global_checks(inp)
         setpoint: Setpoint | None = None

@@ -21,6 +21,23 @@ class SharedLeaderPosition:
     stamp_s: float
     p_ned_m: Vec3T
     variance_m2: Vec3T = (1.0, 1.0, 4.0)
+    #: The leader's heading (its own estimate), rad from north; None when it does not share one. With a
+    #: formation plan it turns the follower's slot with the leader.
+    yaw_rad: float | None = None
+    #: The leader's velocity (NED, m/s), when shared.
+    v_ned_m_s: Vec3T | None = None
+    #: The leader's yaw rate (its gyro, rad/s), when shared: turns the slot without differencing headings.
+    yaw_rate_rad_s: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SharedNeighbour:
+    """Another follower's shared position, in this follower's local NED frame, m and m/s."""
+
+    name: str
+    stamp_s: float
+    p_ned_m: Vec3T
+    v_ned_m_s: Vec3T = (0.0, 0.0, 0.0)
 
 
 class CommandKind(StrEnum):
@@ -75,6 +92,8 @@ class MissionInputs:
     leader_shared: SharedLeaderPosition | None = None
     #: The depth guard's latest reading (None: nothing near, or the guard is off).
     obstacle: ObstacleAhead | None = None
+    #: The other followers' latest shared positions (formations), one per neighbour.
+    neighbours: tuple[SharedNeighbour, ...] = ()
     start_requested: bool = False
     #: The start came from an operator (``companion start``), not from ``service.auto_start``: only such a
     #: start takes over a vehicle that is already flying.

@@ -18,20 +18,32 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from companion.config import Config
+from companion.estimation.identity import Expectation, LeaderIdentity, expectations
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock
 from companion.kernel.flight import NEVER_S
 from companion.kernel.frames import quat_from_euler
 from companion.mission.machine import MissionMachine
-from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
+from companion.mission.types import (
+    MissionInputs,
+    SharedLeaderPosition,
+    SharedNeighbour,
+    StepOutput,
+    Transition,
+)
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
 
 log = logging.getLogger(__name__)
+
+#: A shared position (leader's or a neighbour's) older than this is not used to tell them apart, s.
+SHARE_STALE_S = 1.0
 
 
 class FlightCore:
@@ -77,9 +89,16 @@ class FlightCore:
         self._velocity_stamp_s = NEVER_S
         #: Auto-labelling while GPS is good (``[autolabel] enabled``); its writer runs with :meth:`run`.
         self.autolabel = AutoLabelTap(cfg, self.pipeline.camera) if cfg.autolabel.enabled else None
+        # Formations: the leader told apart from neighbours by shares and the plan.
+        if cfg.formation.slot_leader_m is not None:
+            self.pipeline.identity = LeaderIdentity()
+        self._shared: SharedLeaderPosition | None = None
+        self._neighbours: dict[str, SharedNeighbour] = {}
 
     def on_frame(self, frame: RgbdFrame, result: DetectorResult) -> Any:
         """One detector result through pose and tracker to the mission; returns the tracker's state."""
+        if self.pipeline.identity is not None:
+            self.pipeline.identity.set(*self._expect(frame.stamp_s))
         track = self.pipeline.process(frame, result.detections)
         self.stage.after_track(track)
         self.track = track
@@ -103,8 +122,41 @@ class FlightCore:
             self._velocity_stamp_s = v.velocity_stamp_s
             self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
 
+    def _expect(self, stamp_s: float) -> tuple[Expectation | None, list[Expectation]]:
+        """Where the leader and the neighbours should be at a frame's stamp (see estimation.identity)."""
+        v = self.link.snapshot()
+        own = v.p_ned_m if self.machine.gps_ok and v.position_valid is True else None
+        sh = self._shared
+        leader_p, age, yaw = None, 0.0, None
+        if sh is not None and 0.0 <= stamp_s - sh.stamp_s <= SHARE_STALE_S:
+            age = stamp_s - sh.stamp_s
+            vel = (0.0, 0.0, 0.0) if sh.v_ned_m_s is None else sh.v_ned_m_s
+            leader_p = tuple(p + u * age for p, u in zip(sh.p_ned_m, vel, strict=True))
+            yaw = sh.yaw_rad
+        neighbours = [
+            tuple(p + u * (stamp_s - n.stamp_s) for p, u in zip(n.p_ned_m, n.v_ned_m_s, strict=True))
+            for n in self._neighbours.values()
+            if 0.0 <= stamp_s - n.stamp_s <= SHARE_STALE_S
+        ]
+        f = self.cfg.formation
+        return expectations(
+            own_p_ned_m=None if own is None else np.asarray(own, dtype=np.float64),
+            leader_p_ned_m=None if leader_p is None else np.asarray(leader_p, dtype=np.float64),
+            leader_age_s=age,
+            leader_yaw_rad=yaw,
+            neighbour_p_ned_m=[np.asarray(p, dtype=np.float64) for p in neighbours],
+            slot_leader_m=f.slot_leader_m,
+            neighbour_slots_m=f.neighbour_slots_m,
+        )
+
+    def submit_neighbour(self, neighbour: SharedNeighbour) -> None:
+        """Another follower's shared position (formations): separation and the leader's identity."""
+        self._neighbours[neighbour.name] = neighbour
+        self.runner.submit_neighbour(neighbour)
+
     def submit_leader_shared(self, position: SharedLeaderPosition) -> None:
         """The leader's shared position, to the mission and the auto-labeller."""
+        self._shared = position
         self.runner.submit_leader_shared(position)
         if self.autolabel is not None:
             self.autolabel.share(position)

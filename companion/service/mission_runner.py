@@ -28,6 +28,7 @@ from companion.mission.types import (
     MissionState,
     OperatorCommand,
     SharedLeaderPosition,
+    SharedNeighbour,
     StepOutput,
     Transition,
 )
@@ -80,6 +81,7 @@ class MissionRunner:
         self._leader: LeaderEstimate | None = None
         self._shared: SharedLeaderPosition | None = None
         self._obstacle: ObstacleAhead | None = None
+        self._neighbours: dict[str, SharedNeighbour] = {}
         self._start = False
         self._takeover = False
         self._shutdown = False
@@ -101,6 +103,10 @@ class MissionRunner:
     def submit_obstacle(self, obstacle: ObstacleAhead | None) -> None:
         """The depth guard's reading for the latest frame (None: nothing near); latest value wins."""
         self._obstacle = obstacle
+
+    def submit_neighbour(self, neighbour: SharedNeighbour) -> None:
+        """Another follower's shared position; the latest per neighbour wins."""
+        self._neighbours[neighbour.name] = neighbour
 
     def request_start(self, *, takeover: bool = True) -> None:
         """Start the mission.
@@ -176,6 +182,7 @@ class MissionRunner:
             leader=self._leader,
             leader_shared=self._shared,
             obstacle=self._obstacle,
+            neighbours=tuple(self._neighbours.values()),
             start_requested=self._start,
             takeover_requested=self._takeover,
             shutdown_requested=self._shutdown,

@@ -1,7 +1,9 @@
 """Offscreen RGB-D renderer of the follower's camera (moderngl through EGL; llvmpipe or a GPU).
 
-``Renderer.render(follower_truth, leader_truth, t_s) -> RgbdFrame`` is the whole API a lockstep
-harness needs; :meth:`Renderer.render_view` renders from an explicit camera pose (datasets).
+``Renderer.render(follower_truth, leader_truth, t_s, others=()) -> RgbdFrame`` is the whole API a
+lockstep harness needs; :meth:`Renderer.render_view` renders from an explicit camera pose (datasets).
+``others`` are further vehicles with the leader's airframe (formations): solid in colour and depth, never
+in the leader's mask or truth.
 
 A frame is two passes (see :mod:`sitl.render.shaders`): the scene into RGBA8 colour + packed depth,
 then the sensor model into RGB8 colour, float32 depth (m along the optical axis, 0 = invalid) and the
@@ -20,6 +22,7 @@ One ``Renderer`` owns one GL context: create it, render and close it on the same
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -121,11 +124,19 @@ class Renderer(SceneRenderer):
 
     # ---- rendering -------------------------------------------------------------------------------------
 
-    def render(self, follower: PoseTruth, leader: PoseTruth | None, t_s: float) -> RgbdFrame:
+    def render(
+        self,
+        follower: PoseTruth,
+        leader: PoseTruth | None,
+        t_s: float,
+        others: Sequence[PoseTruth] = (),
+    ) -> RgbdFrame:
         """The follower's camera frame at sim time ``t_s`` with ground truth about the leader.
 
         ``follower`` may carry ``omega_body_rad_s`` (FRD body rate); it then drives motion blur.
         Without a leader the truth has no box, visible fraction 0 and NaN position and yaw.
+        ``others``: poses (NED, m; body -> NED quaternion) of other vehicles drawn with the leader's
+        airframe; they may hide the leader but are not in its truth.
         """
         cam = camera_pose(follower, self.mount)
         q_follower = np.asarray(follower.q_ned_body_wxyz, dtype=np.float64)
@@ -136,7 +147,11 @@ class Renderer(SceneRenderer):
         if leader is not None:
             R_ned_leader = R_from_quat(np.asarray(leader.q_ned_body_wxyz, dtype=np.float64))
             lp = LeaderPose(R_ned_leader, as_vec3(leader.p_ned_m))
-        view = self.render_view(cam, lp, t_s, omega_cam_rad_s=omega_cam)
+        other_poses = [
+            LeaderPose(R_from_quat(np.asarray(o.q_ned_body_wxyz, dtype=np.float64)), as_vec3(o.p_ned_m))
+            for o in others
+        ]
+        view = self.render_view(cam, lp, t_s, omega_cam_rad_s=omega_cam, others=other_poses)
         p_follower = as_vec3(follower.p_ned_m)
         if lp is None:
             truth = GroundTruth(None, 0.0, np.full(3, np.nan), math.nan, p_follower, None, q_follower)
@@ -162,8 +177,12 @@ class Renderer(SceneRenderer):
         omega_cam_rad_s: Vec3 | None = None,
         extra_vertices: F32 | None = None,
         truth: bool = True,
+        others: Sequence[LeaderPose] = (),
     ) -> RenderedView:
-        """Render from an explicit camera pose; ``extra_vertices`` are distractors (NED, never leader)."""
+        """Render from an explicit camera pose; ``extra_vertices`` are distractors (NED, never leader).
+
+        ``others``: other vehicles with the leader's airframe (NED poses), never marked as leader.
+        """
         ctx = self._ctx
         W, H = self.intrinsics.width_px, self.intrinsics.height_px
         gain = self.exposure_gain
@@ -198,6 +217,7 @@ class Renderer(SceneRenderer):
             bound_radius_m=self.leader_model.bound_radius_m,
             near_cam=near_cam,
             near_r=near_r,
+            others=others,
         )
         region = near_region(
             cam,
@@ -209,6 +229,7 @@ class Renderer(SceneRenderer):
             shadow_px=shadow_px,
             near_cam=near_cam,
             near_r=near_r,
+            others=others,
         )
         sensor = sensor_uniforms(self._rng, self.camera, self.visual, self.intrinsics, analog)
 
@@ -223,6 +244,7 @@ class Renderer(SceneRenderer):
             extra_vertices=extra_vertices,
             sensor=sensor if direct else None,
             in_view=in_view,
+            others=others,
         )
 
         # ---- pass 2: sensor, or (DIRECT) only edge and stereo-shadow holes near objects
@@ -237,7 +259,7 @@ class Renderer(SceneRenderer):
                 cam,
                 leader,
                 boxes=[b for b in (region, ground) if b is not None],
-                blockers=(chunk_cam[standing], C.radius_m[standing], extra_vertices),
+                blockers=(chunk_cam[standing], C.radius_m[standing], extra_vertices, others),
                 shadow_px=shadow_px,
                 sensor=sensor,
                 depth=depth,
@@ -292,7 +314,7 @@ class Renderer(SceneRenderer):
 
         ``boxes`` are scissor boxes (x, y, w, h) that hold every pixel whose true depth is in range
         (near objects, near ground); depth is 0 elsewhere. ``blockers``: what could hide the leader
-        (bounding spheres of the world chunks in view, camera frame; distractor vertices).
+        (bounding spheres of the world chunks in view, camera frame; distractor vertices; other vehicles).
         """
         W, H = self.intrinsics.width_px, self.intrinsics.height_px
         dfbo = self._depth_fbo

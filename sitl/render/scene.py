@@ -2,8 +2,9 @@
 
 :class:`SceneRenderer` owns the context: the targets of every pass, the scene programs (for the post
 pass, and DIRECT: with the sensor model inside), the world and the leader on the GPU, and draws pass 1,
-the scene: world chunks in view, distractors, the leader, the sky where nothing was drawn, and the rotor
-discs blended. :class:`~sitl.render.renderer.Renderer` adds the sensor passes, exposure and the truth.
+the scene: world chunks in view, distractors, the leader and the other vehicles (the leader's airframe,
+not marked as leader), the sky where nothing was drawn, and the rotor discs blended.
+:class:`~sitl.render.renderer.Renderer` adds the sensor passes, exposure and the truth.
 
 One context per renderer: create it, render and close it on the same thread.
 """
@@ -11,6 +12,7 @@ One context per renderer: create it, render and close it on the same thread.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from types import TracebackType
 from typing import Any, Self
 
@@ -293,8 +295,12 @@ class SceneRenderer:
         extra_vertices: F32 | None,
         sensor: dict[str, Any] | None,
         in_view: NDArray[np.bool_],
+        others: Sequence[LeaderPose] = (),
     ) -> None:
-        """Draw the world chunks in view, distractors, leader, sky and rotor discs into the scene."""
+        """Draw the world chunks in view, distractors, leader, other vehicles, sky and rotor discs.
+
+        ``others`` have the leader's airframe but leave the leader mask alone (``u_leader`` = 0).
+        """
         ctx = self._ctx
         gain_rgb = (gain * self._wb[0], gain * self._wb[1], gain * self._wb[2])
         clip_from_ned = mat_bytes(self._P @ view_matrix(cam))
@@ -338,10 +344,21 @@ class SceneRenderer:
                     set_uniform(prog, name, value)
         # Near things first so that early depth testing spares the far ones.
         model = mat_bytes(model_matrix(leader.R_ned_body, leader.p_ned_m)) if leader is not None else identity
-        if leader is not None:
-            set_uniform(progs.generic, "u_ned_from_model", model)
-            set_uniform(progs.generic, "u_leader", 1.0)
+        # Vehicles as (model matrix, leader flag, distance from the camera, m).
+        vehicles = [(model, 1.0, 0.0)] if leader is not None else []
+        vehicles += [
+            (
+                mat_bytes(model_matrix(o.R_ned_body, o.p_ned_m)),
+                0.0,
+                float(np.linalg.norm(o.p_ned_m - cam.p_ned_cam_m)),
+            )
+            for o in others
+        ]
+        for m, is_leader, _ in vehicles:
+            set_uniform(progs.generic, "u_ned_from_model", m)
+            set_uniform(progs.generic, "u_leader", is_leader)
             progs.leader_vaos[0].render(moderngl.TRIANGLES)
+        if vehicles:
             set_uniform(progs.generic, "u_ned_from_model", identity)
             set_uniform(progs.generic, "u_leader", 0.0)
         if extra_vertices is not None and len(extra_vertices) and progs.dyn_vao is not None:
@@ -366,33 +383,37 @@ class SceneRenderer:
         set_uniform(progs.sky, "u_ned_from_pix", mat_bytes(cam.R_ned_cam @ self._Kinv_fb))
         set_uniform(progs.sky, "u_gain_rgb", tuple(g * SKY_SCALE for g in gain_rgb))
         progs.sky_vao.render(moderngl.TRIANGLES)
-        if leader is not None:
+        if vehicles:
             # Rotor discs: blend colour, mark the mask (aux alpha), leave depth and texturedness alone.
+            # Far to near (the discs write no depth): a nearer disc covers a farther one.
             rotor_phase, blade_vis = self._rotor_state(t_s, exposure_s)
             rp = progs.rotor
-            set_uniform(rp, "u_ned_from_model", model)
-            set_uniform(rp, "u_leader", 1.0)
-            set_uniform(rp, "u_rotor_phase", rotor_phase)
             set_uniform(rp, "u_blade_vis", blade_vis)
             ctx.depth_func = "<"
-            ctx.enable(moderngl.BLEND)
-            # Blend the colour by the disc's opacity. The aux alpha (leader + texturedness) takes the
-            # disc's value; DIRECT writes that into colour alpha in a second, unblended pass.
-            ctx.blend_func = (  # type: ignore[assignment]  # moderngl takes 2 or 4 factors
-                moderngl.SRC_ALPHA,
-                moderngl.ONE_MINUS_SRC_ALPHA,
-                moderngl.ONE,
-                moderngl.ZERO,
-            )
-            set_uniform(rp, "u_blend_alpha", 1.0)
-            color_mask(fbo, [(True, True, True, False), (False, False, False, True)])
-            progs.leader_vaos[1].render(moderngl.TRIANGLES)
-            ctx.disable(moderngl.BLEND)
-            if direct:
-                set_uniform(rp, "u_blend_alpha", 0.0)
-                color_mask(fbo, [(False, False, False, True)])
+            for k in sorted(range(len(vehicles)), key=lambda i: -vehicles[i][2]):
+                m, is_leader, _ = vehicles[k]
+                set_uniform(rp, "u_ned_from_model", m)
+                set_uniform(rp, "u_leader", is_leader)
+                # Each other vehicle's blades turn at their own phase.
+                set_uniform(rp, "u_rotor_phase", math.fmod(rotor_phase + 1.1 * k, math.pi))
+                ctx.enable(moderngl.BLEND)
+                # Blend the colour by the disc's opacity. The aux alpha (leader + texturedness) takes the
+                # disc's value; DIRECT writes that into colour alpha in a second, unblended pass.
+                ctx.blend_func = (  # type: ignore[assignment]  # moderngl takes 2 or 4 factors
+                    moderngl.SRC_ALPHA,
+                    moderngl.ONE_MINUS_SRC_ALPHA,
+                    moderngl.ONE,
+                    moderngl.ZERO,
+                )
+                set_uniform(rp, "u_blend_alpha", 1.0)
+                color_mask(fbo, [(True, True, True, False), (False, False, False, True)])
                 progs.leader_vaos[1].render(moderngl.TRIANGLES)
-            color_mask(fbo, [on, on])
+                ctx.disable(moderngl.BLEND)
+                if direct:
+                    set_uniform(rp, "u_blend_alpha", 0.0)
+                    color_mask(fbo, [(False, False, False, True)])
+                    progs.leader_vaos[1].render(moderngl.TRIANGLES)
+                color_mask(fbo, [on, on])
         fbo.depth_mask = True
 
     def _glare_rgb(self, cam: CameraPose) -> tuple[float, float, float]:

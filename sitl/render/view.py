@@ -1,13 +1,15 @@
 """What a camera view holds, worked out on the CPU before drawing: culling, pixel spans and scissor boxes.
 
-Pure numpy on bounding volumes (the leader's bounding cube, the world chunks' bounding spheres,
-distractor vertices), conservative everywhere: a box may hold pixels it need not, never miss one.
+Pure numpy on bounding volumes (the bounding cubes of the leader and the other vehicles, the world
+chunks' bounding spheres, distractor vertices), conservative everywhere: a box may hold pixels it need
+not, never miss one.
 Camera frame: x right, y down, z forward.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -26,8 +28,8 @@ FAR_M = 2.0 * GROUND_HALF_M
 UNIT_CUBE = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 
 #: What could hide the leader: bounding spheres of the world chunks in view (centres in the camera frame,
-#: radii) and the distractor vertices (NED), if any.
-Blockers = tuple[NDArray[np.float64], NDArray[np.float64], F32 | None]
+#: radii), the distractor vertices (NED), if any, and the other vehicles (same bounding radius as the leader).
+Blockers = tuple[NDArray[np.float64], NDArray[np.float64], F32 | None, Sequence[LeaderPose]]
 
 
 def frustum_normals(intr: Intrinsics, margin_px: float) -> NDArray[np.float64]:
@@ -81,18 +83,21 @@ def may_hide_leader(
 ) -> bool:
     """Whether anything could stand between the camera and the leader's pixels (conservative).
 
-    A world chunk whose bounding sphere starts nearer than the leader's far side and whose
-    projected bounding cube overlaps the leader's pixel span; any distractor; the ground unless the
-    camera and the whole leader are above it (then no line of sight between them crosses it).
-    ``bound_radius_m``: the leader's bounding radius.
+    A world chunk or other vehicle whose bounding sphere starts nearer than the leader's far side and
+    whose projected bounding cube overlaps the leader's pixel span; any distractor; the ground unless
+    the camera and the whole leader are above it (then no line of sight between them crosses it).
+    ``bound_radius_m``: the leader's (and every other vehicle's) bounding radius.
     """
-    chunk_cam, radius, extra = blockers
+    chunk_cam, radius, extra, others = blockers
     if extra is not None and len(extra):
         return True
     R = bound_radius_m
     if cam.p_ned_cam_m[2] >= 0.0 or leader.p_ned_m[2] + R >= 0.0:
         return True
     z_far = float(cam.to_cam(leader.p_ned_m)[2]) + R
+    if others:
+        chunk_cam = np.concatenate([chunk_cam, np.array([cam.to_cam(o.p_ned_m) for o in others])])
+        radius = np.concatenate([radius, np.full(len(others), R)])
     front = chunk_cam[:, 2] - radius < z_far
     if not np.any(front):
         return False
@@ -143,17 +148,20 @@ def shadow_search_px(
     bound_radius_m: float,
     near_cam: NDArray[np.float64],
     near_r: NDArray[np.float64],
+    others: Sequence[LeaderPose] = (),
 ) -> int:
     """Widest stereo shadow worth searching: disparity of the nearest thing in view, px.
 
-    ``Kinv``: the inverse camera matrix; ``bound_radius_m``: the leader's bounding radius; ``near_cam``,
-    ``near_r``: bounding spheres (camera frame) of the world chunks within range.
+    ``Kinv``: the inverse camera matrix; ``bound_radius_m``: the leader's (and the other vehicles')
+    bounding radius; ``near_cam``, ``near_r``: bounding spheres (camera frame) of the world chunks
+    within range; ``others``: the other vehicles.
     """
     z_near = 1e9
-    if leader is not None:
-        z = float(cam.to_cam(leader.p_ned_m)[2]) - bound_radius_m
-        if z > 0.0:
-            z_near = min(z_near, z)
+    for vehicle in (leader, *others):
+        if vehicle is not None:
+            z = float(cam.to_cam(vehicle.p_ned_m)[2]) - bound_radius_m
+            if z > 0.0:
+                z_near = min(z_near, z)
     # Ground seen along the image's bottom corners.
     h = -float(cam.p_ned_cam_m[2])
     if h > 0.0:
@@ -185,21 +193,23 @@ def near_region(
     shadow_px: int,
     near_cam: NDArray[np.float64],
     near_r: NDArray[np.float64],
+    others: Sequence[LeaderPose] = (),
 ) -> tuple[int, int, int, int] | None:
     """Scissor box (x, y, w, h) around things near enough to have valid depth, or None.
 
-    The leader (its bounding cube, ``bound_radius_m``), world chunks within range (their bounding
-    spheres' cubes) and distractors; widened to the left by the stereo shadow. The whole frame if any
-    of them straddles the image plane. The ground is :func:`ground_region`.
+    The leader and the other vehicles (their bounding cubes, ``bound_radius_m``), world chunks within
+    range (their bounding spheres' cubes) and distractors; widened to the left by the stereo shadow.
+    The whole frame if any of them straddles the image plane. The ground is :func:`ground_region`.
     """
     W, H = intr.width_px, intr.height_px
     z_max = depth_max_m
     pts: list[NDArray[np.float64]] = []
-    if leader is not None:
-        R = bound_radius_m
-        c = cam.to_cam(leader.p_ned_m)
-        if c[2] - R < z_max:
-            pts.append(c + R * UNIT_CUBE)
+    R = bound_radius_m
+    for vehicle in (leader, *others):
+        if vehicle is not None:
+            c = cam.to_cam(vehicle.p_ned_m)
+            if c[2] - R < z_max:
+                pts.append(c + R * UNIT_CUBE)
     if near_r.size:
         pts.append((near_cam[:, None, :] + near_r[:, None, None] * UNIT_CUBE[None]).reshape(-1, 3))
     if extra is not None and len(extra):

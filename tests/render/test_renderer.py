@@ -232,6 +232,62 @@ def test_stereo_shadow_left_of_a_near_leader(renderer: Renderer) -> None:
     assert np.mean(np.concatenate(far_left) > 0) > 0.75
 
 
+def _projected_box(renderer: Renderer, follower: VehiclePose, p_ned_m: np.ndarray) -> tuple[int, ...]:
+    """Pixel box (x0, y0, x1, y1) of a vehicle's bounding cube, clipped to the image."""
+    cam = camera_pose(follower, LEVEL_MOUNT)
+    intr = renderer.intrinsics
+    R = renderer.leader_model.bound_radius_m
+    cube = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    corners = cam.to_cam(p_ned_m) + R * cube
+    u = intr.fx_px * corners[:, 0] / corners[:, 2] + intr.cx_px
+    v = intr.fy_px * corners[:, 1] / corners[:, 2] + intr.cy_px
+    x0, y0 = max(int(u.min()), 0), max(int(v.min()), 0)
+    x1, y1 = min(int(u.max()) + 1, intr.width_px), min(int(v.max()) + 1, intr.height_px)
+    return x0, y0, x1, y1
+
+
+def test_other_vehicle_is_solid_but_not_the_leader(renderer: Renderer) -> None:
+    # The leader right of centre, another vehicle of the same airframe left of it, apart in the image.
+    renderer.set_visual(PLAIN)
+    follower = _follower(alt_m=30.0)
+    leader = VehiclePose(np.array([6.0, 1.0, -30.0]), quat_from_euler(0.0, 0.0, 0.4))
+    other = VehiclePose(np.array([5.0, -1.2, -30.0]), quat_from_euler(0.0, 0.0, 2.0))
+    alone = renderer.render(follower, leader, 0.0)
+    both = renderer.render(follower, leader, 0.0, others=[other])
+    assert alone.truth is not None
+    assert both.truth is not None
+    # The truth stays the leader's alone.
+    assert alone.truth.box_xyxy_px is not None
+    assert both.truth.box_xyxy_px == alone.truth.box_xyxy_px
+    assert both.truth.visible_fraction == alone.truth.visible_fraction
+    assert np.array_equal(both.truth.p_cam_leader_m, alone.truth.p_cam_leader_m)
+    x0, y0, x1, y1 = _projected_box(renderer, follower, other.p_ned_m)
+    assert x1 <= alone.truth.box_xyxy_px[0]  # apart from the leader in the image
+    # The other vehicle has depth at its range (nothing else in its box is within the depth range).
+    z_true = float(camera_pose(follower, LEVEL_MOUNT).to_cam(other.p_ned_m)[2])
+    patch = both.depth_m[y0:y1, x0:x1]
+    valid = patch[patch > 0]
+    assert valid.size > 50
+    assert abs(float(np.median(valid)) - z_true) < 0.1 * z_true, (float(np.median(valid)), z_true)
+    empty = alone.depth_m[y0:y1, x0:x1]
+    assert np.count_nonzero(empty) < 5
+    assert not np.array_equal(both.rgb[y0:y1, x0:x1], alone.rgb[y0:y1, x0:x1])
+
+
+def test_other_vehicle_in_front_hides_the_leader(renderer: Renderer) -> None:
+    renderer.set_visual(PLAIN)
+    follower = _follower(alt_m=30.0)
+    leader = VehiclePose(np.array([8.0, 0.0, -30.0]), quat_from_euler(0.0, 0.0, 0.4))
+    front = VehiclePose(np.array([4.0, 0.25, -30.0]), quat_from_euler(0.0, 0.0, 1.0))  # half across it
+    clear = renderer.render(follower, leader, 0.0)
+    hidden = renderer.render(follower, leader, 0.0, others=[front])
+    assert clear.truth is not None
+    assert hidden.truth is not None
+    assert clear.truth.visible_fraction > 0.97
+    assert hidden.truth.box_xyxy_px is not None
+    assert hidden.truth.visible_fraction < clear.truth.visible_fraction - 0.2
+
+
 def test_no_leader_frame(renderer: Renderer) -> None:
     renderer.set_visual(PLAIN)
     frame = renderer.render(_follower(), None, 1.0)

@@ -102,6 +102,8 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     )
     if spec.detector == "network":
         _require_weights(cfg)
+    if scenario.formation:
+        return _run_formation(spec, run_file, scenario, cfg, path, progress=progress)
     wall0 = time.perf_counter()
     if spec.harness == "lockstep":
         stage = load_detect(cfg, spec.detector)
@@ -126,6 +128,51 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     return write_run_without_plots(
         spec.out_dir, scenario.name, spec.seed, result, cfg, wall_s=wall_s, extra=extra
     )
+
+
+def _run_formation(
+    spec: RunSpec,
+    run_file: Path,
+    scenario: Any,
+    cfg: Any,
+    path: Path,
+    *,
+    progress: Callable[[float], None] | None,
+) -> dict[str, Any]:
+    """A formation scenario: one leader, a follower per plan slot, lockstep only."""
+    from companion.lab.formation.flight import run_formation  # noqa: PLC0415
+    from companion.lab.formation.report import (  # noqa: PLC0415
+        build_formation_report,
+        plot_from_above,
+        save_tracks,
+        write_formation_report,
+    )
+    from companion.lab.formation.run import FormationOptions  # noqa: PLC0415
+
+    if spec.harness != "lockstep":
+        raise ConfigError(
+            spec.scenario, ["formation scenarios fly in the lockstep harness only (--harness lockstep)"]
+        )
+    runtime = "truth" if spec.detector == "truth" else cfg.detector.runtime
+    options = FormationOptions(progress=progress)
+    result, plan, configs = run_formation(run_file, spec.seed, cfg, runtime, options)
+    extra: dict[str, Any] = {"scenario_file": str(path), "formation_window_s": _window(scenario)}
+    if spec.detector == "truth":
+        extra["detector"] = "ground-truth boxes (NOT the network)"
+    report = build_formation_report(scenario.name, spec.seed, plan, result, configs, extra=extra)
+    if spec.plots:
+        plot = spec.out_dir / "plots" / "formation.png"
+        plot_from_above(result, plan, plot, scenario.name)
+        report["plots"] = [str(plot)]
+    write_formation_report(spec.out_dir, report)
+    save_tracks(result, spec.out_dir / "formation_log.npz")
+    from companion.lab.evaluation.log import save_log  # noqa: PLC0415
+
+    for f in result.followers:
+        folder = spec.out_dir / "followers" / f.name
+        folder.mkdir(parents=True, exist_ok=True)
+        save_log(f.scorer.freeze(), folder / "flight_log.npz")
+    return report
 
 
 def write_run_without_plots(

@@ -99,8 +99,8 @@ class RunScorer:
     _next_snapshot: int = 0
 
     @classmethod
-    def for_scenario(cls, scenario: Any, snapshots: int = 0) -> RunScorer:
-        """The scorer of a ``sitl.scenario.Scenario``.
+    def for_scenario(cls, scenario: Any, snapshots: int = 0, vehicle: str = "follower") -> RunScorer:
+        """The scorer of a ``sitl.scenario.Scenario`` for the follower named ``vehicle``.
 
         Its formation window, the follower's GPS outages, ``snapshots`` evenly spaced camera frames, and
         its scene's structures for the crash check.
@@ -112,7 +112,7 @@ class RunScorer:
         window = (run.formation_start_s, run.formation_start_s + run.formation_duration_s)
         outages = [
             (o.at_s, None if o.duration_s is None else o.at_s + o.duration_s)
-            for o in scenario.faults("follower").gps.outages
+            for o in scenario.faults(vehicle).gps.outages
         ]
         visual = visual_from_mapping(scenario.visual, f"scenario {scenario.name} [visual]")
         monitor = TruthMonitor(obstacles=Envelopes.from_specs(solid_structures(visual)))

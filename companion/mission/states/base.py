@@ -22,6 +22,7 @@ from companion.mission.formation import FormationLaw
 from companion.mission.geometry import FollowerState
 from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
 from companion.mission.offboard import CommandBook, OffboardStream
+from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
 from companion.mission.safety import SafetyLimits
 from companion.mission.types import (
     CommandKind,
@@ -115,6 +116,9 @@ class MachineBase:
         self._takeover_latched = False
         self._prev_takeover = False
         self._home_hover_thrust_seeded = False
+        #: A formation plan's slot, turned with the leader's shared heading (None: a lone follower).
+        slot = cfg.formation.slot_leader_m
+        self._slot_turner = SlotTurner(slot) if slot is not None else None
 
     # ------------------------------------------------------------------ plumbing
     def _go(self, state: MissionState, reason: Reason, detail: str = "") -> None:
@@ -159,6 +163,31 @@ class MachineBase:
             p_ned_m=np.array(veh.p_ned_m) if velocity_valid else None,
             roll_rad=veh.roll_rad,
             pitch_rad=veh.pitch_rad,
+        )
+
+    def _slot_target(self, inp: MissionInputs) -> SlotTarget | None:
+        """The plan's slot now (None without a plan or a fresh shared heading of the leader)."""
+        if self._slot_turner is None:
+            return None
+        return self._slot_turner.update(inp.leader_shared, self._now_s)
+
+    def _update_neighbours(self, inp: MissionInputs) -> None:
+        """The other followers relative to this one now, for the law's separation barrier."""
+        if not inp.neighbours:
+            if self.law.neighbours:
+                self.law.neighbours = []
+            return
+        veh = inp.vehicle
+        own_ok = self.gps.ok and veh.position_valid is True
+        est = self._last_leader
+        self.law.neighbours = neighbours_now(
+            inp.neighbours,
+            self._now_s,
+            p_own_ned_m=np.array(veh.p_ned_m) if own_ok else None,
+            v_own_ned_m_s=np.array(veh.v_ned_m_s) if own_ok else None,
+            leader_shared=inp.leader_shared,
+            p_ned_rel_leader_m=None if est is None else np.array(est.p_ned_rel_m),
+            v_ned_rel_leader_m_s=None if est is None else np.array(est.v_ned_rel_m_s),
         )
 
     def _obstacle_now(self, inp: MissionInputs) -> Vec3 | None:

@@ -54,6 +54,7 @@ class FollowStates(MachineBase):
             obstacle_ned_m=self._obstacle_now(inp),
             slew_m_s2=self._slew(est),
             coasting=est.status == TrackStatus.COASTING,
+            slot_target=self._slot_target(inp),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
 
@@ -163,6 +164,12 @@ class FollowStates(MachineBase):
                     ext = None
         elif self._ext_gave_up:
             ext = None
-        acmd = self.law.attitude(p_rel, v_rel, self._follower(veh, velocity_valid=False), self._now_s)
+        acmd = self.law.attitude(
+            p_rel,
+            v_rel,
+            self._follower(veh, velocity_valid=False),
+            self._now_s,
+            slot_target=self._slot_target(inp),
+        )
         err = acmd.error.error_ned_m if acmd.error is not None else None
         return acmd.setpoint, ext, err

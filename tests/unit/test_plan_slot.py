@@ -1,0 +1,99 @@
+"""A plan's slot turned with the leader, neighbours brought to now, and the law keeping clear of them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.config import FormationConfig, SafetyConfig
+from companion.mission.formation import FormationLaw
+from companion.mission.geometry import FollowerState
+from companion.mission.plan_slot import HEADING_STALE_S, SlotTurner, neighbours_now
+from companion.mission.safety import SafetyLimits
+from companion.mission.types import SharedLeaderPosition, SharedNeighbour
+
+SLOT = (-5.0, -6.0, 0.0)
+
+
+def _share(t_s: float, yaw: float, rate: float | None = None) -> SharedLeaderPosition:
+    return SharedLeaderPosition(
+        t_s, (0.0, 0.0, -5.0), yaw_rad=yaw, v_ned_m_s=(2.0, 0.0, 0.0), yaw_rate_rad_s=rate
+    )
+
+
+def test_the_slot_turns_with_the_leader_heading() -> None:
+    turner = SlotTurner(SLOT)
+    north = turner.update(_share(0.0, 0.0), 0.0)
+    assert north is not None
+    np.testing.assert_allclose(north.p_ned_rel_m, [5.0, 6.0, 0.0])
+    east = SlotTurner(SLOT).update(_share(0.0, math.pi / 2), 0.0)
+    assert east is not None
+    np.testing.assert_allclose(east.p_ned_rel_m, [-6.0, 5.0, 0.0], atol=1e-9)
+
+
+def test_a_turning_leader_moves_the_slot_round_it_at_rate_times_radius() -> None:
+    turner = SlotTurner(SLOT)
+    target = turner.update(_share(0.0, 0.0, rate=0.1), 0.0)
+    assert target is not None
+    radius = math.hypot(SLOT[0], SLOT[1])
+    assert float(np.linalg.norm(target.v_ned_rel_m_s)) == pytest.approx(0.1 * radius)
+    # The slot's motion is across the line to the leader, not along it.
+    assert float(np.dot(target.v_ned_rel_m_s, target.p_ned_rel_m)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_turn_rate_comes_from_successive_headings_without_a_shared_rate() -> None:
+    turner = SlotTurner(SLOT)
+    for k in range(40):
+        turner.update(_share(k * 0.1, 0.1 * k * 0.1), k * 0.1)
+    assert turner.turn_rate_rad_s == pytest.approx(0.1, rel=0.05)
+
+
+def test_no_heading_or_a_stale_one_means_no_slot() -> None:
+    turner = SlotTurner(SLOT)
+    assert turner.update(None, 0.0) is None
+    assert turner.update(SharedLeaderPosition(0.0, (0.0, 0.0, 0.0)), 0.0) is None
+    assert turner.update(_share(0.0, 0.0), 0.0) is not None
+    assert turner.update(None, HEADING_STALE_S + 0.5) is None
+
+
+def test_neighbours_relative_to_us_with_and_without_our_gps() -> None:
+    n = SharedNeighbour("follower1", 10.0, (4.0, 1.0, -5.0), (1.0, 0.0, 0.0))
+    with_gps = neighbours_now([n], 10.5, p_own_ned_m=np.array([0.0, 0.0, -5.0]), v_own_ned_m_s=np.zeros(3))
+    np.testing.assert_allclose(with_gps[0].p_ned_rel_m, [4.5, 1.0, 0.0])
+    # Without GPS: the leader's share minus the seen relative vector places us.
+    leader = SharedLeaderPosition(10.5, (8.0, 0.0, -5.0), v_ned_m_s=(0.0, 0.0, 0.0))
+    blind = neighbours_now(
+        [n],
+        10.5,
+        p_own_ned_m=None,
+        v_own_ned_m_s=None,
+        leader_shared=leader,
+        p_ned_rel_leader_m=np.array([8.0, 0.0, 0.0]),
+    )
+    np.testing.assert_allclose(blind[0].p_ned_rel_m, [4.5, 1.0, 0.0])
+    assert neighbours_now([n], 10.5, p_own_ned_m=None, v_own_ned_m_s=None) == []
+    assert neighbours_now([n], 20.0, p_own_ned_m=np.zeros(3), v_own_ned_m_s=None) == []
+
+
+def test_the_law_never_closes_on_a_neighbour_inside_the_separation() -> None:
+    cfg = FormationConfig()
+    law = FormationLaw(cfg, SafetyLimits.from_config(SafetyConfig(), cfg.max_accel_m_s2))
+    follower = FollowerState(
+        yaw_rad=0.0, v_ned_m_s=np.zeros(3), v_down_m_s=0.0, alt_rel_m=5.0, p_ned_m=np.zeros(3)
+    )
+    # The leader 5 m ahead but 3 m too far: the law wants to fly north; a neighbour 2.2 m north is in the way.
+    p_rel, v_rel = np.array([8.0, 0.0, 0.0]), np.zeros(3)
+    free = law.velocity(p_rel, v_rel, follower, 0.0).v_ned_m_s
+    assert free[0] > 1.0
+    law.reset()
+    neighbour = neighbours_now(
+        [SharedNeighbour("follower1", 0.0, (2.2, 0.0, 0.0))],
+        0.0,
+        p_own_ned_m=np.zeros(3),
+        v_own_ned_m_s=np.zeros(3),
+    )
+    law.neighbours = neighbour
+    held = law.velocity(p_rel, v_rel, follower, 0.0).v_ned_m_s
+    assert held[0] < 0.35 * free[0]
