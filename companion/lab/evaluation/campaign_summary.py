@@ -24,6 +24,9 @@ SEED_KEYS = (
     "min_separation_m",
     "min_obstacle_clearance_m",
     "touchdown_m_s",
+    "outcomes",
+    "leader_identity_swaps",
+    "identity_swaps_detected",
 )
 
 
@@ -52,7 +55,33 @@ def campaign_summary(
         "resumed": resumed,
         "failed": list(failed),
         **monte_carlo_summary(reports.values()),
+        **formation_summary(reports.values()),
         "runs_by_seed": {name: {k: r.get(k) for k in SEED_KEYS} for name, r in reports.items()},
+    }
+
+
+def formation_summary(reports: Any) -> dict[str, Any]:
+    """Formation campaigns: every follower's outcome counted, identity swaps summed, the worst follower."""
+    runs = [r for r in reports if "followers" in r]
+    if not runs:
+        return {}
+    followers = [f for r in runs for f in r["followers"]]
+    outcomes: dict[str, int] = {}
+    for f in followers:
+        outcomes[f["outcome"]] = outcomes.get(f["outcome"], 0) + 1
+    worst_sep = min(
+        (f for f in followers if f["min_separation_m"] is not None),
+        key=lambda f: f["min_separation_m"],
+        default=None,
+    )
+    devs = [f["max_deviation_m"] for f in followers if f["max_deviation_m"] is not None]
+    return {
+        "follower_outcomes": outcomes,
+        "leader_identity_swaps": sum(f["leader_identity_swaps"] for f in followers),
+        "identity_swaps_detected": sum(f["identity_swaps_detected"] for f in followers),
+        "worst_separation_m": None if worst_sep is None else worst_sep["min_separation_m"],
+        "followers_over_0_6_m": sum(1 for d in devs if d > 0.6),
+        "follower_max_deviation_m": max(devs) if devs else None,
     }
 
 
@@ -106,6 +135,15 @@ def monte_carlo_markdown(summary: dict[str, Any]) -> str:
         else:
             cells = " | ".join(f"{v[q]:.3f}" if q in v else "n/a" for q in ("min", "p5", "p50", "p95", "max"))
             lines.append(f"| {key} | {cells} |")
+    if "follower_outcomes" in summary:
+        lines += [
+            "",
+            f"Followers: outcomes {summary['follower_outcomes']}; leader identity swaps "
+            f"{summary['leader_identity_swaps']} (the service caught {summary['identity_swaps_detected']}); "
+            f"worst separation {summary['worst_separation_m']:.2f} m; largest follower deviation "
+            f"{summary['follower_max_deviation_m']:.2f} m "
+            f"({summary['followers_over_0_6_m']} followers over 0.6 m).",
+        ]
     if summary.get("failed"):
         lines += ["", "Runs without a report: " + "; ".join(summary["failed"])]
     executor = f" ({summary['executor']} executor)" if summary.get("executor") else ""
