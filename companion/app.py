@@ -441,6 +441,8 @@ class FollowerService:
             rng=self._rng,
             on_command=self._on_command if self.cfg.mqtt.command_topic else None,
             on_leader_position=on_leader,
+            on_neighbour_pose=parts.on_neighbour_pose,
+            neighbour_ids=self.cfg.formation.neighbour_ids,
         )
 
     def _on_command(self, cmd: Command) -> str:

@@ -74,6 +74,9 @@ class FormationConfig(Section):
     #: The other followers' slots in the same plan (forward, right, down), m: where neighbours should be,
     #: which tells the leader from a look-alike neighbour after GPS loss. Set from ``plan``.
     neighbour_slots_m: tuple[tuple[float, float, float], ...] = ()
+    #: The other followers' vehicle ids in the plan: their MQTT ``pose`` topics are read for separation
+    #: and for the leader's identity. Set from ``plan``.
+    neighbour_ids: tuple[str, ...] = ()
     #: How fast an error across the line of sight to the slot is corrected, 1/s (the range has ``kp_xy``).
     kp_slot_1_s: float = Field(1.5, ge=0.0, le=5.0)
     #: The slot's own acceleration (as it turns with the leader) fed forward as a velocity lead, s; the

@@ -16,7 +16,7 @@ from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import GcsPort, MissionPort
-from companion.telemetry.payloads import LeaderPositionMsg
+from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 
 
 @dataclass(slots=True)
@@ -28,6 +28,8 @@ class Parts:
     perception: PerceptionLoop[Any] | None = None
     #: Where leader positions received on MQTT go (``leader.shared_position = "mqtt"``).
     on_leader_position: Callable[[LeaderPositionMsg], None] | None = None
+    #: Where the other followers' poses received on MQTT go (formations: ``formation.plan``).
+    on_neighbour_pose: Callable[[str, PoseMsg], None] | None = None
     #: Does the mission runner send STATUSTEXT on transitions itself? Then the service does not.
     mission_sends_statustext: bool = False
     #: Loops the parts need while the service runs (e.g. the link's telemetry), by task name. Critical:

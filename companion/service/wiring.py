@@ -23,7 +23,13 @@ from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock, MonotonicClock
 from companion.kernel.errors import CompanionError, NotBuiltError, first_companion_error
 from companion.kernel.flight import NEVER_S, Severity, VehicleState
-from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
+from companion.mission.types import (
+    MissionInputs,
+    SharedLeaderPosition,
+    SharedNeighbour,
+    StepOutput,
+    Transition,
+)
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult
@@ -38,7 +44,7 @@ from companion.service.ports import (
 )
 from companion.service.stamps import ServiceClockSource
 from companion.telemetry.leader import OriginTracker
-from companion.telemetry.payloads import LeaderPositionMsg
+from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 from companion.vehicle import failsafe
 from companion.vehicle.link import VehicleLink
 
@@ -205,8 +211,28 @@ class FlightAdapter:
             return  # no GPS fix seen yet: the frame is unknown
         age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
         p = origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m)
-        self.core.submit_leader_shared(SharedLeaderPosition(stamp_s=self.clock.now_s() - age_s, p_ned_m=p))
+        self.core.submit_leader_shared(
+            SharedLeaderPosition(
+                stamp_s=self.clock.now_s() - age_s,
+                p_ned_m=p,
+                yaw_rad=None if msg.yaw_deg is None else math.radians(msg.yaw_deg),
+                v_ned_m_s=msg.v_ned_m_s,
+                yaw_rate_rad_s=None if msg.yaw_rate_deg_s is None else math.radians(msg.yaw_rate_deg_s),
+            )
+        )
         self.leader_positions_used += 1
+
+    def on_neighbour_pose(self, name: str, msg: PoseMsg) -> None:
+        """Another follower's pose from MQTT (formations), placed in this follower's local NED frame."""
+        origin = self._origin.origin
+        if origin is None or msg.time_unix_s is None or msg.p_ned_m is None:
+            return  # our frame is unknown yet, or the neighbour's own position is not valid
+        if msg.lat_deg is None or msg.lon_deg is None or msg.alt_amsl_m is None:
+            return
+        age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
+        p = origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m)
+        v = msg.v_ned_m_s if msg.v_ned_m_s is not None else (0.0, 0.0, 0.0)
+        self.core.submit_neighbour(SharedNeighbour(name, self.clock.now_s() - age_s, p, v))
 
     # ---- internals ------------------------------------------------------------------------------------
 
@@ -314,6 +340,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             gcs=LinkGcs(link),
             perception=perception,
             on_leader_position=flight.on_leader_position,
+            on_neighbour_pose=flight.on_neighbour_pose if cfg.formation.neighbour_ids else None,
             background={
                 "companion.vehicle": link.run,
                 "companion.attitude": flight.feed_telemetry,

@@ -15,7 +15,7 @@ import logging
 import random
 import ssl
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -121,6 +121,7 @@ class MqttReporter:
         rng: jitter for the reconnect backoff.
         on_command: called with each verified command; returns the text reported on ``events``.
         on_leader_position: called with each valid leader position from ``cfg.leader_topic``.
+        on_neighbour_pose: called with (vehicle id, pose) for each pose the ``neighbour_ids`` publish.
     """
 
     def __init__(
@@ -135,6 +136,8 @@ class MqttReporter:
         rng: random.Random | None = None,
         on_command: Callable[[Command], str] | None = None,
         on_leader_position: Callable[[LeaderPositionMsg], None] | None = None,
+        on_neighbour_pose: Callable[[str, PoseMsg], None] | None = None,
+        neighbour_ids: Sequence[str] = (),
     ) -> None:
         self.cfg = cfg
         self.topics = Topics(cfg.topic_prefix, vehicle_id)
@@ -146,6 +149,8 @@ class MqttReporter:
         self._backoff = Backoff(cfg.reconnect_min_s, cfg.reconnect_max_s, rng or random.Random())  # noqa: S311 (jitter, not crypto)
         self._on_command = on_command
         self._on_leader_position = on_leader_position
+        self._on_neighbour_pose = on_neighbour_pose
+        self._neighbour_topics = {Topics(cfg.topic_prefix, n).pose: n for n in neighbour_ids}
         self._verifier: CommandVerifier | None = None
         if cfg.command_topic:
             if self._creds.command_key is None:
@@ -357,6 +362,9 @@ class MqttReporter:
             await _call(client.subscribe(self.topics.cmd, qos=1))
         if self._on_leader_position is not None:
             await _call(client.subscribe(self.cfg.leader_topic, qos=0))
+        if self._on_neighbour_pose is not None:
+            for topic in self._neighbour_topics:
+                await _call(client.subscribe(topic, qos=0))
         self.subscribed = True
         async with compat.TaskGroup() as tg:
             tg.create_task(self._drain(client), name="companion.mqtt.publish")
@@ -393,6 +401,13 @@ class MqttReporter:
                     continue
                 self.leader_positions += 1
                 self._on_leader_position(pos)
+            elif self._on_neighbour_pose is not None and str(message.topic) in self._neighbour_topics:
+                try:
+                    pose = PoseMsg.model_validate_json(raw)
+                except ValidationError as exc:
+                    log.debug("MQTT: bad neighbour pose: %s", exc.errors()[0]["msg"])
+                    continue
+                self._on_neighbour_pose(self._neighbour_topics[str(message.topic)], pose)
 
     def _handle_command(self, raw: bytes) -> None:
         if self._verifier is None or self._on_command is None:

@@ -151,3 +151,6 @@ class LeaderPositionMsg(BaseModel):
     alt_amsl_m: float = Field(ge=-500.0, le=10000.0)
     v_ned_m_s: Vec3 | None = None
     time_unix_s: float
+    #: The leader's heading and yaw rate (formations: the plan's slots turn with it), deg and deg/s.
+    yaw_deg: float | None = Field(None, ge=-360.0, le=360.0)
+    yaw_rate_deg_s: float | None = Field(None, ge=-720.0, le=720.0)

@@ -231,3 +231,35 @@ async def test_last_will_marks_a_killed_service_offline(broker: Mosquitto, repo_
         await asyncio.wait_for(proc.wait(), 5)
     assert p == {**p, "online": False, "state": "OFFLINE", "vehicle_id": "f9"}
     assert "connection to the service lost" in p["reason"]
+
+
+async def test_a_follower_reads_its_neighbours_poses(broker: Mosquitto) -> None:
+    """Formations: follower f1 subscribes to f2's pose (not f3's), both real reporters on a real broker."""
+    seen: list[tuple[str, PoseMsg]] = []
+    f1 = MqttReporter(
+        make_cfg(broker.port),
+        "f1",
+        FakeVehicle().sources(),
+        MonotonicClock(),
+        time.time,
+        on_neighbour_pose=lambda name, pose: seen.append((name, pose)),
+        neighbour_ids=("f2",),
+    )
+
+    def pose_of(lat: float) -> TelemetrySources:
+        return TelemetrySources(
+            state=lambda: StateMsg(state="FOLLOW"),
+            pose=lambda: PoseMsg(p_ned_m=(1.0, 2.0, -5.0), lat_deg=lat, lon_deg=8.54, alt_amsl_m=500.0),
+            health=lambda: HealthMsg(healthy=True),
+        )
+
+    f2 = MqttReporter(make_cfg(broker.port), "f2", pose_of(47.39), MonotonicClock(), time.time)
+    f3 = MqttReporter(make_cfg(broker.port), "f3", pose_of(47.40), MonotonicClock(), time.time)
+    collector = Collector(broker.port, "wingman/f2/pose")
+    async with running(f1, collector), compat.TaskGroup() as tg:
+        tasks = [tg.create_task(f2.run(), name="test.f2"), tg.create_task(f3.run(), name="test.f3")]
+        await wait_for(lambda: len(seen) >= 3 and len(collector.payloads("pose")) >= 3)
+        for t in tasks:
+            t.cancel()
+    assert {name for name, _ in seen} == {"f2"}
+    assert all(p.lat_deg == pytest.approx(47.39) for _, p in seen)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -30,7 +31,7 @@ from companion.service.status import query_status
 from companion.service.systemd import NotifyConfig, SystemdNotifier
 from companion.service.wiring import FlightAdapter, LinkGcs, vehicle_summary
 from companion.telemetry.leader import GeoOrigin
-from companion.telemetry.payloads import LeaderPositionMsg
+from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 from tests.unit.mission_harness import FakeAutopilot, leader
 from tests.unit.test_mission_runner import RecordingLink
 
@@ -157,3 +158,39 @@ def test_leader_position_from_mqtt_lands_in_local_ned() -> None:
     assert shared is not None
     assert shared.p_ned_m == pytest.approx((16.0, 2.0, -6.0), abs=1e-3)
     assert NEVER_S < shared.stamp_s <= clock.now_s()
+
+
+def test_a_neighbour_pose_from_mqtt_lands_in_local_ned_and_reaches_the_mission() -> None:
+    clock = MonotonicClock()
+    ap = FakeAutopilot()
+    link = RecordingLink(ap, clock)
+    flight = FlightAdapter(Config(), link, clock)  # type: ignore[arg-type]
+    origin = GeoOrigin(47.0, 8.0, 500.0)
+    ap.p_ned_m = (10.0, 0.0, -5.0)
+    lat, lon, alt = origin.to_geodetic(ap.p_ned_m)
+    real_state = ap.state
+
+    def with_geo(now_s: float) -> VehicleState:
+        return replace(real_state(now_s), lat_deg=lat, lon_deg=lon, alt_amsl_m=alt)
+
+    ap.state = with_geo  # type: ignore[method-assign]
+    # Our frame is learnt from our own fix (as the leader's position does it).
+    llat, llon, lalt = origin.to_geodetic((16.0, 2.0, -6.0))
+    flight.on_leader_position(
+        LeaderPositionMsg(lat_deg=llat, lon_deg=llon, alt_amsl_m=lalt, time_unix_s=time.time(), yaw_deg=90.0)
+    )
+    shared = flight.runner._shared
+    assert shared is not None
+    assert shared.yaw_rad == pytest.approx(math.pi / 2)
+    nlat, nlon, nalt = origin.to_geodetic((12.0, -3.0, -5.0))
+    pose = PoseMsg(
+        p_ned_m=(0.0, 0.0, -5.0), v_ned_m_s=(1.0, 0.0, 0.0), lat_deg=nlat, lon_deg=nlon, alt_amsl_m=nalt,
+        time_unix_s=time.time(),
+    )  # fmt: skip
+    flight.on_neighbour_pose("follower2", pose)
+    # A neighbour whose own position is not valid is not used.
+    flight.on_neighbour_pose("follower3", pose.model_copy(update={"p_ned_m": None}))
+    got = flight.runner._neighbours
+    assert set(got) == {"follower2"}
+    assert got["follower2"].p_ned_m == pytest.approx((12.0, -3.0, -5.0), abs=1e-3)
+    assert got["follower2"].v_ned_m_s == (1.0, 0.0, 0.0)
