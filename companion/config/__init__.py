@@ -136,7 +136,7 @@ def apply_plan(cfg: Config, plan_path: Path) -> Config:
     formation = cfg.formation.model_copy(
         update={
             "plan": str(plan_path),
-            "offset_cam_m": (0.0, -down, math.hypot(forward, right)),
+            "offset_cam_m": (0.0, 0.0 - down + 0.0, math.hypot(forward, right)),
             "slot_leader_m": slot.offset_m,
             "neighbour_slots_m": tuple(s.offset_m for s in plan.slots if s.follower != cfg.vehicle_id),
             "neighbour_ids": tuple(s.follower for s in plan.slots if s.follower != cfg.vehicle_id),
