@@ -228,6 +228,7 @@ class FormationLaw:
         slew_m_s2: float | None = None,
         coasting: bool = False,
         slot_target: SlotTarget | None = None,
+        v_leader_ned_m_s: Vec3 | None = None,
     ) -> VelocityCommand:
         """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
 
@@ -237,13 +238,21 @@ class FormationLaw:
         ``slew_m_s2``: how fast the command may change (default ``command_slew_m_s2``). ``coasting``: the
         track has no detection now (the lead is dropped unless ``accel_lead_while_coasting``).
         ``slot_target``: a formation plan's slot turned with the leader; the error across the line of sight
-        to it is flown out too, and the slot's own motion fed forward.
+        to it is flown out too, and the slot's own motion fed forward. ``v_leader_ned_m_s``: the leader's
+        own velocity where it shares one (GPS on both ends: steadier than the camera's at the range of an
+        outer slot, and unbroken while the detector misses it); default: ours plus the estimate's relative.
         """
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
         err = slot_error(self.slot, p_ned_rel_m, v_ned_rel_m_s, follower.yaw_rad)
         v_rel = np.asarray(v_ned_rel_m_s, dtype=np.float64)
-        v_leader = None if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s) + v_rel
+        v_leader: Vec3 | None
+        if v_leader_ned_m_s is not None:
+            v_leader = np.asarray(v_leader_ned_m_s, dtype=np.float64)
+        elif follower.v_ned_m_s is not None:
+            v_leader = np.asarray(follower.v_ned_m_s) + v_rel
+        else:
+            v_leader = None
         a_leader = self._leader_accel(v_leader, dt, a_leader_ned_m_s2)
         if coasting and not cfg.accel_lead_while_coasting:
             a_leader = np.zeros(3)

@@ -97,3 +97,20 @@ def test_the_law_never_closes_on_a_neighbour_inside_the_separation() -> None:
     law.neighbours = neighbour
     held = law.velocity(p_rel, v_rel, follower, 0.0).v_ned_m_s
     assert held[0] < 0.35 * free[0]
+
+
+def test_a_shared_leader_velocity_replaces_the_estimated_one_in_the_feed_forward() -> None:
+    cfg = FormationConfig(kp_xy=0.0, ki_xy=0.0, kd_xy=0.0, kp_z=0.0, ki_z=0.0, leader_accel_ff_s=0.0)
+    law = FormationLaw(cfg, SafetyLimits.from_config(SafetyConfig(), cfg.max_accel_m_s2))
+    follower = FollowerState(
+        yaw_rad=0.0, v_ned_m_s=np.zeros(3), v_down_m_s=0.0, alt_rel_m=5.0, p_ned_m=np.zeros(3)
+    )
+    p_rel = np.array([5.0, 0.0, 0.0])
+    # The camera's relative velocity says 1.4 m/s; the leader's own (GPS) says 1.0 m/s.
+    seen = law.velocity(p_rel, np.array([1.4, 0.0, 0.0]), follower, 0.0).v_ned_m_s
+    law.reset()
+    shared = law.velocity(
+        p_rel, np.array([1.4, 0.0, 0.0]), follower, 0.0, v_leader_ned_m_s=np.array([1.0, 0.0, 0.0])
+    )
+    assert seen[0] == pytest.approx(1.4, abs=1e-6)
+    assert shared.v_ned_m_s[0] == pytest.approx(1.0, abs=1e-6)

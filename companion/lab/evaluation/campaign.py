@@ -157,8 +157,7 @@ def _run_formation(
     options = FormationOptions(progress=progress)
     result, plan, configs = run_formation(run_file, spec.seed, cfg, runtime, options)
     extra: dict[str, Any] = {"scenario_file": str(path), "formation_window_s": _window(scenario)}
-    if spec.detector == "truth":
-        extra["detector"] = "ground-truth boxes (NOT the network)"
+    extra["detector"] = "ground-truth boxes (NOT the network)" if spec.detector == "truth" else _describe(cfg)
     report = build_formation_report(scenario.name, spec.seed, plan, result, configs, extra=extra)
     if spec.plots:
         plot = spec.out_dir / "plots" / "formation.png"

@@ -55,8 +55,18 @@ class FollowStates(MachineBase):
             slew_m_s2=self._slew(est),
             coasting=est.status == TrackStatus.COASTING,
             slot_target=self._slot_target(inp),
+            v_leader_ned_m_s=self._shared_leader_velocity(inp),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
+
+    def _shared_leader_velocity(self, inp: MissionInputs) -> Vec3 | None:
+        """Formations: the leader's own shared velocity while fresh (None: the law uses the estimate's)."""
+        sh = inp.leader_shared
+        if self._slot_turner is None or sh is None or sh.v_ned_m_s is None:
+            return None
+        if not 0.0 <= self._now_s - sh.stamp_s <= SHARED_STALE_S:
+            return None
+        return np.asarray(sh.v_ned_m_s, dtype=np.float64)
 
     def _slew(self, est: LeaderEstimate) -> float:
         """The command slew, m/s^2: the faster one only while the leader is seen steadily on a clean link."""
