@@ -141,8 +141,8 @@ def monte_carlo_markdown(summary: dict[str, Any]) -> str:
             f"Followers: outcomes {summary['follower_outcomes']}; leader identity swaps "
             f"{summary['leader_identity_swaps']} (the service caught {summary['identity_swaps_detected']}); "
             f"worst separation {summary['worst_separation_m']:.2f} m; largest follower deviation "
-            f"{summary['follower_max_deviation_m']:.2f} m "
-            f"({summary['followers_over_0_6_m']} followers over 0.6 m).",
+            f"{summary['follower_max_deviation_m']:.2f} m (over 0.6 m: {summary['followers_over_0_6_m']} of "
+            f"{sum(summary['follower_outcomes'].values())}).",
         ]
     if summary.get("failed"):
         lines += ["", "Runs without a report: " + "; ".join(summary["failed"])]
