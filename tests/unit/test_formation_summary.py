@@ -1,4 +1,4 @@
-"""A formation campaign's summary counts every follower, sums identity swaps and keeps the worst separation."""
+"""A formation campaign's summary: every follower counted, swaps summed, the worst separation kept."""
 
 from __future__ import annotations
 
