@@ -7,7 +7,6 @@ Overrides use double underscores between levels and TOML literals as values, e.g
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -132,11 +131,11 @@ def apply_plan(cfg: Config, plan_path: Path) -> Config:
         slot = plan.slot(cfg.vehicle_id)
     except KeyError as exc:
         raise ConfigError(str(plan_path), [f"vehicle_id: {exc.args[0]}"]) from None
-    forward, right, down = slot.offset_m
+    down = slot.offset_m[2]
     formation = cfg.formation.model_copy(
         update={
             "plan": str(plan_path),
-            "offset_cam_m": (0.0, 0.0 - down + 0.0, math.hypot(forward, right)),
+            "offset_cam_m": (0.0, 0.0 - down + 0.0, slot.range_h_m),
             "slot_leader_m": slot.offset_m,
             "neighbour_slots_m": tuple(s.offset_m for s in plan.slots if s.follower != cfg.vehicle_id),
             "neighbour_ids": tuple(s.follower for s in plan.slots if s.follower != cfg.vehicle_id),

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.kernel.frames import Vec3
+from companion.kernel.frames import Vec3, heading_to_ned
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +52,6 @@ class IdentityCounters:
     swaps: int = 0
 
 
-def _rotate(yaw_rad: float, v: Sequence[float]) -> Vec3:
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]], dtype=np.float64)
-
-
 def expectations(
     *,
     own_p_ned_m: Vec3 | None,
@@ -79,9 +74,12 @@ def expectations(
         leader = Expectation(np.asarray(leader_p_ned_m) - own, SHARED_SIGMA_M + 0.5 * leader_age_s)
         return leader, [Expectation(np.asarray(p) - own, SHARED_SIGMA_M) for p in neighbour_p_ned_m]
     if slot_leader_m is not None and leader_yaw_rad is not None:
-        me = _rotate(leader_yaw_rad, slot_leader_m)
+        me = heading_to_ned(np.asarray(slot_leader_m, dtype=np.float64), leader_yaw_rad)
         leader = Expectation(-me, PLAN_SIGMA_M)
-        others = [Expectation(_rotate(leader_yaw_rad, s) - me, PLAN_SIGMA_M) for s in neighbour_slots_m]
+        others = [
+            Expectation(heading_to_ned(np.asarray(s, dtype=np.float64), leader_yaw_rad) - me, PLAN_SIGMA_M)
+            for s in neighbour_slots_m
+        ]
         return leader, others
     return None, []
 

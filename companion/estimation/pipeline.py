@@ -153,8 +153,7 @@ class PerceptionPipeline:
         state = self.tracker.step(stamp_s, measurements, R, self.velocity.v_at(stamp_s))
         if ident is not None and state.status == TrackStatus.CONFIRMED and state.estimate is not None:
             est = state.estimate
-            sigma = math.sqrt(max(float(np.trace(est.cov_ned_m2)), 0.0))
-            if ident.check_track(stamp_s, est.p_ned_rel_m, sigma):
+            if ident.check_track(stamp_s, est.p_ned_rel_m, _sigma_m(est.cov_ned_m2)):
                 # Start again from this frame's measurements that fit the leader.
                 self.tracker.reset()
                 state = self.tracker.step(stamp_s, measurements, R, self.velocity.v_at(stamp_s))
@@ -164,8 +163,7 @@ class PerceptionPipeline:
 
     def _ned_rel(self, p_cam_m: Vec3, cov_cam_m2: Mat3, R_ned_body: Mat3) -> tuple[Vec3, float]:
         """A camera-frame measurement relative to the follower in NED, m, and its 1-sigma, m."""
-        sigma_m = math.sqrt(max(float(np.trace(cov_cam_m2)), 0.0))
-        return self.camera.cam_to_ned_rel(p_cam_m, R_ned_body), sigma_m
+        return self.camera.cam_to_ned_rel(p_cam_m, R_ned_body), _sigma_m(cov_cam_m2)
 
     def process(self, frame: RgbdFrame, detections: Sequence[Detection]) -> TrackState:
         """Both stages for one frame."""
@@ -224,3 +222,8 @@ class PerceptionPipeline:
             response_s=g.separation_response_s,
             brake_m_s2=self.guard_brake_m_s2,
         )
+
+
+def _sigma_m(cov_m2: Mat3) -> float:
+    """One sigma of a position covariance, all axes together (root of its trace), m."""
+    return math.sqrt(max(float(np.trace(cov_m2)), 0.0))

@@ -103,3 +103,15 @@ def R_body_cam_from_mount(roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg
     """
     R_body_mount = R_from_euler(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg))
     return R_body_mount @ R_BODY_CAM_LEVEL
+
+
+def ned_to_heading(v_ned: Vec3, yaw_rad: float) -> Vec3:
+    """Rotate a NED vector into the heading frame (forward, right, down) of ``yaw_rad``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([c * v_ned[0] + s * v_ned[1], -s * v_ned[0] + c * v_ned[1], v_ned[2]])
+
+
+def heading_to_ned(v_h: Vec3, yaw_rad: float) -> Vec3:
+    """Inverse of :func:`ned_to_heading`."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([c * v_h[0] - s * v_h[1], s * v_h[0] + c * v_h[1], v_h[2]])

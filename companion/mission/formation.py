@@ -34,16 +34,8 @@ import numpy as np
 
 from companion.config import FormationConfig
 from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint, VelocityNedSetpoint
-from companion.kernel.frames import Vec3, wrap_pi
-from companion.mission.geometry import (
-    FollowerState,
-    Slot,
-    SlotError,
-    heading_to_ned,
-    ned_to_heading,
-    slot_error,
-    tilt_from_accel,
-)
+from companion.kernel.frames import Vec3, heading_to_ned, ned_to_heading, wrap_pi
+from companion.mission.geometry import FollowerState, Slot, SlotError, slot_error, tilt_from_accel
 from companion.mission.plan_slot import NeighbourNow, SlotTarget
 from companion.mission.safety import (
     G_M_S2,
@@ -167,9 +159,7 @@ class FormationLaw:
         """
         limit = self.cfg.max_accel_m_s2
         if a_track is not None:
-            a = np.array(a_track, dtype=np.float64)
-            n = float(np.linalg.norm(a))
-            self._a_leader = a * (limit / n) if n > limit else a
+            self._a_leader = _clamp_norm(np.array(a_track, dtype=np.float64), limit)
             self._v_leader_prev = None if v_leader is None else np.array(v_leader, dtype=np.float64)
             return self._a_leader
         if v_leader is None:
@@ -177,11 +167,14 @@ class FormationLaw:
             self._a_leader = np.zeros(3)
             return self._a_leader
         if self._v_leader_prev is not None and dt > 0.0:
-            a_raw = (v_leader - self._v_leader_prev) / dt
-            k = dt / (self.cfg.leader_accel_tau_s + dt)
-            a = self._a_leader + k * (a_raw - self._a_leader)
-            n = float(np.linalg.norm(a))
-            self._a_leader = a * (limit / n) if n > limit else a
+            self._a_leader = _rate(
+                self._a_leader,
+                v_leader,
+                self._v_leader_prev,
+                dt,
+                tau_s=self.cfg.leader_accel_tau_s,
+                limit=limit,
+            )
         self._v_leader_prev = np.array(v_leader, dtype=np.float64)
         return self._a_leader
 
@@ -315,11 +308,10 @@ class FormationLaw:
         """
         v = -np.asarray(target.v_ned_rel_m_s, dtype=np.float64)
         if self._v_slot_prev is not None and dt > 0.0:
-            k = dt / (self.cfg.leader_accel_tau_s + dt)
-            a = self._a_slot + k * ((v - self._v_slot_prev) / dt - self._a_slot)
-            n = float(np.linalg.norm(a))
-            limit = self.cfg.max_accel_m_s2
-            self._a_slot = a * (limit / n) if n > limit else a
+            cfg = self.cfg
+            self._a_slot = _rate(
+                self._a_slot, v, self._v_slot_prev, dt, tau_s=cfg.leader_accel_tau_s, limit=cfg.max_accel_m_s2
+            )
         self._v_slot_prev = v
         return self._a_slot
 
@@ -494,6 +486,17 @@ class FormationLaw:
     def hover_velocity(self, v_down_m_s: float = 0.0, yaw_rate_rad_s: float = 0.0) -> VelocityBodySetpoint:
         """Stop in place (GPS healthy): zero horizontal velocity, a vertical speed and a yaw rate."""
         return VelocityBodySetpoint(v_body_m_s=(0.0, 0.0, v_down_m_s), yaw_rate_rad_s=yaw_rate_rad_s)
+
+
+def _clamp_norm(a: Vec3, limit: float) -> Vec3:
+    n = float(np.linalg.norm(a))
+    return a * (limit / n) if n > limit else a
+
+
+def _rate(a_prev: Vec3, v: Vec3, v_prev: Vec3, dt: float, *, tau_s: float, limit: float) -> Vec3:
+    """The low-passed (``tau_s``) derivative of ``v``, its norm capped at ``limit``; one step of ``dt``."""
+    k = dt / (tau_s + dt)
+    return _clamp_norm(a_prev + k * ((v - v_prev) / dt - a_prev), limit)
 
 
 def velocity_ned_setpoint(v_ned_m_s: Vec3T, yaw_rad: float) -> VelocityNedSetpoint:

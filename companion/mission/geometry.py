@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.kernel.frames import Vec3, wrap_pi
+from companion.kernel.frames import Vec3, ned_to_heading, wrap_pi
 from companion.mission.safety import G_M_S2
 
 #: Below this horizontal range the line-of-sight bearing is meaningless (m).
@@ -111,18 +111,6 @@ class FollowerState:
     p_ned_m: Vec3 | None = None
     roll_rad: float = 0.0
     pitch_rad: float = 0.0
-
-
-def ned_to_heading(v_ned: Vec3, yaw_rad: float) -> Vec3:
-    """Rotate a NED vector into the heading frame (forward, right, down) of ``yaw_rad``."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * v_ned[0] + s * v_ned[1], -s * v_ned[0] + c * v_ned[1], v_ned[2]])
-
-
-def heading_to_ned(v_h: Vec3, yaw_rad: float) -> Vec3:
-    """Inverse of :func:`ned_to_heading`."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * v_h[0] - s * v_h[1], s * v_h[0] + c * v_h[1], v_h[2]])
 
 
 def tilt_from_accel(a_ned_m_s2: Vec3, yaw_rad: float) -> tuple[float, float]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.kernel.frames import Vec3, wrap_pi
+from companion.kernel.frames import Vec3, heading_to_ned, wrap_pi
 from companion.mission.types import SharedLeaderPosition, SharedNeighbour
 
 #: A shared heading older than this is not used to place the slot, s.
@@ -77,10 +77,8 @@ class SlotTurner:
         if self._yaw_rad is None or now_s - self._stamp_s > HEADING_STALE_S:
             return None
         yaw = self._yaw_rad + self.turn_rate_rad_s * max(0.0, now_s - self._stamp_s)
-        c, s = math.cos(yaw), math.sin(yaw)
-        fwd, right, down = self.slot
         # The follower sits at leader + R(yaw) slot: the leader relative to it is the negative.
-        slot_ned = np.array([c * fwd - s * right, s * fwd + c * right, down])
+        slot_ned = heading_to_ned(self.slot, yaw)
         w = self.turn_rate_rad_s
         v_slot = np.array([-w * slot_ned[1], w * slot_ned[0], 0.0])
         return SlotTarget(-slot_ned, -v_slot)

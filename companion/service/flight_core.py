@@ -25,8 +25,8 @@ from companion.estimation.identity import Expectation, LeaderIdentity, expectati
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock
-from companion.kernel.flight import NEVER_S
-from companion.kernel.frames import quat_from_euler
+from companion.kernel.flight import NEVER_S, Vec3T
+from companion.kernel.frames import Vec3, quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     MissionInputs,
@@ -130,21 +130,20 @@ class FlightCore:
         leader_p, age, yaw = None, 0.0, None
         if sh is not None and 0.0 <= stamp_s - sh.stamp_s <= SHARE_STALE_S:
             age = stamp_s - sh.stamp_s
-            vel = (0.0, 0.0, 0.0) if sh.v_ned_m_s is None else sh.v_ned_m_s
-            leader_p = tuple(p + u * age for p, u in zip(sh.p_ned_m, vel, strict=True))
+            leader_p = _brought_to(sh.p_ned_m, sh.v_ned_m_s or (0.0, 0.0, 0.0), age)
             yaw = sh.yaw_rad
         neighbours = [
-            tuple(p + u * (stamp_s - n.stamp_s) for p, u in zip(n.p_ned_m, n.v_ned_m_s, strict=True))
+            _brought_to(n.p_ned_m, n.v_ned_m_s, stamp_s - n.stamp_s)
             for n in self._neighbours.values()
             if 0.0 <= stamp_s - n.stamp_s <= SHARE_STALE_S
         ]
         f = self.cfg.formation
         return expectations(
             own_p_ned_m=None if own is None else np.asarray(own, dtype=np.float64),
-            leader_p_ned_m=None if leader_p is None else np.asarray(leader_p, dtype=np.float64),
+            leader_p_ned_m=leader_p,
             leader_age_s=age,
             leader_yaw_rad=yaw,
-            neighbour_p_ned_m=[np.asarray(p, dtype=np.float64) for p in neighbours],
+            neighbour_p_ned_m=neighbours,
             slot_leader_m=f.slot_leader_m,
             neighbour_slots_m=f.neighbour_slots_m,
         )
@@ -185,3 +184,8 @@ class FlightCore:
         finally:
             if self.autolabel is not None:
                 self.autolabel.__exit__(None, None, None)
+
+
+def _brought_to(p_ned_m: Vec3T, v_ned_m_s: Vec3T, age_s: float) -> Vec3:
+    """A shared position ``age_s`` old, moved on at its shared velocity (NED, m)."""
+    return np.asarray(p_ned_m, dtype=np.float64) + age_s * np.asarray(v_ned_m_s, dtype=np.float64)

@@ -28,10 +28,10 @@ from pymavlink.dialects.v20 import common as mavlink2
 from companion.config import Config
 from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.kernel.clock import MonotonicClock
-from companion.kernel.frames import R_from_quat
+from companion.kernel.frames import R_from_quat, ned_to_heading
 from companion.lab.evaluation.procs import Child
 from companion.lab.evaluation.procs import SitlPorts as Ports
-from companion.mission.geometry import Slot, ned_to_heading
+from companion.mission.geometry import Slot
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, MissionState, SharedLeaderPosition, StepOutput, Transition
 from companion.service.mission_runner import MissionRunner

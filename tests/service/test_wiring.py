@@ -134,22 +134,28 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
     assert flight.machine.law.slot.range_h_m == pytest.approx(np.hypot(0.5, 6.0), rel=0.05)
 
 
-def test_leader_position_from_mqtt_lands_in_local_ned() -> None:
-    clock = MonotonicClock()
-    ap = FakeAutopilot()
-    link = RecordingLink(ap, clock)
-    flight = FlightAdapter(Config(), link, clock)  # type: ignore[arg-type]
-    origin = GeoOrigin(47.0, 8.0, 500.0)
-    ap.p_ned_m = (10.0, 0.0, -5.0)
-    lat, lon, alt = origin.to_geodetic(ap.p_ned_m)
+ORIGIN = GeoOrigin(47.0, 8.0, 500.0)
 
+
+def _flight_with_a_fix(clock: MonotonicClock) -> FlightAdapter:
+    """A flight adapter whose autopilot reports a geodetic fix 10 m north of ``ORIGIN``."""
+    ap = FakeAutopilot()
+    flight = FlightAdapter(Config(), RecordingLink(ap, clock), clock)  # type: ignore[arg-type]
+    ap.p_ned_m = (10.0, 0.0, -5.0)
+    lat, lon, alt = ORIGIN.to_geodetic(ap.p_ned_m)
     real_state = ap.state
 
     def with_geo(now_s: float) -> VehicleState:
-        st = real_state(now_s)
-        return replace(st, lat_deg=lat, lon_deg=lon, alt_amsl_m=alt)
+        return replace(real_state(now_s), lat_deg=lat, lon_deg=lon, alt_amsl_m=alt)
 
     ap.state = with_geo  # type: ignore[method-assign]
+    return flight
+
+
+def test_leader_position_from_mqtt_lands_in_local_ned() -> None:
+    clock = MonotonicClock()
+    flight = _flight_with_a_fix(clock)
+    origin = ORIGIN
     llat, llon, lalt = origin.to_geodetic((16.0, 2.0, -6.0))
     flight.on_leader_position(
         LeaderPositionMsg(lat_deg=llat, lon_deg=llon, alt_amsl_m=lalt, time_unix_s=time.time())
@@ -162,18 +168,8 @@ def test_leader_position_from_mqtt_lands_in_local_ned() -> None:
 
 def test_a_neighbour_pose_from_mqtt_lands_in_local_ned_and_reaches_the_mission() -> None:
     clock = MonotonicClock()
-    ap = FakeAutopilot()
-    link = RecordingLink(ap, clock)
-    flight = FlightAdapter(Config(), link, clock)  # type: ignore[arg-type]
-    origin = GeoOrigin(47.0, 8.0, 500.0)
-    ap.p_ned_m = (10.0, 0.0, -5.0)
-    lat, lon, alt = origin.to_geodetic(ap.p_ned_m)
-    real_state = ap.state
-
-    def with_geo(now_s: float) -> VehicleState:
-        return replace(real_state(now_s), lat_deg=lat, lon_deg=lon, alt_amsl_m=alt)
-
-    ap.state = with_geo  # type: ignore[method-assign]
+    flight = _flight_with_a_fix(clock)
+    origin = ORIGIN
     # Our frame is learnt from our own fix (as the leader's position does it).
     llat, llon, lalt = origin.to_geodetic((16.0, 2.0, -6.0))
     flight.on_leader_position(

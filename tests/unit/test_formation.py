@@ -10,15 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import FormationConfig, SafetyConfig
+from companion.kernel.frames import heading_to_ned, ned_to_heading
 from companion.mission.formation import FormationLaw
-from companion.mission.geometry import (
-    FollowerState,
-    Slot,
-    heading_to_ned,
-    ned_to_heading,
-    slot_error,
-    tilt_from_accel,
-)
+from companion.mission.geometry import FollowerState, Slot, slot_error, tilt_from_accel
 from companion.mission.safety import (
     G_M_S2,
     SafetyLimits,

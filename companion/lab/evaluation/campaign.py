@@ -144,7 +144,7 @@ def _run_formation(
     from companion.lab.formation.report import (  # noqa: PLC0415
         build_formation_report,
         plot_from_above,
-        save_tracks,
+        save_logs,
         write_formation_report,
     )
     from companion.lab.formation.run import FormationOptions  # noqa: PLC0415
@@ -164,13 +164,7 @@ def _run_formation(
         plot_from_above(result, plan, plot, scenario.name)
         report["plots"] = [str(plot)]
     write_formation_report(spec.out_dir, report)
-    save_tracks(result, spec.out_dir / "formation_log.npz")
-    from companion.lab.evaluation.log import save_log  # noqa: PLC0415
-
-    for f in result.followers:
-        folder = spec.out_dir / "followers" / f.name
-        folder.mkdir(parents=True, exist_ok=True)
-        save_log(f.scorer.freeze(), folder / "flight_log.npz")
+    save_logs(result, spec.out_dir)
     return report
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -66,9 +67,6 @@ def formation_summary(reports: Any) -> dict[str, Any]:
     if not runs:
         return {}
     followers = [f for r in runs for f in r["followers"]]
-    outcomes: dict[str, int] = {}
-    for f in followers:
-        outcomes[f["outcome"]] = outcomes.get(f["outcome"], 0) + 1
     worst_sep = min(
         (f for f in followers if f["min_separation_m"] is not None),
         key=lambda f: f["min_separation_m"],
@@ -76,7 +74,7 @@ def formation_summary(reports: Any) -> dict[str, Any]:
     )
     devs = [f["max_deviation_m"] for f in followers if f["max_deviation_m"] is not None]
     return {
-        "follower_outcomes": outcomes,
+        "follower_outcomes": dict(Counter(f["outcome"] for f in followers)),
         "leader_identity_swaps": sum(f["leader_identity_swaps"] for f in followers),
         "identity_swaps_detected": sum(f["identity_swaps_detected"] for f in followers),
         "worst_separation_m": None if worst_sep is None else worst_sep["min_separation_m"],

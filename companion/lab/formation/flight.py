@@ -14,11 +14,13 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from pydantic import ValidationError
 
 from companion.config import Config, FormationPlan, apply_plan, load_plan
 from companion.kernel.config import Section, format_validation_error
 from companion.kernel.errors import ConfigError
+from companion.kernel.frames import heading_to_ned
 from companion.lab.evaluation.setup import REPO, SITL_CONFIG, load_detect
 from companion.lab.formation.run import FormationOptions, FormationResult, FormationRun
 
@@ -58,14 +60,13 @@ def sitl_config_for(
 
     sitl = load_sitl_config(base)
     h = math.radians(heading_deg)
-    c, s = math.cos(h), math.sin(h)
     ln, le, _ = spec.leader_spawn_ned_m
     vehicles = [
         VehicleConfig(name="leader", role="leader", spawn_ned_m=(ln, le, 0.0), spawn_yaw_deg=heading_deg)
     ]
     for slot in plan.slots:
-        f, r, _ = slot.offset_m
-        n, e = ln + c * f - s * r, le + s * f + c * r
+        dn, de, _ = heading_to_ned(np.asarray(slot.offset_m, dtype=np.float64), h)
+        n, e = ln + float(dn), le + float(de)
         yaw = math.degrees(math.atan2(le - e, ln - n))
         vehicles.append(
             VehicleConfig(name=slot.follower, role="follower", spawn_ned_m=(n, e, 0.0), spawn_yaw_deg=yaw)

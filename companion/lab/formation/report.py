@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config, FormationPlan
+from companion.lab.evaluation.log import save_log
 from companion.lab.evaluation.metrics import compute_metrics
 from companion.lab.evaluation.report import write_json
 from companion.lab.formation.run import FollowerRun, FormationResult
@@ -188,9 +189,17 @@ def plot_from_above(result: FormationResult, plan: FormationPlan, path: Path, ti
     plt.close(fig)
 
 
-def save_tracks(result: FormationResult, path: Path) -> None:
-    """``formation_log.npz``: ``t_s``, ``leader_yaw_rad`` and each vehicle's true world NED track, m."""
+def save_logs(result: FormationResult, out_dir: Path) -> None:
+    """The run's logs: the formation's truth and each follower's flight log.
+
+    ``formation_log.npz``: ``t_s``, ``leader_yaw_rad`` and each vehicle's true world NED track (m);
+    ``followers/<name>/flight_log.npz``: each follower's log.
+    """
     arrays = {"t_s": np.asarray(result.t_s), "leader_yaw_rad": np.asarray(result.leader_yaw_rad)}
     for n, p in result.p_ned_m.items():
         arrays[f"p_ned_m_{n}"] = np.asarray(p)
-    np.savez_compressed(path, **arrays)  # type: ignore[arg-type]
+    np.savez_compressed(out_dir / "formation_log.npz", **arrays)  # type: ignore[arg-type]
+    for f in result.followers:
+        folder = out_dir / "followers" / f.name
+        folder.mkdir(parents=True, exist_ok=True)
+        save_log(f.scorer.freeze(), folder / "flight_log.npz")

@@ -242,8 +242,7 @@ class FormationRun:
     def _deliver(self, f: FollowerRun, item: _InFlight) -> None:
         track = f.core.on_frame(item.frame, item.result)
         est = track.leader_estimate()
-        usable = est is not None and est.usable
-        p_est = np.asarray(est.p_ned_rel_m) if usable and est is not None else None
+        p_est = np.asarray(est.p_ned_rel_m) if est is not None and est.usable else None
         me = np.asarray(self.world.truth(f.name).p_ned_m)
         true_rel = {n: np.asarray(self.world.truth(n).p_ned_m) - me for n in self.names if n != f.name}
         f.score.frame(p_est, true_rel)

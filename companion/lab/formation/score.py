@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.kernel.frames import Vec3
+from companion.kernel.frames import Vec3, heading_to_ned
 
 #: A track nearer a neighbour than the leader for this many delivered frames in a row is a swap.
 SWAP_FRAMES = 3
@@ -19,9 +19,7 @@ SWAP_FRAMES = 3
 
 def slot_world_ned_m(p_leader_ned_m: Vec3, yaw_leader_rad: float, slot_leader_m: Vec3) -> Vec3:
     """Where the plan puts a follower: the leader's position plus its slot turned by the leader's heading."""
-    c, s = math.cos(yaw_leader_rad), math.sin(yaw_leader_rad)
-    f, r, d = slot_leader_m
-    out: Vec3 = np.asarray(p_leader_ned_m, dtype=np.float64) + np.array([c * f - s * r, s * f + c * r, d])
+    out: Vec3 = np.asarray(p_leader_ned_m, dtype=np.float64) + heading_to_ned(slot_leader_m, yaw_leader_rad)
     return out
 
 
