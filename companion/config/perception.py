@@ -41,17 +41,17 @@ class DetectorConfig(Section):
     #: ``truth``: the simulator's ground-truth boxes instead of the network (simulator and rendered
     #: recordings only), to exercise the service, pose and tracker without trained weights.
     runtime: Literal["auto", "torch", "onnx", "truth"] = "auto"
-    input_size_px: int = Field(320, ge=128, le=1280, multiple_of=32)
+    input_size_px: int = Field(416, ge=128, le=1280, multiple_of=32)
     conf_threshold: float = Field(0.35, gt=0, lt=1)
     nms_iou: float = Field(0.5, gt=0, lt=1)
     threads: int = Field(2, ge=1, le=64)
     #: Search a magnified window on the tracked leader first (perception/detector/roi.py): a small leader
-    #: scores far higher at 1.5x than at the whole frame's 0.5x, and the window costs less than the frame.
+    #: scores far higher at 1.75x than at the whole frame's 0.65x, and the window costs less than the frame.
     roi_enabled: bool = True
     #: Window width in box widths (or the box height's equivalent at the frame's aspect ratio).
     roi_box_multiple: float = Field(3.0, ge=1.5, le=20.0)
     #: Network input px per window px (capped at ``input_size_px``).
-    roi_magnification: float = Field(1.5, gt=0.1, le=4.0)
+    roi_magnification: float = Field(1.75, gt=0.1, le=4.0)
     roi_min_width_px: int = Field(128, ge=64, le=4096)
     #: A window wider than this fraction of the frame is not worth it: the whole frame is searched.
     roi_max_frame_fraction: float = Field(0.6, gt=0.0, le=1.0)

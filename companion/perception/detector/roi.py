@@ -1,11 +1,11 @@
 """Region-of-interest detection while a track is held: the network looks at a magnified window on the leader.
 
 Why: in formation the leader is small. A 450-class quad 5 m ahead is about 50x30 px of a 640x480 frame,
-25x15 px after the whole-frame letterbox to a 320 px input, and the network scores it low there. A window of
-about three box widths around the tracked leader, scaled up 1.5x, shows it at about 75 px. On the follower's
-frames of a closed-loop straight run (docs/evaluation.md) recall at conf 0.35 went from 0.37 (whole frame)
-to 0.96-0.98 (window), and the smaller input also costs less (a 128x96 window at 192 px: ~4.4 ms against
-~9.3 ms).
+25x15 px after a whole-frame letterbox to a 320 px input, and a network scores it low there. A window of
+about three box widths around the tracked leader, scaled up (``roi_magnification``, 1.75x by default: about
+90 px), shows it at the size the network knows. On the follower's frames of a closed-loop straight run
+(docs/perception.md) recall at conf 0.35 went from 0.37 (whole frame) to 0.96-0.98 (window) with a 320 px
+network at 1.5x, and the smaller input also costs less (a 128x96 window at 192 px: ~4.4 ms against ~9.3 ms).
 
 The window follows the box of the measurement that the tracker accepted into a confirmed track, never the
 detector's own best guess, so a false positive steers it only if the tracker takes it. Without such a box,

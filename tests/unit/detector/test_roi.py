@@ -20,14 +20,14 @@ def test_window_is_three_box_widths_at_the_frame_aspect_magnified() -> None:
     win = roi_window((300.0, 200.0, 351.0, 229.0), 640, 480, CFG)
     assert win is not None
     assert (win.w_px, win.h_px) == (160, 120)  # 3 x 51 = 153 -> the next 32 px step, 4:3
-    assert win.input_size_px == 256  # 1.5 x 160 = 240 -> the next multiple of 32
+    assert win.input_size_px == 288  # 1.75 x 160 = 280 -> the next multiple of 32
     assert win.x0_px + win.w_px / 2 == pytest.approx(325.5, abs=1.0)
     assert win.y0_px + win.h_px / 2 == pytest.approx(214.5, abs=1.0)
 
 
 def test_window_stays_inside_the_frame_and_has_a_minimum() -> None:
     win = roi_window((0.0, 470.0, 10.0, 480.0), 640, 480, CFG)
-    assert win == RoiWindow(0, 480 - 96, 128, 96, 192)
+    assert win == RoiWindow(0, 480 - 96, 128, 96, 224)
 
 
 def test_a_near_leader_gets_the_whole_frame_and_input_is_capped() -> None:
@@ -147,7 +147,7 @@ def test_window_boxes_are_in_frame_pixels(shipped_model: Path) -> None:
     frame = np.zeros((480, 640, 3), np.uint8)
     frame[100:340, 64:384] = patch
     alone = det.detect(patch).detections
-    inside = det.detect_window(frame, (64, 100, 320, 240), 320).detections
+    inside = det.detect_window(frame, (64, 100, 320, 240), det.input_size_px).detections
     assert len(alone) == len(inside) > 0
     for a, b in zip(alone, inside, strict=True):
         assert b.score == pytest.approx(a.score, abs=1e-6)

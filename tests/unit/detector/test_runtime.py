@@ -56,7 +56,8 @@ def test_shipped_model_gives_the_same_boxes_on_both_runtimes(repo_root: Path, tm
     if not pt.exists():
         pytest.skip("no shipped model in models/ yet")
     data = make_dataset(tmp_path, {"test": 6}, seed=11, size=(640, 480), empty_fraction=0.0)
-    dets = [load_detector(_cfg(pt), runtime=r) for r in ("torch", "onnx")]  # type: ignore[arg-type]
+    # A low threshold: the synthetic drones are crude, and the comparison needs boxes to compare.
+    dets = [load_detector(_cfg(pt, conf_threshold=0.05), runtime=r) for r in ("torch", "onnx")]  # type: ignore[arg-type]
     found = 0
     for img in sorted((data / "images" / "test").glob("*.png")):
         rgb = np.ascontiguousarray(cv2.imread(str(img))[..., ::-1])
