@@ -51,8 +51,15 @@ def register(sub: Any) -> None:
     t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
     t.add_argument("--epochs", type=int, default=30, help="epochs in the learning-rate schedule (default 30)")
     t.add_argument("--batch-size", type=int, default=32, help="images per step (default 32)")
-    t.add_argument("--input-size", type=int, default=320, help="letterbox size the model is trained for, px")
-    t.add_argument("--crop", type=int, default=256, help="training crop size, px (<= --input-size)")
+    t.add_argument(
+        "--input-size",
+        type=int,
+        default=None,
+        help="letterbox size the model is trained for, px (default: detector.input_size_px)",
+    )
+    t.add_argument(
+        "--crop", type=int, default=None, help="training crop size, px (<= --input-size; default 0.8x it)"
+    )
     t.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (AdamW, default 0.002)")
     t.add_argument("--seed", type=int, default=0, help="seed of the sample order and augmentations")
     t.add_argument("--workers", type=int, default=1, help="augmentation worker processes")
@@ -152,14 +159,17 @@ def register(sub: Any) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    load(args)
+    service = load(args)
     from companion.lab.training.augment import REAL_CAMERA, AugmentConfig
     from companion.lab.training.train import train
-    from companion.lab.training.train_config import TrainConfig, parse_source
+    from companion.lab.training.train_config import TrainConfig, default_crop_px, parse_source
     from companion.perception.detector.leadernet import ModelSpec
     from companion.perception.detector.shufflenet import ShuffleDetSpec
 
-    if args.crop > args.input_size:
+    # The network is trained for the input the service runs it at, unless told otherwise.
+    input_size = service.detector.input_size_px if args.input_size is None else args.input_size
+    crop = default_crop_px(input_size) if args.crop is None else args.crop
+    if crop > input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
         return 2
     try:
@@ -179,8 +189,8 @@ def _train(args: argparse.Namespace) -> int:
         out=str(args.out),
         epochs=args.epochs,
         batch_size=args.batch_size,
-        input_size_px=args.input_size,
-        crop_px=args.crop,
+        input_size_px=input_size,
+        crop_px=crop,
         lr=args.lr,
         seed=args.seed,
         workers=args.workers,

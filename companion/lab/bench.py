@@ -326,11 +326,20 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m companion.lab.bench", description=main.__doc__)
     p.add_argument("models", nargs="+", metavar="NAME=MODEL.onnx")
     p.add_argument("--frames", type=int, default=200)
-    p.add_argument("--input-size", type=int, default=320, help="letterbox size of Wingman exports, px")
+    p.add_argument(
+        "--input-size",
+        type=int,
+        default=None,
+        help="letterbox size of Wingman exports, px (default: the service's)",
+    )
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     models = dict(m.split("=", 1) if "=" in m else (m, m) for m in args.models)
+    if args.input_size is None:
+        from companion.config import DetectorConfig  # noqa: PLC0415
+
+        args.input_size = DetectorConfig().input_size_px
     result = compare_onnx_models(models, synthetic_frames(args.frames), args.input_size, args.threads)
     print(format_comparison(result))
     if args.json:

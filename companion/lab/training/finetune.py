@@ -23,7 +23,7 @@ from companion.config import DetectorConfig
 from companion.lab.training.augment import REAL_CAMERA
 from companion.lab.training.export import export_and_sign
 from companion.lab.training.train import train
-from companion.lab.training.train_config import DataSource, TrainConfig
+from companion.lab.training.train_config import DataSource, TrainConfig, default_crop_px
 from companion.perception.detector.dataset import find_samples, list_splits
 from companion.perception.detector.torch_engine import load_weights
 from companion.perception.detector.weights import sha256_file
@@ -122,7 +122,7 @@ def finetune(
         init_weights=str(base),
         spec=net.spec,
         input_size_px=input_size_px,
-        crop_px=min(256, input_size_px),
+        crop_px=default_crop_px(input_size_px),
         augment=REAL_CAMERA,
         out=str(out / "run"),
     )

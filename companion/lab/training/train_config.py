@@ -17,6 +17,11 @@ from companion.perception.detector.model import DetectorSpec, arch_of
 from companion.perception.detector.shufflenet import ShuffleDetSpec
 
 
+def default_crop_px(input_size_px: int) -> int:
+    """The training crop for an input size, px: 0.8x on the stride's grid (320 -> 256, 416 -> 320)."""
+    return max(32, min(input_size_px, round(0.8 * input_size_px / 32) * 32))
+
+
 @dataclass(frozen=True)
 class DataSource:
     """One training dataset: a name (for the logs), its folder and its share of every batch."""
@@ -62,7 +67,7 @@ class TrainConfig:
     batch_size: int = 32
     input_size_px: int = 320
     #: Training images are crops of this size from frames scaled as at ``input_size_px`` (about 40% less
-    #: CPU per image than whole 320 px mosaics; the network is fully convolutional).
+    #: CPU per image than whole 320 px mosaics; the network is fully convolutional); see default_crop_px.
     crop_px: int = 256
     lr: float = 2e-3
     final_lr_fraction: float = 0.05
