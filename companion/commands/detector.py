@@ -48,6 +48,15 @@ def register(sub: Any) -> None:
     t.add_argument(
         "--augment", choices=("default", "real-camera"), default="real-camera", help="augmentation recipe"
     )
+    t.add_argument(
+        "--paste-from",
+        default="",
+        metavar="NAME",
+        help="copy-paste the labelled objects of this --data source onto training samples",
+    )
+    t.add_argument(
+        "--paste-p", type=float, default=0.3, help="share of samples that get a pasted object (default 0.3)"
+    )
     t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
     t.add_argument("--epochs", type=int, default=30, help="epochs in the learning-rate schedule (default 30)")
     t.add_argument("--batch-size", type=int, default=32, help="images per step (default 32)")
@@ -160,6 +169,8 @@ def register(sub: Any) -> None:
 
 def _train(args: argparse.Namespace) -> int:
     service = load(args)
+    from dataclasses import replace
+
     from companion.lab.training.augment import REAL_CAMERA, AugmentConfig
     from companion.lab.training.train import train
     from companion.lab.training.train_config import TrainConfig, default_crop_px, parse_source
@@ -171,6 +182,9 @@ def _train(args: argparse.Namespace) -> int:
     crop = default_crop_px(input_size) if args.crop is None else args.crop
     if crop > input_size:
         print("companion detector train: --crop must be <= --input-size", file=sys.stderr)
+        return 2
+    if not 0.0 <= args.paste_p <= 1.0:
+        print("companion detector train: --paste-p must be in [0, 1]", file=sys.stderr)
         return 2
     try:
         sources = tuple(parse_source(d) for d in args.data)
@@ -185,7 +199,11 @@ def _train(args: argparse.Namespace) -> int:
         epoch_images=args.epoch_images,
         backbone_weights=args.backbone,
         spec=ShuffleDetSpec() if args.arch == "shufflenetv2-fpn" else ModelSpec(),
-        augment=REAL_CAMERA if args.augment == "real-camera" else AugmentConfig(),
+        augment=replace(
+            REAL_CAMERA if args.augment == "real-camera" else AugmentConfig(),
+            paste_p=args.paste_p if args.paste_from else 0.0,
+        ),
+        paste_from=args.paste_from,
         out=str(args.out),
         epochs=args.epochs,
         batch_size=args.batch_size,

@@ -4,8 +4,11 @@ Geometry: mosaic (four images around a random centre) or a single image at a ran
 horizontal flips. Appearance, covering what real cameras do to a frame: HSV jitter, exposure (gain and
 gamma), white balance (per-channel gains), defocus (disc), Gaussian or motion blur, sensor noise (shot and
 read noise), JPEG artefacts and video-codec-like artefacts (4:2:0 chroma, coarse quantisation), greyscale,
-and cut-outs (random occluders). Boxes follow the geometry; a box that is mostly cut away loses its label
-*and* its pixels are greyed out, so the network never sees an unlabelled leader as background.
+cut-outs (random occluders), and copy-paste: labelled objects of another image (a real drone with its
+label's margin of sky or trees) blended onto the sample, so each real drone is seen on many backgrounds and
+beside the birds and aircraft of the drone-free frames. Boxes follow the geometry; a box that is mostly cut
+away loses its label *and* its pixels are greyed out, so the network never sees an unlabelled leader as
+background.
 """
 
 from __future__ import annotations
@@ -46,6 +49,10 @@ class AugmentConfig:
     #: Keep a clipped box only when this much of its area stays inside and it is this big.
     min_visible_fraction: float = 0.35
     min_box_px: float = 2.0
+    #: Copy-paste (needs a donor source): probability per sample, and the donor's scale relative to its
+    #: run-time size.
+    paste_p: float = 0.0
+    paste_scale_range: tuple[float, float] = (0.7, 1.4)
 
 
 def place_boxes(
@@ -155,6 +162,60 @@ def mosaic(
             )
         )
     return canvas, (np.concatenate(out) if out else np.zeros((0, 4), np.float32))
+
+
+def paste_object(
+    canvas: Image,
+    boxes: Boxes,
+    donor: Image,
+    donor_box: NDArray[np.float32],
+    *,
+    scale: float,
+    rng: np.random.Generator,
+) -> Boxes:
+    """Blend ``donor_box`` of ``donor`` (px) onto ``canvas`` at ``scale``; returns ``boxes`` plus its new box.
+
+    The pasted box keeps the donor label's own margin; a ring around it (a quarter of its shorter side)
+    fades from the donor's pixels to the canvas's, and the patch takes the ring's mean colour from the
+    canvas, so no patch edge or colour marks it. It goes where it
+    overlaps no box already on the canvas; when it fits nowhere (five tries) the canvas is left unchanged.
+    """
+    bw, bh = float(donor_box[2] - donor_box[0]), float(donor_box[3] - donor_box[1])
+    pw, ph = round(bw * scale), round(bh * scale)
+    ring = max(1, round(0.25 * min(pw, ph)))
+    tw, th = pw + 2 * ring, ph + 2 * ring
+    size_h, size_w = canvas.shape[:2]
+    if pw < 3 or ph < 3 or tw >= size_w or th >= size_h:
+        return boxes
+    for _ in range(5):
+        x0, y0 = int(rng.integers(0, size_w - tw + 1)), int(rng.integers(0, size_h - th + 1))
+        new = np.array([x0 + ring, y0 + ring, x0 + ring + pw, y0 + ring + ph], np.float32)
+        if (
+            len(boxes) == 0
+            or not (
+                (np.minimum(boxes[:, 2], x0 + tw) > np.maximum(boxes[:, 0], x0))
+                & (np.minimum(boxes[:, 3], y0 + th) > np.maximum(boxes[:, 1], y0))
+            ).any()
+        ):
+            break
+    else:
+        return boxes
+    # The donor region with the ring around it, resampled so the label box becomes pw x ph.
+    fx, fy = pw / max(bw, 1e-6), ph / max(bh, 1e-6)
+    m = np.array([[fx, 0.0, ring - donor_box[0] * fx], [0.0, fy, ring - donor_box[1] * fy]], np.float64)
+    patch = cv2.warpAffine(donor, m, (tw, th), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT)
+    # Alpha 1 on the box, falling linearly to 0 across the ring.
+    ramp_x = np.minimum(np.arange(tw) + 0.5, tw - np.arange(tw) - 0.5) / ring
+    ramp_y = np.minimum(np.arange(th) + 0.5, th - np.arange(th) - 0.5) / ring
+    alpha = np.clip(np.minimum(ramp_y[:, None], ramp_x[None, :]), 0.0, 1.0).astype(np.float32)[..., None]
+    region = canvas[y0 : y0 + th, x0 : x0 + tw]
+    # Shift the patch's colour so its ring matches the canvas there: a sky-blue patch on grey sky would
+    # otherwise be a blob the network could learn instead of the drone.
+    edge = alpha[..., 0] < 1.0
+    shift = region[edge].mean(axis=0) - patch[edge].mean(axis=0)
+    patch = np.clip(patch + shift, 0.0, 255.0)
+    region[:] = (patch * alpha + region * (1.0 - alpha) + 0.5).astype(np.uint8)
+    return np.concatenate([boxes.reshape(-1, 4), new[None]]).astype(np.float32)
 
 
 def hflip(img: Image, boxes: Boxes) -> tuple[Image, Boxes]:
@@ -305,11 +366,14 @@ def training_sample(
     ref_px: int,
     rng: np.random.Generator,
     cfg: AugmentConfig,
+    donors: ImageCache | None = None,
 ) -> tuple[Image, Boxes]:
     """An augmented ``size_px`` square RGB image and its leader boxes (px) from cache item ``index``.
 
     Objects keep the scale they have at run time with input size ``ref_px`` (times the scale jitter), so a
     ``size_px`` smaller than ``ref_px`` trains on crops: the same objects, fewer pixels, less CPU.
+    ``donors``: the labelled objects copy-paste takes (``cfg.paste_p``), before the appearance changes so
+    the pasted object is exposed, blurred and compressed with its new background.
     """
     if rng.random() < cfg.mosaic_p:
         idx = [index, *(int(i) for i in rng.integers(0, len(cache), 3))]
@@ -335,6 +399,14 @@ def training_sample(
         img, boxes = hflip(img, boxes)
     if rng.random() < cfg.cutout_p:
         boxes = cutout(img, boxes, rng)
+    if donors is not None and len(donors.labelled) and rng.random() < cfg.paste_p:
+        j = int(donors.labelled[rng.integers(len(donors.labelled))])
+        donor, donor_boxes = donors.image(j), donors.boxes(j)
+        scale = rng.uniform(*cfg.paste_scale_range) * ref_px / max(donor.shape[:2])
+        img = np.ascontiguousarray(img)
+        boxes = paste_object(
+            img, boxes, donor, donor_boxes[rng.integers(len(donor_boxes))], scale=scale, rng=rng
+        )
     img = hsv_jitter(img, rng, cfg.hsv_gain)
     if cfg.exposure_p and rng.random() < cfg.exposure_p:
         img = exposure(img, rng)

@@ -43,6 +43,8 @@ class ImageCache:
         self.all_boxes: NDArray[np.float32] = index["boxes"]
         self.data = np.memmap(folder / "images.u8", dtype=np.uint8, mode="r")
         self.keys: list[str] = json.loads((folder / "keys.json").read_text())
+        #: Indices of the images with at least one box (copy-paste donors).
+        self.labelled: NDArray[np.int64] = np.flatnonzero(np.diff(self.box_offsets) > 0)
 
     def __len__(self) -> int:
         return len(self.shapes)

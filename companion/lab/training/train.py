@@ -196,7 +196,13 @@ def train(
     use_amp = device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
     criterion = DetectionLoss(model, cfg.loss)
-    dataset = AugmentedSet(train_caches, cfg.crop_px, cfg.input_size_px, cfg.seed, cfg.augment)
+    names = [src.name for src in sources]
+    if cfg.paste_from and cfg.paste_from not in names:
+        raise ValueError(f"--paste-from {cfg.paste_from}: no source of that name ({', '.join(names)})")
+    donor = names.index(cfg.paste_from) if cfg.paste_from else None
+    dataset = AugmentedSet(
+        train_caches, cfg.crop_px, cfg.input_size_px, cfg.seed, cfg.augment, donor_source=donor
+    )
     sizes = [len(c) for c in train_caches]
     n_images = cfg.epoch_images or sum(sizes)
     bs = min(cfg.batch_size, sum(sizes))

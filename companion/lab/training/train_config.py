@@ -89,6 +89,8 @@ class TrainConfig:
     #: Start a new run from these weights (a shipped ``.pt`` or a run's checkpoint; its EMA is taken),
     #: e.g. to fine-tune on a larger dataset. Empty: random initialisation.
     init_weights: str = ""
+    #: The source whose labelled objects copy-paste takes (``augment.paste_p``); empty: no copy-paste.
+    paste_from: str = ""
     spec: DetectorSpec = field(default_factory=ShuffleDetSpec)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)

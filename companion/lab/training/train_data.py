@@ -74,8 +74,12 @@ class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
         ref_px: int,
         seed: int,
         augment: AugmentConfig,
+        *,
+        donor_source: int | None = None,
     ) -> None:
         self.caches = caches if isinstance(caches, list) else [caches]
+        #: The source whose labelled objects copy-paste takes (None: no copy-paste).
+        self.donor_source = donor_source
         self.size_px = size_px
         self.ref_px = ref_px
         self.seed = seed
@@ -90,7 +94,13 @@ class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
         rng = np.random.default_rng([self.seed, epoch, source, i, draw])
         cfg = self.augment if mosaic else self.no_mosaic
         img, boxes = training_sample(
-            self.caches[source], i, size_px=self.size_px, ref_px=self.ref_px, rng=rng, cfg=cfg
+            self.caches[source],
+            i,
+            size_px=self.size_px,
+            ref_px=self.ref_px,
+            rng=rng,
+            cfg=cfg,
+            donors=None if self.donor_source is None else self.caches[self.donor_source],
         )
         return torch.from_numpy(img).permute(2, 0, 1).contiguous(), torch.from_numpy(boxes)
 

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ from companion.lab.training.augment import (
     cutout,
     hflip,
     mosaic,
+    paste_object,
     place_boxes,
     random_placement,
     training_sample,
@@ -75,6 +77,82 @@ def test_mostly_clipped_box_is_dropped_and_greyed() -> None:
     )
     assert kept.shape == (0, 4)
     assert (canvas[10:20, 40:50] == 114).all()
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_pasted_object_is_labelled_where_it_lands(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    donor, donor_boxes = _object_image(rng)
+    canvas = np.zeros((128, 128, 3), np.uint8)
+    canvas[10:30, 10:30] = 255  # an object already labelled on the canvas
+    before = np.array([[10, 10, 30, 30]], np.float32)
+    scale = float(rng.uniform(0.7, 1.5))
+    boxes = paste_object(canvas, before, donor, donor_boxes[0], scale=scale, rng=rng)
+    assert len(boxes) == 2
+    np.testing.assert_array_equal(boxes[0], before[0])
+    new = boxes[1]
+    dw, dh = donor_boxes[0, 2] - donor_boxes[0, 0], donor_boxes[0, 3] - donor_boxes[0, 1]
+    assert abs((new[2] - new[0]) - round(dw * scale)) < 1e-3
+    assert abs((new[3] - new[1]) - round(dh * scale)) < 1e-3
+    # the donor's object fills its new box, and the old object is untouched
+    x0, y0, x1, y1 = (int(v) for v in new)
+    assert canvas[y0 + 1 : y1 - 1, x0 + 1 : x1 - 1, 0].min() > 200
+    assert (canvas[10:30, 10:30] == 255).all()
+    _assert_boxes_hold_the_white_pixels(canvas, boxes)
+
+
+def test_paste_takes_the_backgrounds_colour_at_its_edge() -> None:
+    # A white object on a blue donor background pasted on a grey canvas: the ring blends into grey, so
+    # the canvas just outside the box stays close to grey rather than turning blue.
+    donor = np.zeros((60, 60, 3), np.uint8)
+    donor[...] = (40, 80, 200)
+    donor[25:35, 25:35] = 255
+    canvas = np.full((100, 100, 3), 120, np.uint8)
+    boxes = paste_object(
+        canvas,
+        np.zeros((0, 4), np.float32),
+        donor,
+        np.array([20, 20, 40, 40], np.float32),
+        scale=1.0,
+        rng=np.random.default_rng(0),
+    )
+    x0, y0, x1, _ = (int(v) for v in boxes[0])
+    ring = canvas[y0 - 2 : y0, x0:x1].reshape(-1, 3).astype(float)
+    assert np.abs(ring - 120).max() < 25
+    # the object is shifted with its background but stays brighter than it in every channel
+    assert (canvas[y0 + 8 : y0 + 12, x0 + 8 : x0 + 12].reshape(-1, 3).min(axis=0) > 120 + 40).all()
+
+
+def test_paste_that_fits_nowhere_leaves_the_canvas_alone() -> None:
+    canvas = np.zeros((40, 40, 3), np.uint8)
+    before = np.array([[0, 0, 40, 40]], np.float32)
+    out = paste_object(
+        canvas,
+        before,
+        np.full((30, 30, 3), 255, np.uint8),
+        np.array([5, 5, 15, 15], np.float32),
+        scale=1.0,
+        rng=np.random.default_rng(0),
+    )
+    np.testing.assert_array_equal(out, before)
+    assert canvas.max() == 0
+
+
+def test_training_sample_pastes_donor_objects(tiny_dataset: Path, tmp_path: Path) -> None:
+    cache = ImageCache.build(find_samples(tiny_dataset, "train"), tmp_path, 200, progress=False)
+    cfg = replace(GEOMETRY_ONLY, mosaic_p=0.0, paste_p=1.0, scale_range=(1.0, 1.0))
+    plain = replace(cfg, paste_p=0.0)
+    more = 0
+    for i in range(len(cache)):
+        with_paste = training_sample(
+            cache, i, size_px=128, ref_px=128, rng=np.random.default_rng(i), cfg=cfg, donors=cache
+        )[1]
+        without = training_sample(
+            cache, i, size_px=128, ref_px=128, rng=np.random.default_rng(i), cfg=plain, donors=cache
+        )[1]
+        more += len(with_paste) - len(without)
+    assert len(cache.labelled) > 0
+    assert more > len(cache) // 2
 
 
 def test_cutout_drops_hidden_boxes_only() -> None:
