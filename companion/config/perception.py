@@ -73,6 +73,11 @@ class DetectorConfig(Section):
     #: A quad 7 m away against the horizon was not found at 0.5x in 4 s of re-acquisition and was at 1:1
     #: (leader-occluded seed 9); the search costs ~4x the small input.
     search_input_px: int = Field(640, ge=128, le=1280, multiple_of=32)
+    #: Without a window (acquiring, or the window dropped), every other whole-frame search runs at
+    #: ``input_size_px`` instead: a leader close by (on the ground 5 m ahead before take-off) can score
+    #: under the threshold at 1:1 when the network was trained for a smaller input, while a distant one
+    #: needs the 1:1. Alternating costs nothing per frame. A window's fallback search stays at 1:1.
+    search_alternate: bool = True
 
 
 class LeaderConfig(Section):

@@ -106,10 +106,32 @@ def test_detector_searches_the_window_holds_it_and_falls_back_to_the_frame() -> 
     roi.detect(rgb)
     assert inner.calls[-1].startswith("window")
     assert inner.calls[-1].endswith(" None")
-    roi.focus(None)  # one miss too many: whole frames again
+    roi.focus(None)  # one miss too many: whole frames again (the second search without a window: the
+    roi.detect(rgb)  # network's own input, see the alternation test)
+    assert inner.calls[-1] == f"whole {inner.input_size_px}"
+    assert inner.calls[0] == f"whole {CFG.search_input_px}"
+
+
+def test_searches_without_a_window_alternate_with_the_networks_input_but_fallbacks_do_not() -> None:
+    """A close leader scores low at 1:1 for a network trained smaller; a window's fallback stays at 1:1."""
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    inner = _Inner([], [])
+    roi = RoiDetector(inner, CFG)  # type: ignore[arg-type]
+    for _ in range(4):
+        roi.detect(rgb)
+    assert inner.calls == ["whole 640", "whole 320", "whole 640", "whole 320"]
+    roi.focus((300.0, 200.0, 351.0, 229.0))
+    for _ in range(3):
+        roi.detect(rgb)  # the window finds nothing: the fallback, always 1:1
+    assert [c for c in inner.calls[4:] if c.startswith("whole")] == ["whole 640"] * 3
+    roi.reset()
     roi.detect(rgb)
-    assert inner.calls[-1] == f"whole {CFG.search_input_px}"
-    assert inner.calls[0] == inner.calls[-1]
+    assert inner.calls[-1] == "whole 640"  # a reset starts over at 1:1
+    inner = _Inner([], [])
+    roi = RoiDetector(inner, CFG.model_copy(update={"search_alternate": False}))  # type: ignore[arg-type]
+    for _ in range(3):
+        roi.detect(rgb)
+    assert inner.calls == ["whole 640"] * 3
 
 
 def test_the_whole_frame_is_searched_at_its_own_input_size() -> None:
