@@ -177,8 +177,8 @@ def paste_object(
 
     The pasted box keeps the donor label's own margin; a ring around it (a quarter of its shorter side)
     fades from the donor's pixels to the canvas's, and the patch takes the ring's mean colour from the
-    canvas, so no patch edge or colour marks it. It goes where it
-    overlaps no box already on the canvas; when it fits nowhere (five tries) the canvas is left unchanged.
+    canvas, so no patch edge or colour marks it. It goes where it overlaps no box already on the canvas;
+    when it fits nowhere (five tries) the canvas is left unchanged.
     """
     bw, bh = float(donor_box[2] - donor_box[0]), float(donor_box[3] - donor_box[1])
     pw, ph = round(bw * scale), round(bh * scale)
@@ -403,7 +403,6 @@ def training_sample(
         j = int(donors.labelled[rng.integers(len(donors.labelled))])
         donor, donor_boxes = donors.image(j), donors.boxes(j)
         scale = rng.uniform(*cfg.paste_scale_range) * ref_px / max(donor.shape[:2])
-        img = np.ascontiguousarray(img)
         boxes = paste_object(
             img, boxes, donor, donor_boxes[rng.integers(len(donor_boxes))], scale=scale, rng=rng
         )
