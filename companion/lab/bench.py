@@ -330,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
         "--input-size",
         type=int,
         default=None,
-        help="letterbox size of Wingman exports, px (default: the service's)",
+        help="letterbox size of Wingman exports, px (default: detector.input_size_px's default)",
     )
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", default=None)

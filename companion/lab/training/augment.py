@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from companion.lab.training.cache import ImageCache
 from companion.perception.detector.dataset import Boxes
 from companion.perception.detector.letterbox import PAD_VALUE, resize_image
+from companion.perception.detector.postprocess import box_iou
 
 Image = NDArray[np.uint8]
 
@@ -189,14 +190,8 @@ def paste_object(
         return boxes
     for _ in range(5):
         x0, y0 = int(rng.integers(0, size_w - tw + 1)), int(rng.integers(0, size_h - th + 1))
-        new = np.array([x0 + ring, y0 + ring, x0 + ring + pw, y0 + ring + ph], np.float32)
-        if (
-            len(boxes) == 0
-            or not (
-                (np.minimum(boxes[:, 2], x0 + tw) > np.maximum(boxes[:, 0], x0))
-                & (np.minimum(boxes[:, 3], y0 + th) > np.maximum(boxes[:, 1], y0))
-            ).any()
-        ):
+        footprint = np.array([[x0, y0, x0 + tw, y0 + th]], np.float32)
+        if len(boxes) == 0 or not box_iou(footprint, boxes).any():
             break
     else:
         return boxes
@@ -208,6 +203,7 @@ def paste_object(
     ramp_x = np.minimum(np.arange(tw) + 0.5, tw - np.arange(tw) - 0.5) / ring
     ramp_y = np.minimum(np.arange(th) + 0.5, th - np.arange(th) - 0.5) / ring
     alpha = np.clip(np.minimum(ramp_y[:, None], ramp_x[None, :]), 0.0, 1.0).astype(np.float32)[..., None]
+    new = np.array([x0 + ring, y0 + ring, x0 + ring + pw, y0 + ring + ph], np.float32)
     region = canvas[y0 : y0 + th, x0 : x0 + tw]
     # Shift the patch's colour so its ring matches the canvas there: a sky-blue patch on grey sky would
     # otherwise be a blob the network could learn instead of the drone.
