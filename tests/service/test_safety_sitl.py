@@ -236,7 +236,9 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
                 await publish(broker.port, key_bytes, {"cmd": "hold"})
 
                 def events() -> list[dict[str, Any]]:
-                    return [e for e in collector.payloads("events") if e["kind"].startswith("command")]
+                    return [
+                        e for e in collector.payloads("events") if e["kind"] in ("command", "command_refused")
+                    ]
 
                 await until(lambda: len(events()) >= 2, 30, "the replies to both commands", logs)
                 for t in tasks:
@@ -253,6 +255,10 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
             if gcs_transport is not None:
                 gcs_transport.close()
 
+    # MQTT QoS 1 delivers at least once: a second copy of a command is rejected as a replay, and that is
+    # the only rejection these signed, fresh commands may meet.
+    rejected = [e for e in collector.payloads("events") if e["kind"] == "command_rejected"]
+    assert all(e["data"]["reason"] == "REPLAYED" for e in rejected), rejected
     replies = {e["data"]["cmd"]: e for e in events()}
     assert replies["set_offset"]["kind"] == "command_refused"
     assert replies["set_offset"]["text"].startswith("set_offset refused: slot 1.5 m from the leader")
