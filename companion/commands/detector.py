@@ -122,6 +122,13 @@ def register(sub: Any) -> None:
     )
     e.add_argument("--input-size", type=int, default=None, help="override detector.input_size_px")
     e.add_argument("--conf", type=float, default=None, help="override detector.conf_threshold")
+    e.add_argument(
+        "--size-oracle",
+        default=None,
+        metavar="COLUMN",
+        help="also report mAP@0.5 with each value of this manifest column's boxes scaled by the factor best "
+        "for it (a diagnostic of loose labels whose margin differs per video; it sees the labels)",
+    )
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(handler=_eval)
 
@@ -326,7 +333,14 @@ def _eval(args: argparse.Namespace) -> int:
             sheet = Path(args.sheet)
             if len(sources) > 1:
                 sheet = sheet.with_name(f"{sheet.stem}_{name}{sheet.suffix or '.png'}")
-        summary = evaluate(detector, samples, progress=not args.no_progress, columns=columns, sheet=sheet)
+        summary = evaluate(
+            detector,
+            samples,
+            progress=not args.no_progress,
+            columns=columns,
+            sheet=sheet,
+            size_oracle_by=args.size_oracle,
+        )
         summary["data"] = str(data)
         summary["split"] = split
         summary["model"] = det_cfg.model_path
@@ -334,6 +348,12 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"{data}{f' [{split}]' if split else ''}: {detector.runtime} at {detector.input_size_px} px")
         print(format_summary(summary))
         print(format_groups(summary["by_column"]))
+        if "size_oracle" in summary:
+            o = summary["size_oracle"]
+            print(
+                f"size oracle by {o['column']}: mAP@0.5 {100 * o['map50']:.1f}% with each value's best box "
+                f"scale ({min(o['scales'].values()):.2f}-{max(o['scales'].values()):.2f})"
+            )
         if sheet is not None:
             print(f"contact sheet: {sheet}")
     if args.json:
@@ -358,6 +378,8 @@ def format_groups(by_column: dict[str, dict[str, dict[str, Any]]]) -> str:
                 parts.append(
                     f"recall {pct(f['recall'])}, mAP@0.5 {pct(f['map50'])} ({f['leader_boxes']} boxes)"
                 )
+                if f.get("box_scale_median") is not None:
+                    parts.append(f"box/label {f['box_scale_median']:.2f}")
             if f["leader_free_images"]:
                 parts.append(
                     f"false positives {pct(f['leader_free_fp_rate'])} of {f['leader_free_images']} empty"

@@ -108,6 +108,8 @@ class DetectionStats:
         n_gt = 0
         op_tp = op_fp = 0
         leader_free = leader_free_fp = 0
+        loose_found = 0
+        size_ratios: list[float] = []
         bin_hits = np.zeros(len(RANGE_BINS_M), int)
         bin_total = np.zeros(len(RANGE_BINS_M), int)
         i50 = int(np.argmin(np.abs(iou_thresholds - 0.5)))
@@ -120,6 +122,11 @@ class DetectionStats:
             above = r.pred_scores >= conf_threshold
             op_tp += int((tp[:, i50] & above).sum())
             op_fp += int((~tp[:, i50] & above).sum())
+            loose = gt_match[:, -1]
+            for g, p in enumerate(loose.tolist()):
+                if p >= 0 and above[p]:
+                    loose_found += 1
+                    size_ratios.append(_side_ratio(r.pred_boxes[p], r.gt_boxes[g]))
             if r.leader_free if r.leader_free is not None else len(r.gt_boxes) == 0:
                 leader_free += 1
                 leader_free_fp += int(above.any())
@@ -147,6 +154,9 @@ class DetectionStats:
             "map50": aps[i50],
             "map50_95": float(np.mean(aps)) if n_gt else float("nan"),
             "ap25": ap_loose,
+            "recall_loose": loose_found / n_gt if n_gt else float("nan"),
+            # In logs, so that boxes twice and half their labels' size average to 1.
+            "box_scale_median": float(np.exp(np.median(np.log(size_ratios)))) if size_ratios else None,
             "ap_by_iou": {f"{t:.2f}": a for t, a in zip(iou_thresholds, aps, strict=True)},
             "recall_by_range_m": {
                 f"{lo:g}-{hi:g}": {"recall": (h / n if n else None), "boxes": int(n)}
@@ -156,6 +166,33 @@ class DetectionStats:
             "leader_free_images": leader_free,
             "leader_free_fp_rate": leader_free_fp / leader_free if leader_free else None,
         }
+
+
+def _side_ratio(pred: NDArray[np.floating], gt: NDArray[np.floating]) -> float:
+    """sqrt(area ratio) of a predicted box to its label: > 1 where the prediction is the larger."""
+    pa = max(float(pred[2] - pred[0]), 0.0) * max(float(pred[3] - pred[1]), 0.0)
+    ga = max(float(gt[2] - gt[0]), 1e-6) * max(float(gt[3] - gt[1]), 1e-6)
+    return float(np.sqrt(pa / ga))
+
+
+def scaled_boxes(boxes: NDArray[np.float32], scale: float) -> NDArray[np.float32]:
+    """``boxes`` (N, 4, xyxy) scaled by ``scale`` about their centres."""
+    c = (boxes[:, :2] + boxes[:, 2:]) / 2
+    h = (boxes[:, 2:] - boxes[:, :2]) * (scale / 2)
+    return np.concatenate((c - h, c + h), 1).astype(np.float32)
+
+
+def ap50_scaled(records: Sequence[ImageRecord], scale: float) -> float:
+    """AP@0.5 of ``records`` with every predicted box scaled by ``scale`` about its centre."""
+    scores, tps, n_gt = [], [], 0
+    for r in records:
+        tp, _ = match(scaled_boxes(r.pred_boxes, scale), r.pred_scores, r.gt_boxes, (0.5,))
+        scores.append(r.pred_scores)
+        tps.append(tp[:, 0])
+        n_gt += len(r.gt_boxes)
+    if not scores:
+        return float("nan")
+    return average_precision(np.concatenate(scores), np.concatenate(tps), n_gt)
 
 
 def _fmt(v: Any, pct: bool = True) -> str:
@@ -169,7 +206,8 @@ def format_summary(s: dict[str, Any]) -> str:
     lines = [
         f"images {s['images']}, leader boxes {s['leader_boxes']}, "
         f"leader-free images {s['leader_free_images']}",
-        f"at conf >= {s['conf_threshold']:.2f}: precision {_fmt(s['precision'])}, recall {_fmt(s['recall'])}",
+        f"at conf >= {s['conf_threshold']:.2f}: precision {_fmt(s['precision'])}, recall {_fmt(s['recall'])} "
+        f"(at IoU 0.25 {_fmt(s['recall_loose'])})",
         f"mAP@0.5 {_fmt(s['map50'])}, mAP@0.5:0.95 {_fmt(s['map50_95'])} (AP@0.25 {_fmt(s['ap25'])})",
     ]
     bins = [
@@ -179,5 +217,7 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append("recall by range: " + ", ".join(bins) + f"; within 10 m {_fmt(s['recall_within_10m'])}")
     else:
         lines.append("recall by range: no ranges known for this data")
+    if s.get("box_scale_median") is not None:
+        lines.append(f"found boxes' side against their labels' (median ratio): {s['box_scale_median']:.2f}")
     lines.append(f"false positives on leader-free images: {_fmt(s['leader_free_fp_rate'])}")
     return "\n".join(lines)

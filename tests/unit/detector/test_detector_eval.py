@@ -6,8 +6,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
-from companion.lab.training.evaluate import contact_sheet, group_summaries, worst_cases
+from companion.lab.training.evaluate import contact_sheet, group_summaries, size_oracle, worst_cases
 from companion.lab.training.metrics import DetectionStats
 from companion.perception.detector.dataset import Sample
 
@@ -56,3 +57,31 @@ def test_worst_cases_and_contact_sheet(tmp_path: Path) -> None:
     img = cv2.imread(str(out))
     assert img is not None
     assert img.shape[1] == 6 * 64
+
+
+def test_size_oracle_separates_box_size_from_detection(tmp_path: Path) -> None:
+    """Two 'videos' whose labels carry different margins: centred predictions of one size miss IoU 0.5 on
+    both, and each video's own scale recovers them (the oracle), while no single scale fits both."""
+    samples: list[Sample] = []
+    stats = DetectionStats()
+    for i in range(6):
+        video = "tight" if i < 3 else "loose"
+        p = tmp_path / f"v{i}.png"
+        cv2.imwrite(str(p), np.full((120, 160, 3), 200, np.uint8))
+        samples.append(Sample(p, None, attrs=(("video", video),)))
+        half = 10.0 if video == "tight" else 40.0  # label half-sides: 20 px and 80 px boxes
+        label = _box(80 - half, 60 - half, 80 + half, 60 + half)
+        pred = _box(60, 40, 100, 80)  # 40 px, centred: IoU 0.25 with either label
+        stats.add(pred, np.asarray([0.9 - 0.01 * i], np.float32), label)
+    s = stats.summary(0.5)
+    assert s["map50"] == 0.0
+    assert s["ap25"] > 0.99
+    assert s["recall_loose"] == 1.0
+    assert s["box_scale_median"] == pytest.approx(1.0)  # half of the ratios are 2, half 0.5
+    g = group_summaries(stats, samples, ["video"], 0.5)
+    assert g["video"]["tight"]["box_scale_median"] == 2.0
+    assert g["video"]["loose"]["box_scale_median"] == 0.5
+    o = size_oracle(stats, samples, "video")
+    assert o["map50"] > 0.99
+    assert 0.6 < o["scales"]["tight"] < 0.75
+    assert 1.35 < o["scales"]["loose"] < 1.6
