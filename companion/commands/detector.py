@@ -55,6 +55,12 @@ def register(sub: Any) -> None:
         help="copy-paste the labelled objects of this --data source onto training samples",
     )
     t.add_argument(
+        "--paste-onto",
+        default="",
+        metavar="NAME[,NAME...]",
+        help="the --data sources whose samples get pasted objects (default: all)",
+    )
+    t.add_argument(
         "--paste-p", type=float, default=0.3, help="share of samples that get a pasted object (default 0.3)"
     )
     t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
@@ -211,6 +217,7 @@ def _train(args: argparse.Namespace) -> int:
             paste_p=args.paste_p if args.paste_from else 0.0,
         ),
         paste_from=args.paste_from,
+        paste_onto=tuple(n.strip() for n in args.paste_onto.split(",") if n.strip()),
         out=str(args.out),
         epochs=args.epochs,
         batch_size=args.batch_size,

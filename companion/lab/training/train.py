@@ -200,8 +200,17 @@ def train(
     if cfg.paste_from and cfg.paste_from not in names:
         raise ValueError(f"--paste-from {cfg.paste_from}: no source of that name ({', '.join(names)})")
     donor = names.index(cfg.paste_from) if cfg.paste_from else None
+    unknown = [n for n in cfg.paste_onto if n not in names]
+    if unknown:
+        raise ValueError(f"--paste-onto {','.join(unknown)}: no source of that name ({', '.join(names)})")
     dataset = AugmentedSet(
-        train_caches, cfg.crop_px, cfg.input_size_px, cfg.seed, cfg.augment, donor_source=donor
+        train_caches,
+        cfg.crop_px,
+        cfg.input_size_px,
+        cfg.seed,
+        cfg.augment,
+        donor_source=donor,
+        paste_onto=frozenset(names.index(n) for n in cfg.paste_onto) or None,
     )
     sizes = [len(c) for c in train_caches]
     n_images = cfg.epoch_images or sum(sizes)

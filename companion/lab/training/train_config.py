@@ -91,6 +91,8 @@ class TrainConfig:
     init_weights: str = ""
     #: The source whose labelled objects copy-paste takes (``augment.paste_p``); empty: no copy-paste.
     paste_from: str = ""
+    #: The sources whose samples get pasted objects; empty: every source.
+    paste_onto: tuple[str, ...] = ()
     spec: DetectorSpec = field(default_factory=ShuffleDetSpec)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)

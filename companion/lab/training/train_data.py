@@ -76,10 +76,13 @@ class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
         augment: AugmentConfig,
         *,
         donor_source: int | None = None,
+        paste_onto: frozenset[int] | None = None,
     ) -> None:
         self.caches = caches if isinstance(caches, list) else [caches]
         #: The source whose labelled objects copy-paste takes (None: no copy-paste).
         self.donor_source = donor_source
+        #: The sources whose samples get pasted objects (None: all).
+        self.paste_onto = paste_onto
         self.size_px = size_px
         self.ref_px = ref_px
         self.seed = seed
@@ -100,9 +103,14 @@ class AugmentedSet(Dataset[tuple[Tensor, Tensor]]):
             ref_px=self.ref_px,
             rng=rng,
             cfg=cfg,
-            donors=None if self.donor_source is None else self.caches[self.donor_source],
+            donors=self._donors(source),
         )
         return torch.from_numpy(img).permute(2, 0, 1).contiguous(), torch.from_numpy(boxes)
+
+    def _donors(self, source: int) -> ImageCache | None:
+        if self.donor_source is None or (self.paste_onto is not None and source not in self.paste_onto):
+            return None
+        return self.caches[self.donor_source]
 
 
 def batch_shares(weights: list[float], batch_size: int) -> list[int]:

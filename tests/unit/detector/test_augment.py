@@ -17,6 +17,7 @@ from companion.lab.training.augment import (
     training_sample,
 )
 from companion.lab.training.cache import ImageCache
+from companion.lab.training.train_data import AugmentedSet
 from companion.perception.detector.dataset import find_samples
 
 GEOMETRY_ONLY = AugmentConfig(hsv_gain=(0, 0, 0), blur_p=0, noise_p=0, jpeg_p=0, gray_p=0, cutout_p=0)
@@ -181,3 +182,18 @@ def test_training_sample_is_a_pure_function_of_its_seed(tiny_dataset: Path, tmp_
         ImageCache.build(find_samples(tiny_dataset, "train"), tmp_path, 200, progress=False).keys
         == cache.keys
     )
+
+
+def test_paste_onto_limits_which_sources_get_pasted_objects(tiny_dataset: Path, tmp_path: Path) -> None:
+    cache = ImageCache.build(find_samples(tiny_dataset, "train"), tmp_path, 200, progress=False)
+    cfg = replace(GEOMETRY_ONLY, mosaic_p=0.0, paste_p=1.0, scale_range=(1.0, 1.0))
+    # Source 0 donates and receives; source 1 (the same images) is left alone.
+    ds = AugmentedSet([cache, cache], 128, 128, 0, cfg, donor_source=0, paste_onto=frozenset({0}))
+    plain = AugmentedSet([cache, cache], 128, 128, 0, replace(cfg, paste_p=0.0))
+    gained = {0: 0, 1: 0}
+    for source in (0, 1):
+        for i in range(len(cache)):
+            key = (0, source, i, 0, False)
+            gained[source] += len(ds[key][1]) - len(plain[key][1])
+    assert gained[0] > len(cache) // 2
+    assert gained[1] == 0

@@ -104,3 +104,8 @@ def test_init_refuses_a_file_that_is_not_weights(tiny_dataset: Path, tmp_path: P
 def test_paste_from_must_name_a_source(tiny_dataset: Path, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="--paste-from real: no source of that name"):
         train(_cfg(tiny_dataset, tmp_path / "p", paste_from="real"), progress=False)
+
+
+def test_paste_onto_must_name_sources(tiny_dataset: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="--paste-onto sky: no source of that name"):
+        train(_cfg(tiny_dataset, tmp_path / "p", paste_onto=("sky",)), progress=False)
