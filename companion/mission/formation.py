@@ -21,8 +21,9 @@ Two outputs share that error:
 
 Every output goes through :mod:`companion.mission.safety` last, in this order of precedence: the altitude
 band (the ground is harder than the leader), the geofence, the separation barrier, then acceleration and
-speed limits. The slot's geometry is :mod:`companion.mission.geometry`; passing the depth guard's obstacle,
-:mod:`companion.mission.static_pass`.
+speed limits. An input or an output that is not finite (NaN, infinity) is never flown: the law forgets its
+history and commands a hover instead (``non_finite`` counts it). The slot's geometry is
+:mod:`companion.mission.geometry`; passing the depth guard's obstacle, :mod:`companion.mission.static_pass`.
 """
 
 from __future__ import annotations
@@ -55,6 +56,42 @@ MAX_DT_S = 0.5
 #: long (one control period at the default 20 Hz): without it the first command of FOLLOW jumped straight
 #: to the full PID output, and the vehicle pitched past 40 deg and lost the leader from view (s).
 FIRST_SLEW_DT_S = 0.05
+
+
+#: The error reported with a hover that replaced a non-finite command (nothing is known of the slot).
+_NO_ERROR = SlotError(
+    u_los=np.zeros(3),
+    bearing_rad=0.0,
+    bearing_rate_rad_s=0.0,
+    e_range_m=0.0,
+    e_range_rate_m_s=0.0,
+    e_down_m=0.0,
+    yaw_des_rad=0.0,
+    error_ned_m=np.zeros(3),
+)
+
+
+def _finite(*values: object) -> bool:
+    """Are all these inputs (numbers, vectors, follower states, slots, neighbours; None skipped) finite?"""
+    for v in values:
+        if v is None:
+            continue
+        if isinstance(v, FollowerState):
+            # alt_rel_m may be NaN: "height unknown", which the altitude band handles by standing aside.
+            if not _finite(v.yaw_rad, v.v_ned_m_s, v.v_down_m_s, v.p_ned_m, v.roll_rad, v.pitch_rad):
+                return False
+        elif isinstance(v, SlotTarget):
+            if not _finite(v.p_ned_rel_m, v.v_ned_rel_m_s):
+                return False
+        elif isinstance(v, NeighbourNow):
+            if not _finite(v.p_ned_rel_m, v.v_ned_m_s, v.v_ned_rel_m_s):
+                return False
+        elif isinstance(v, list):
+            if not _finite(*v):
+                return False
+        elif not np.all(np.isfinite(np.asarray(v, dtype=np.float64))):
+            return False
+    return True
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,6 +148,8 @@ class FormationLaw:
         self.neighbours: list[NeighbourNow] = []
         self._v_slot_prev: Vec3 | None = None
         self._a_slot = np.zeros(3)
+        #: Outputs replaced by a hover because they were not finite.
+        self.non_finite = 0
 
     def reset(self) -> None:
         """Forget integrators and slew history (the hover-thrust estimate is a vehicle property: kept)."""
@@ -208,6 +247,21 @@ class FormationLaw:
         own velocity where it shares one (GPS on both ends: steadier than the camera's at the range of an
         outer slot, and unbroken while the detector misses it); default: ours plus the estimate's relative.
         """
+        if not _finite(
+            p_ned_rel_m,
+            v_ned_rel_m_s,
+            follower.yaw_rad,
+            follower.v_ned_m_s,
+            follower.p_ned_m,
+            a_leader_ned_m_s2,
+            obstacle_ned_m,
+            slew_m_s2,
+            slot_target,
+            v_leader_ned_m_s,
+            self.neighbours,
+        ):
+            self._non_finite()
+            return VelocityCommand(self.hover_velocity(), (0.0, 0.0, 0.0), 0.0, _NO_ERROR)
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
         err = slot_error(self.slot, p_ned_rel_m, v_ned_rel_m_s, follower.yaw_rad)
@@ -268,10 +322,38 @@ class FormationLaw:
 
         yaw_rate = self._yaw_rate(err, follower.yaw_rad)
         v_body = ned_to_heading(v, follower.yaw_rad)
+        if not (np.all(np.isfinite(v_body)) and math.isfinite(yaw_rate)):
+            self._non_finite()
+            v = v_body = np.zeros(3)
+            yaw_rate = 0.0
         sp = VelocityBodySetpoint(
             v_body_m_s=(float(v_body[0]), float(v_body[1]), float(v_body[2])), yaw_rate_rad_s=yaw_rate
         )
         return VelocityCommand(sp, (float(v[0]), float(v[1]), float(v[2])), yaw_rate, err)
+
+    def _non_finite(self) -> None:
+        """A NaN or infinity reached an output: drop every history it may have poisoned."""
+        self.non_finite += 1
+        self.reset()
+
+    def _finite_attitude(self, sp: AttitudeSetpoint, yaw_rad: float) -> AttitudeSetpoint:
+        """``sp``, or level at the hover thrust when any of it is not finite."""
+        if all(math.isfinite(x) for x in (sp.roll_rad, sp.pitch_rad, sp.yaw_rad, sp.thrust_norm)):
+            return sp
+        return self._level(yaw_rad)
+
+    def _level(self, yaw_rad: float) -> AttitudeSetpoint:
+        """Level at the hover thrust (a non-finite input or output): forget the histories it touched."""
+        self._non_finite()
+        hover = self.thrust.hover_thrust_norm
+        if not math.isfinite(hover):
+            self.thrust.hover_thrust_norm = hover = 0.5
+        return AttitudeSetpoint(
+            roll_rad=0.0,
+            pitch_rad=0.0,
+            yaw_rad=yaw_rad if math.isfinite(yaw_rad) else 0.0,
+            thrust_norm=float(np.clip(hover, 0.0, 1.0)),
+        )
 
     def _slot_accel(self, target: SlotTarget, dt: float) -> Vec3:
         """The slot's own acceleration as the follower sees it (low-passed derivative), m/s^2.
@@ -311,6 +393,8 @@ class FormationLaw:
         slot_target: SlotTarget | None = None,
     ) -> AttitudeCommand:
         """The GPS-lost law: attitude and thrust from the relative estimate and the baro (see module doc)."""
+        if not _finite(p_ned_rel_m, v_ned_rel_m_s, follower, slot_target, self.neighbours):
+            return AttitudeCommand(self._level(follower.yaw_rad), (0.0, 0.0, 0.0), 0.0, None)
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
         p = np.asarray(p_ned_rel_m, dtype=np.float64)
@@ -362,6 +446,7 @@ class FormationLaw:
         thrust = self.thrust.thrust(v_down_des, follower.v_down_m_s, roll, pitch, dt)
         yaw_sp = self._attitude_yaw(err, follower.yaw_rad)
         sp = AttitudeSetpoint(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw_sp, thrust_norm=thrust)
+        sp = self._finite_attitude(sp, follower.yaw_rad)
         return AttitudeCommand(sp, (float(a[0]), float(a[1]), float(a[2])), v_down_des, err)
 
     def _attitude_yaw(self, err: SlotError, yaw_rad: float) -> float:
@@ -386,6 +471,8 @@ class FormationLaw:
         Brakes on PX4's velocity estimate while it is still valid (``follower.v_ned_m_s`` not None),
         otherwise stays level. Keeps the separation barrier when a relative estimate is given.
         """
+        if not _finite(follower, v_down_des_m_s, yaw_rate_rad_s, p_ned_rel_m, v_ned_rel_m_s, self.neighbours):
+            return AttitudeCommand(self._level(follower.yaw_rad), (0.0, 0.0, 0.0), 0.0, None)
         dt = self._dt(now_s)
         lim = self.limits
         a = np.zeros(3)
@@ -404,6 +491,7 @@ class FormationLaw:
         thrust = self.thrust.thrust(v_down_des_m_s, follower.v_down_m_s, roll, pitch, dt)
         yaw_sp = wrap_pi(follower.yaw_rad + yaw_rate_rad_s * self.YAW_LEAD_S)
         sp = AttitudeSetpoint(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw_sp, thrust_norm=thrust)
+        sp = self._finite_attitude(sp, follower.yaw_rad)
         return AttitudeCommand(sp, (float(a[0]), float(a[1]), float(a[2])), v_down_des_m_s, None)
 
     def _bound(
@@ -443,6 +531,17 @@ class FormationLaw:
         leader in 1.5 s (network circle runs). The separation barrier still applies against the
         dead-reckoned position.
         """
+        if not _finite(
+            v_leader_ned_m_s,
+            p_ned_rel_m,
+            follower.yaw_rad,
+            follower.v_ned_m_s,
+            follower.p_ned_m,
+            obstacle_ned_m,
+            self.neighbours,
+        ):
+            self._non_finite()
+            return self.hover_velocity()
         lim = self.limits
         p = np.asarray(p_ned_rel_m, dtype=np.float64)
         v_leader = np.asarray(v_leader_ned_m_s, dtype=np.float64)
@@ -452,12 +551,18 @@ class FormationLaw:
         v_rel = v_leader - (np.zeros(3) if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s))
         yaw_rate = self._yaw_rate(slot_error(self.slot, p, v_rel, follower.yaw_rad), follower.yaw_rad)
         v_body = ned_to_heading(v, follower.yaw_rad)
+        if not (np.all(np.isfinite(v_body)) and math.isfinite(yaw_rate)):
+            self._non_finite()
+            return self.hover_velocity()
         return VelocityBodySetpoint(
             v_body_m_s=(float(v_body[0]), float(v_body[1]), float(v_body[2])), yaw_rate_rad_s=yaw_rate
         )
 
     def hover_velocity(self, v_down_m_s: float = 0.0, yaw_rate_rad_s: float = 0.0) -> VelocityBodySetpoint:
         """Stop in place (GPS healthy): zero horizontal velocity, a vertical speed and a yaw rate."""
+        if not (math.isfinite(v_down_m_s) and math.isfinite(yaw_rate_rad_s)):
+            self.non_finite += 1
+            v_down_m_s = yaw_rate_rad_s = 0.0
         return VelocityBodySetpoint(v_body_m_s=(0.0, 0.0, v_down_m_s), yaw_rate_rad_s=yaw_rate_rad_s)
 
 

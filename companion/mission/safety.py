@@ -80,8 +80,13 @@ def barrier_speed_m_s(distance_left_m: float, brake_m_s2: float) -> float:
 
 
 def clamp_speed(v_ned_m_s: Vec3, lim: SafetyLimits) -> Vec3:
-    """Scale the horizontal part to ``max_speed`` and clip the vertical part to ``max_vertical_speed``."""
+    """Scale the horizontal part to ``max_speed`` and clip the vertical part to ``max_vertical_speed``.
+
+    A component that is not a finite number becomes 0 (no speed along it): NaN passes every comparison,
+    so without this it would reach the setpoint unclipped.
+    """
     out = np.array(v_ned_m_s, dtype=np.float64)
+    out[~np.isfinite(out)] = 0.0
     h = math.hypot(out[0], out[1])
     if h > lim.max_speed_m_s:
         out[:2] *= lim.max_speed_m_s / h

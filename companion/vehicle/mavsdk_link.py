@@ -64,6 +64,7 @@ from companion.kernel.flight import (
     VelocityNedSetpoint,
 )
 from companion.vehicle import failsafe
+from companion.vehicle.finite import require_finite_position, require_finite_setpoint
 from companion.vehicle.identity import choose_autopilot
 from companion.vehicle.mavsdk_telemetry import MavsdkTelemetry
 
@@ -382,6 +383,7 @@ class MavsdkVehicleLink:
 
     # ------------------------------------------------------------------ offboard
     async def set_setpoint(self, setpoint: Setpoint) -> None:
+        require_finite_setpoint(setpoint)
         offboard = self._require(self._offboard)
         try:
             if isinstance(setpoint, VelocityBodySetpoint):
@@ -455,6 +457,7 @@ class MavsdkVehicleLink:
 
     # ------------------------------------------------------------------ estimator input, GCS text
     async def send_external_position(self, fix: ExternalPosition) -> None:
+        require_finite_position(fix)
         mocap = self._require(self._mocap)
         cov = [0.0] * 21
         cov[0], cov[6], cov[11] = fix.variance_m2
