@@ -50,7 +50,7 @@ from companion.service.status import StatusServer
 from companion.service.supervise import Backoff, supervise
 from companion.service.sysinfo import SystemMonitor, SystemReading
 from companion.service.systemd import SystemdNotifier
-from companion.telemetry.commands import Command
+from companion.telemetry.commands import Command, HighWaterMarks
 from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
 from companion.telemetry.payloads import HealthMsg, PoseMsg, StateMsg
 
@@ -79,7 +79,8 @@ class FollowerService:
         wall_time_s: wall-clock time for MQTT stamps and command freshness.
         notifier: sd_notify (a no-op when not under systemd); entered by the caller.
         system_monitor: machine readings.
-        mqtt_credentials: password, TLS and command key, loaded at the edge.
+        mqtt_credentials: password, TLS, command and formation keys, loaded at the edge.
+        command_marks: the operators' last command times, kept in ``service.state_dir`` (None: memory).
         rng: jitter for backoffs.
     """
 
@@ -93,6 +94,7 @@ class FollowerService:
         notifier: SystemdNotifier,
         system_monitor: SystemMonitor | None = None,
         mqtt_credentials: MqttCredentials | None = None,
+        command_marks: HighWaterMarks | None = None,
         rng: random.Random | None = None,
     ) -> None:
         self.cfg = cfg
@@ -102,6 +104,7 @@ class FollowerService:
         self.notifier = notifier
         self._sysmon = system_monitor or SystemMonitor()
         self._mqtt_credentials = mqtt_credentials or MqttCredentials()
+        self._command_marks = command_marks
         self._rng = rng or random.Random()  # noqa: S311 (jitter, not crypto)
         self.health = HealthBoard(clock)
         self.latency = LatencyStats()
@@ -443,6 +446,7 @@ class FollowerService:
             on_leader_position=on_leader,
             on_neighbour_pose=parts.on_neighbour_pose,
             neighbour_ids=self.cfg.formation.neighbour_ids,
+            command_marks=self._command_marks,
         )
 
     def _on_command(self, cmd: Command) -> str:

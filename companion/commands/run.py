@@ -32,16 +32,20 @@ def register(sub: Any) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from companion.config import resolve_state_dir
     from companion.service.systemd import NotifyConfig
-    from companion.telemetry.mqtt import MqttCredentials, load_mqtt_credentials
+    from companion.telemetry.mqtt import MqttCredentials, load_command_marks, load_mqtt_credentials
 
     cfg = load(args)
-    # The edge: the only place that reads systemd's variables and the secret files.
+    # The edge: the only place that reads systemd's variables, the secret files and the state folder.
     notify = NotifyConfig.from_environ(os.environ, os.getpid())
+    state_dir = resolve_state_dir(cfg.service.state_dir, os.environ)
+    cfg = cfg.model_copy(update={"service": cfg.service.model_copy(update={"state_dir": str(state_dir)})})
     creds = load_mqtt_credentials(cfg.mqtt) if cfg.mqtt.enabled else MqttCredentials()
+    marks = load_command_marks(state_dir) if cfg.mqtt.enabled and cfg.mqtt.command_topic else None
     guard = ExitGuard()
     try:
-        code = asyncio.run(_serve(cfg, notify, creds, guard))
+        code = asyncio.run(_serve(cfg, notify, creds, marks, guard))
     except compat.BaseExceptionGroup as eg:
         guard.arm(TEARDOWN_GRACE_S, 1, "teardown after an error")
         raise first_companion_error(eg) or eg from None
@@ -49,7 +53,7 @@ def _run(args: argparse.Namespace) -> int:
     return code
 
 
-async def _serve(cfg: Config, notify: Any, creds: Any, guard: ExitGuard) -> int:
+async def _serve(cfg: Config, notify: Any, creds: Any, marks: Any, guard: ExitGuard) -> int:
     from companion.app import FollowerService
     from companion.kernel.clock import MonotonicClock
     from companion.service.systemd import SystemdNotifier
@@ -64,6 +68,7 @@ async def _serve(cfg: Config, notify: Any, creds: Any, guard: ExitGuard) -> int:
             wall_time_s=time.time,
             notifier=notifier,
             mqtt_credentials=creds,
+            command_marks=marks,
         )
         loop = asyncio.get_running_loop()
 

@@ -23,6 +23,7 @@ from companion.config.service import (
     MqttConfig,
     ServiceConfig,
     StatusConfig,
+    resolve_state_dir,
     url_problem,
 )
 from companion.kernel.config import Section, deep_merge, env_overrides, format_validation_error, read_toml
@@ -49,6 +50,7 @@ __all__ = [
     "apply_plan",
     "load_config",
     "load_plan",
+    "resolve_state_dir",
     "url_problem",
 ]
 

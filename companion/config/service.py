@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
@@ -54,6 +56,15 @@ class LinkConfig(Section):
     offboard_loss_action: Literal["hold", "land", "return", "autopilot"] = "hold"
     #: MAVSDK's own log lines go to the ``companion.vehicle.mavsdk`` logger at or above this level.
     mavsdk_log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "WARNING"
+    #: MAVLink 2 message signing between the service and the autopilot (a relay in the service signs what
+    #: MAVSDK sends and checks what the autopilot sends; MAVSDK itself cannot sign). udpin, udpout and
+    #: serial links only.
+    signing: bool = False
+    #: The 32-byte signing key: 32 raw bytes or 64 hexadecimal digits, mode 0600 (refused otherwise).
+    signing_key_file: str = ""
+    #: Send the key to an autopilot that does not sign yet (SETUP_SIGNING), only while it is disarmed. The
+    #: key crosses the link in clear once: do it over the serial cable, or on a network nobody else is on.
+    signing_provision: bool = False
 
     @field_validator("url")
     @classmethod
@@ -62,6 +73,14 @@ class LinkConfig(Section):
         if problem is not None:
             raise ValueError(problem)
         return v
+
+    @model_validator(mode="after")
+    def _signing_needs(self) -> LinkConfig:
+        if self.signing and not self.signing_key_file:
+            raise ValueError("signing = true needs signing_key_file")
+        if self.signing and self.url.partition("://")[0] not in ("udpin", "udpout", "serial"):
+            raise ValueError("signing needs a udpin://, udpout:// or serial:// url (the relay speaks those)")
+        return self
 
 
 class MqttConfig(Section):
@@ -89,17 +108,37 @@ class MqttConfig(Section):
     health_rate_hz: float = Field(0.5, gt=0)
     #: state and events messages kept while disconnected; the oldest are dropped (and counted) beyond it.
     buffer_messages: int = Field(1000, ge=1)
-    #: Accept land/hold/set_offset on <prefix>/<vehicle_id>/cmd, each signed with command_key_file.
+    #: Accept land/hold/set_offset on <prefix>/<vehicle_id>/cmd, each signed with an operator's key.
     command_topic: bool = False
-    command_key_file: str = ""
+    #: The operators' keys, one line each: ``KEY_ID HEX_KEY`` (16 bytes or more; delete a line to revoke).
+    command_keys_file: str = ""
     command_max_age_s: float = Field(30.0, gt=0)
     #: Where the leader's shared position arrives when leader.shared_position = "mqtt".
     leader_topic: str = "wingman/leader/position"
+    #: The formation key(s) shares are signed with (same format as command_keys_file; the first signs this
+    #: vehicle's pose). Empty: shares are checked but not authenticated.
+    formation_keys_file: str = ""
+    #: Inbound messages (commands, shares) larger than this are dropped before they are parsed, bytes.
+    max_inbound_bytes: int = Field(4096, ge=512, le=65536)
+    #: A share older than this, or ahead of our clock by more than share_max_ahead_s, is dropped, s.
+    share_max_age_s: float = Field(2.0, gt=0, le=60)
+    share_max_ahead_s: float = Field(0.5, ge=0, le=10)
+    #: A share whose speed, or jump from the sender's last share, says it moves faster is dropped, m/s.
+    share_max_speed_m_s: float = Field(30.0, gt=0, le=200)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "command_key_file" in data:
+            raise ValueError(
+                "command_key_file is now command_keys_file: one line per operator, KEY_ID HEX_KEY"
+            )
+        return data
 
     @model_validator(mode="after")
     def _consistent(self) -> MqttConfig:
-        if self.command_topic and not self.command_key_file:
-            raise ValueError("command_topic = true needs command_key_file (commands must be authenticated)")
+        if self.command_topic and not self.command_keys_file:
+            raise ValueError("command_topic = true needs command_keys_file (commands must be authenticated)")
         if bool(self.cert_file) != bool(self.key_file):
             raise ValueError("cert_file and key_file go together")
         if self.reconnect_min_s > self.reconnect_max_s:
@@ -130,6 +169,9 @@ class ServiceConfig(Section):
     onboard_status_rate_hz: float = Field(1.0, ge=0, le=10)
     #: How often the machine's load and temperatures are sampled.
     system_sample_period_s: float = Field(1.0, gt=0)
+    #: What must survive a restart (the operators' last command times, the MAVLink signing timestamp).
+    #: Empty: systemd's $STATE_DIRECTORY (/var/lib/wingman under the unit), else ~/.local/state/wingman.
+    state_dir: str = ""
 
 
 class LoggingConfig(Section):
@@ -156,3 +198,13 @@ class AutoLabelSection(Section):
     side_pad_fraction: float = Field(0.15, ge=0.0, le=1.0)
     #: Keep one drone-free frame in this many as a negative.
     negative_every: int = Field(5, ge=1)
+
+
+def resolve_state_dir(configured: str, environ: Mapping[str, str]) -> Path:
+    """``service.state_dir``, or where systemd (``STATE_DIRECTORY``) or the XDG rules put it."""
+    if configured:
+        return Path(configured)
+    if environ.get("STATE_DIRECTORY"):
+        return Path(environ["STATE_DIRECTORY"].split(":")[0])
+    base = environ.get("XDG_STATE_HOME") or str(Path(environ.get("HOME", "/tmp")) / ".local" / "state")  # noqa: S108
+    return Path(base) / "wingman"

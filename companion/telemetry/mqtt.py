@@ -5,29 +5,45 @@ Producers never touch the network: samplers build messages at the configured rat
 is away for long) or in one-slot mailboxes (pose and health: only the newest is worth sending). One
 connection loop drains them while connected and reconnects with jittered backoff when the broker goes
 away, so a dead broker can neither block nor crash the flight.
+
+Inbound messages (commands, shares) are untrusted: one larger than ``max_inbound_bytes`` is dropped
+before it is queued, each is handled inside a boundary that turns any failure into one counted,
+rate-limited line (a payload, retained or not, can never end the receive loop and start a reconnect
+loop), and the client id carries a random suffix per connection, so no other client can take it over by
+guessing it.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import random
+import secrets
 import ssl
 from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 import aiomqtt
-from pydantic import ValidationError
 
 from companion.config import MqttConfig
 from companion.kernel import compat
 from companion.kernel.backoff import Backoff
 from companion.kernel.clock import Clock
 from companion.kernel.errors import ConfigError
-from companion.telemetry.commands import Command, CommandRejectedError, CommandVerifier
+from companion.kernel.throttle import Throttle, and_more
+from companion.telemetry.commands import (
+    Command,
+    CommandRejectedError,
+    CommandVerifier,
+    HighWaterMarks,
+    RejectReason,
+)
+from companion.telemetry.inbound import InboundRejectedError, Keyring, parse_keyring, read_secret
 from companion.telemetry.payloads import (
     EventMsg,
     HealthMsg,
@@ -39,6 +55,7 @@ from companion.telemetry.payloads import (
     Topics,
     offline_state,
 )
+from companion.telemetry.shares import ShareGate, ShareLimits, sign_share
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +65,10 @@ T = TypeVar("T")
 _PUBLISH_TIMEOUT_S = 5.0
 #: Connecting (TCP + CONNACK) must finish within this.
 _CONNECT_TIMEOUT_S = 5.0
+#: The operators' high-water marks, in ``service.state_dir``.
+COMMAND_MARKS_FILE = "command-high-water.json"
+#: Inbound messages waiting for the receive loop; beyond it they are dropped and counted (a flood).
+_INBOUND_QUEUE = 1000
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,7 +126,10 @@ class MqttCredentials:
 
     password: str | None = None
     tls_context: ssl.SSLContext | None = None
-    command_key: bytes | None = None
+    #: The operators' command keys (``command_keys_file``).
+    command_keys: Keyring | None = None
+    #: The formation key(s) shares are signed with (``formation_keys_file``).
+    formation_keys: Keyring | None = None
 
 
 class MqttReporter:
@@ -122,6 +146,8 @@ class MqttReporter:
         on_command: called with each verified command; returns the text reported on ``events``.
         on_leader_position: called with each valid leader position from ``cfg.leader_topic``.
         on_neighbour_pose: called with (vehicle id, pose) for each pose the ``neighbour_ids`` publish.
+        neighbour_ids: the other followers of a formation plan.
+        command_marks: each operator's newest accepted command time, persisted (replays after a restart).
     """
 
     def __init__(
@@ -138,6 +164,7 @@ class MqttReporter:
         on_leader_position: Callable[[LeaderPositionMsg], None] | None = None,
         on_neighbour_pose: Callable[[str, PoseMsg], None] | None = None,
         neighbour_ids: Sequence[str] = (),
+        command_marks: HighWaterMarks | None = None,
     ) -> None:
         self.cfg = cfg
         self.topics = Topics(cfg.topic_prefix, vehicle_id)
@@ -153,9 +180,27 @@ class MqttReporter:
         self._neighbour_topics = {Topics(cfg.topic_prefix, n).pose: n for n in neighbour_ids}
         self._verifier: CommandVerifier | None = None
         if cfg.command_topic:
-            if self._creds.command_key is None:
-                raise ValueError("command_topic needs a command key")
-            self._verifier = CommandVerifier(self._creds.command_key, cfg.command_max_age_s)
+            if self._creds.command_keys is None:
+                raise ValueError("command_topic needs the operators' command keys")
+            self._verifier = CommandVerifier(
+                self._creds.command_keys,
+                self.topics.cmd,
+                cfg.command_max_age_s,
+                command_marks,
+                max_bytes=cfg.max_inbound_bytes,
+            )
+        self.shares = ShareGate(
+            ShareLimits(
+                max_bytes=cfg.max_inbound_bytes,
+                max_age_s=cfg.share_max_age_s,
+                max_ahead_s=cfg.share_max_ahead_s,
+                max_speed_m_s=cfg.share_max_speed_m_s,
+            ),
+            wall_time_s,
+            self._creds.formation_keys,
+        )
+        #: One line (and one event) per kind of bad input per window, the rest counted.
+        self._throttle = Throttle(window_s=10.0, burst=3, now_s=clock.now_s)
         self.outbox = Outbox(cfg.buffer_messages)
         self._pose_slot: Outgoing | None = None
         self._health_slot: Outgoing | None = None
@@ -175,6 +220,11 @@ class MqttReporter:
         self.commands_accepted = 0
         self.commands_rejected = 0
         self.leader_positions = 0
+        #: Inbound messages dropped before parsing (too large, or the queue full), and handler failures.
+        self.inbound_dropped = 0
+        self.inbound_errors = 0
+        #: The client id of the current (or last) connection: ``wingman-<vehicle_id>-<random>``.
+        self.client_id = ""
 
     # ---- producers (never block, never touch the network) -------------------------------------------
 
@@ -200,6 +250,10 @@ class MqttReporter:
             "dropped": self.outbox.dropped,
             "commands_accepted": self.commands_accepted,
             "commands_rejected": self.commands_rejected,
+            "shares_accepted": self.shares.accepted,
+            "shares_rejected": dict(self.shares.rejected),
+            "inbound_dropped": self.inbound_dropped,
+            "inbound_errors": self.inbound_errors,
         }
 
     def _push_state(self, msg: StateMsg) -> None:
@@ -275,7 +329,11 @@ class MqttReporter:
             return
         if self._pose_slot is not None:
             self.slot_overwrites += 1
-        self._pose_slot = Outgoing(self.topics.pose, self._stamp(self.topics.pose, pose), 0, False)
+        payload = self._stamp(self.topics.pose, pose)
+        keys = self._creds.formation_keys
+        if keys is not None:  # the neighbours of a formation check it (shares.py)
+            payload = sign_share(keys, self.topics.pose, json.loads(payload))
+        self._pose_slot = Outgoing(self.topics.pose, payload, 0, False)
         self._wake.set()
 
     def _tick_health(self) -> None:
@@ -340,12 +398,17 @@ class MqttReporter:
             qos=1,
             retain=True,
         )
+        # A fixed id lets any client of the broker knock this one off by connecting with it; a fresh random
+        # suffix per connection cannot be guessed (the broker's ACLs can still match the prefix).
+        self.client_id = f"wingman-{self._vehicle_id}-{secrets.token_hex(6)}"
         return aiomqtt.Client(
             self.cfg.host,
             self.cfg.port,
             username=self.cfg.username or None,
             password=self._creds.password,
-            identifier=f"wingman-{self._vehicle_id}",
+            identifier=self.client_id,
+            queue_type=_bounded_queue(self.cfg.max_inbound_bytes, self._drop_inbound),
+            max_queued_incoming_messages=_INBOUND_QUEUE,
             will=will,
             keepalive=self.cfg.keepalive_s,
             timeout=_PUBLISH_TIMEOUT_S,
@@ -391,42 +454,140 @@ class MqttReporter:
         # Iterating also detects a lost connection (it raises MqttError), even when nothing is subscribed.
         async for message in client.messages:
             raw = message.payload if isinstance(message.payload, bytes) else str(message.payload).encode()
-            if message.topic.matches(self.topics.cmd):
-                self._handle_command(raw)
-            elif message.topic.matches(self.cfg.leader_topic) and self._on_leader_position is not None:
-                try:
-                    pos = LeaderPositionMsg.model_validate_json(raw)
-                except ValidationError as exc:
-                    log.debug("MQTT: bad leader position: %s", exc.errors()[0]["msg"])
-                    continue
-                self.leader_positions += 1
-                self._on_leader_position(pos)
-            elif self._on_neighbour_pose is not None and str(message.topic) in self._neighbour_topics:
-                try:
-                    pose = PoseMsg.model_validate_json(raw)
-                except ValidationError as exc:
-                    log.debug("MQTT: bad neighbour pose: %s", exc.errors()[0]["msg"])
-                    continue
-                self._on_neighbour_pose(self._neighbour_topics[str(message.topic)], pose)
+            topic = str(message.topic)
+            try:
+                await self._dispatch(topic, raw)
+            except Exception as exc:
+                # The boundary to untrusted input: whatever a payload does to a handler, the loop (and so
+                # the connection and its subscriptions) lives on. A retained payload that broke it would
+                # otherwise come back on every reconnect.
+                self.inbound_errors += 1
+                suppressed = self._throttle.allow("handler_error")
+                if suppressed is not None:
+                    log.error(
+                        "MQTT: error handling a message on %s: %s: %s%s",
+                        topic[:80],
+                        type(exc).__name__,
+                        exc,
+                        and_more(suppressed),
+                    )
 
-    def _handle_command(self, raw: bytes) -> None:
+    async def _dispatch(self, topic: str, raw: bytes) -> None:
+        if topic == self.topics.cmd:
+            await self._handle_command(raw)
+        elif topic == self.cfg.leader_topic and self._on_leader_position is not None:
+            try:
+                pos = self.shares.leader_position(topic, raw)
+            except InboundRejectedError as exc:
+                self._share_rejected("leader position", topic, exc)
+                return
+            self.leader_positions += 1
+            self._on_leader_position(pos)
+        elif self._on_neighbour_pose is not None and topic in self._neighbour_topics:
+            try:
+                pose = self.shares.neighbour_pose(topic, raw)
+            except InboundRejectedError as exc:
+                self._share_rejected("neighbour pose", topic, exc)
+                return
+            self._on_neighbour_pose(self._neighbour_topics[topic], pose)
+
+    def _share_rejected(self, what: str, topic: str, exc: InboundRejectedError) -> None:
+        suppressed = self._throttle.allow(f"share:{topic}")
+        if suppressed is not None:
+            log.warning("MQTT: %s on %s dropped: %s%s", what, topic, exc, and_more(suppressed))
+            self.event(
+                "share_rejected",
+                f"{what} on {topic} dropped: {exc}",
+                "warning",
+                reason=exc.reason,
+                topic=topic,
+                suppressed=suppressed,
+            )
+
+    def _drop_inbound(self, topic: str, size: int, why: str) -> None:
+        """A message the receive queue refused (too large, or a flood): counted, reported rate-limited."""
+        self.inbound_dropped += 1
+        if topic == self.topics.cmd:
+            self.commands_rejected += 1
+        elif why == "too_large":
+            self.shares.rejected["too_large"] += 1
+        suppressed = self._throttle.allow(f"drop:{why}")
+        if suppressed is None:
+            return
+        if why == "too_large":
+            text = f"message on {topic[:80]} dropped unread: {size} bytes > {self.cfg.max_inbound_bytes}"
+        else:
+            text = f"message on {topic[:80]} dropped: {_INBOUND_QUEUE} messages already waiting"
+        log.warning("MQTT: %s%s", text, and_more(suppressed))
+        kind = "command_rejected" if topic == self.topics.cmd else "inbound_dropped"
+        self.event(kind, text, "warning", reason=why.upper(), suppressed=suppressed)
+
+    async def _handle_command(self, raw: bytes) -> None:
         if self._verifier is None or self._on_command is None:
             return
         try:
             cmd = self._verifier.verify(raw, self._wall_time_s())
         except CommandRejectedError as exc:
             self.commands_rejected += 1
-            log.warning("MQTT: command refused: %s", exc)
-            self.event("command_rejected", str(exc), "warning", reason=exc.reason.name)
+            suppressed = self._throttle.allow(f"command:{exc.reason.name}")
+            if suppressed is not None:
+                log.warning("MQTT: command refused: %s%s", exc, and_more(suppressed))
+                self.event(
+                    "command_rejected",
+                    str(exc),
+                    "warning",
+                    reason=exc.reason.name,
+                    suppressed=suppressed,
+                )
+            return
+        # The operator's high-water mark reaches the disk before the command is acted upon: a restart
+        # can never make this command acceptable again.
+        try:
+            await asyncio.to_thread(self._verifier.marks.save)
+        except OSError as exc:
+            self.commands_rejected += 1
+            log.error("MQTT: command %s refused: cannot keep its time (%s)", cmd.name.value, exc)
+            self.event(
+                "command_rejected",
+                f"cannot keep the command's time: {exc.strerror}",
+                "error",
+                reason=RejectReason.REPLAYED.name,
+            )
             return
         self.commands_accepted += 1
         result = self._on_command(cmd)
         refused = " refused: " in result
-        (log.warning if refused else log.info)("MQTT: command %s: %s", cmd.name.value, result)
+        (log.warning if refused else log.info)(
+            "MQTT: command %s from %s: %s", cmd.name.value, cmd.key_id, result
+        )
+        data = {"cmd": cmd.name.value, "key_id": cmd.key_id, "nonce": cmd.nonce}
         if refused:
-            self.event("command_refused", result, "warning", cmd=cmd.name.value, nonce=cmd.nonce)
+            self.event("command_refused", result, "warning", **data)
         else:
-            self.event("command", result, "notice", cmd=cmd.name.value, nonce=cmd.nonce)
+            self.event("command", result, "notice", **data)
+
+
+def _bounded_queue(
+    max_bytes: int, on_drop: Callable[[str, int, str], None]
+) -> type[asyncio.Queue[aiomqtt.Message]]:
+    """The inbound queue for aiomqtt, refusing what must never wait in memory: oversized payloads, floods.
+
+    aiomqtt hands every message to ``put_nowait`` as it arrives; dropping here (instead of raising
+    QueueFull, which aiomqtt logs once per message) keeps a flood out of the log and the memory bounded.
+    """
+
+    class BoundedQueue(asyncio.Queue[aiomqtt.Message]):
+        def put_nowait(self, item: aiomqtt.Message) -> None:
+            payload = item.payload
+            size = len(payload) if isinstance(payload, bytes | bytearray | str) else 0
+            if size > max_bytes:
+                on_drop(str(item.topic), size, "too_large")
+            elif self.full():
+                on_drop(str(item.topic), size, "queue_full")
+            else:
+                super().put_nowait(item)
+
+    return BoundedQueue
 
 
 #: asyncio.TimeoutError is TimeoutError from Python 3.11 on; on 3.10 aiomqtt's wait_for raises the former.
@@ -461,23 +622,39 @@ async def _call(awaitable: Awaitable[T]) -> T:
 
 
 def load_mqtt_credentials(cfg: MqttConfig) -> MqttCredentials:
-    """Read the password and command key files and build the TLS context; errors become ConfigError."""
+    """Read the password and key files and build the TLS context; every problem in one ConfigError.
+
+    A secret file that other users may read is refused (see :func:`read_secret`); a password sent without
+    TLS is allowed but warned about, since anyone on the path reads it.
+    """
     problems: list[str] = []
 
     def read(key: str, path: str) -> bytes | None:
         if not path:
             return None
         try:
-            with open(path, "rb") as f:
-                return f.read().strip()
+            return read_secret(path)
+        except PermissionError as exc:
+            problems.append(f"mqtt.{key}: {exc}")
         except OSError as exc:
             problems.append(f"mqtt.{key}: cannot read {path}: {exc.strerror}")
+        return None
+
+    def keyring(key: str, path: str) -> Keyring | None:
+        text = read(key, path)
+        if text is None:
+            return None
+        try:
+            return parse_keyring(text.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            problems.append(f"mqtt.{key}: {path}: {exc}")
             return None
 
     password = read("password_file", cfg.password_file)
-    key = read("command_key_file", cfg.command_key_file)
-    if cfg.command_topic and key is not None and len(key) < 16:
-        problems.append("mqtt.command_key_file: key shorter than 16 bytes")
+    command_keys = keyring("command_keys_file", cfg.command_keys_file)
+    formation_keys = keyring("formation_keys_file", cfg.formation_keys_file)
+    if cfg.key_file:
+        read("key_file", cfg.key_file)  # the TLS client key: the same rule as every other secret
     tls: ssl.SSLContext | None = None
     if cfg.tls:
         try:
@@ -488,8 +665,23 @@ def load_mqtt_credentials(cfg: MqttConfig) -> MqttCredentials:
             problems.append(f"mqtt.tls: {exc}")
     if problems:
         raise ConfigError("[mqtt]", problems)
+    if password is not None and not cfg.tls:
+        log.warning("MQTT: a password without TLS crosses the network in clear text (set mqtt.tls = true)")
     return MqttCredentials(
-        password=None if password is None else password.decode("utf-8", "replace"),
+        password=None if password is None else password.strip().decode("utf-8", "replace"),
         tls_context=tls,
-        command_key=key,
+        command_keys=command_keys,
+        formation_keys=formation_keys,
     )
+
+
+def load_command_marks(state_dir: Path) -> HighWaterMarks:
+    """The operators' high-water marks from ``state_dir``; a file that cannot be read is a ConfigError."""
+    path = state_dir / COMMAND_MARKS_FILE
+    try:
+        return HighWaterMarks(path)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(
+            "[service] state_dir",
+            [f"{path}: {exc} (commands stay refused until it is readable; delete it to start afresh)"],
+        ) from None

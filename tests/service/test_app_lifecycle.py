@@ -280,8 +280,9 @@ async def test_watchdog_withheld_when_the_mission_hangs(
 
 @pytest.mark.mqtt_broker
 async def test_mqtt_telemetry_and_commands_through_the_service(tmp_path: Path) -> None:
-    key = tmp_path / "cmd.key"
-    key.write_bytes(b"s" * 32)
+    key = tmp_path / "cmd.keys"
+    key.write_text(f"gcs {(b's' * 32).hex()}\n")
+    key.chmod(0o600)
     with Mosquitto(tmp_path) as broker:
         mission = ScriptedMission(MonotonicClock())
         svc, _ = make_service(
@@ -292,7 +293,7 @@ async def test_mqtt_telemetry_and_commands_through_the_service(tmp_path: Path) -
                 "enabled": True,
                 "port": broker.port,
                 "command_topic": True,
-                "command_key_file": str(key),
+                "command_keys_file": str(key),
                 "reconnect_min_s": 0.1,
                 "reconnect_max_s": 0.2,
             },
@@ -316,7 +317,8 @@ async def test_mqtt_telemetry_and_commands_through_the_service(tmp_path: Path) -
             await wait_until(lambda: any(t == "pose" for t, _ in got) and any(t == "health" for t, _ in got))
             async with aiomqtt.Client("127.0.0.1", broker.port) as gcs:
                 msg = {"cmd": "hold", "time_unix_s": time.time(), "nonce": "x1"}
-                await gcs.publish("wingman/follower1/cmd", sign_command(b"s" * 32, msg), qos=1)
+                topic = "wingman/follower1/cmd"
+                await gcs.publish(topic, sign_command(b"s" * 32, "gcs", topic, msg), qos=1)
             await wait_until(lambda: mission.commands == ["hold"])
             svc.request_stop("SIGTERM")
             await task

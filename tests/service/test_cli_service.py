@@ -42,7 +42,7 @@ def test_run_refuses_an_unauthenticated_command_topic(tmp_path: Path, repo_root:
     cfg.write_text("[mqtt]\nenabled = true\ncommand_topic = true\n")
     r = companion("run", "--config", str(cfg), cwd=repo_root)
     assert r.returncode == 2
-    assert "command_key_file" in r.stderr
+    assert "command_keys_file" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
 
 

@@ -20,6 +20,7 @@ from companion.config import MqttConfig
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.telemetry.commands import Command, sign_command
+from companion.telemetry.inbound import Keyring
 from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
 from companion.telemetry.payloads import HealthMsg, LeaderPositionMsg, PoseMsg, StateMsg
 from tests.mosquitto import Collector, Mosquitto
@@ -27,6 +28,7 @@ from tests.mosquitto import Collector, Mosquitto
 pytestmark = [pytest.mark.mqtt_broker, pytest.mark.timeout(60)]
 
 KEY = b"0123456789abcdef0123456789abcdef"
+RING = Keyring.single("gcs", KEY)
 
 
 @pytest.fixture
@@ -162,14 +164,16 @@ async def test_broker_restart_loses_nothing_beyond_the_buffer(
 
 async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> None:
     vehicle = FakeVehicle()
-    cfg = make_cfg(broker.port, command_topic=True, command_key_file="unused-here", leader_topic="leader/pos")
+    cfg = make_cfg(
+        broker.port, command_topic=True, command_keys_file="unused-here", leader_topic="leader/pos"
+    )
     reporter = MqttReporter(
         cfg,
         "f1",
         vehicle.sources(),
         MonotonicClock(),
         time.time,
-        credentials=MqttCredentials(command_key=KEY),
+        credentials=MqttCredentials(command_keys=RING),
         on_command=vehicle.on_command,
         on_leader_position=vehicle.leader.append,
     )
@@ -177,10 +181,12 @@ async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> 
     async with running(reporter, collector):
         await wait_for(lambda: reporter.subscribed)
         async with aiomqtt.Client("127.0.0.1", broker.port) as gcs:
-            good = sign_command(KEY, {"cmd": "hold", "time_unix_s": time.time(), "nonce": "n1"})
+            good = sign_command(KEY, "gcs", "wingman/f1/cmd", {"cmd": "hold", "time_unix_s": time.time()})
             await gcs.publish("wingman/f1/cmd", good, qos=1)
             await gcs.publish("wingman/f1/cmd", good, qos=1)  # replay
-            forged = sign_command(b"x" * 32, {"cmd": "land", "time_unix_s": time.time(), "nonce": "n2"})
+            forged = sign_command(
+                b"x" * 32, "gcs", "wingman/f1/cmd", {"cmd": "land", "time_unix_s": time.time()}
+            )
             await gcs.publish("wingman/f1/cmd", forged, qos=1)
             pos = {"lat_deg": 47.39, "lon_deg": 8.54, "alt_amsl_m": 500.0, "time_unix_s": time.time()}
             await gcs.publish("leader/pos", json.dumps(pos), qos=0)

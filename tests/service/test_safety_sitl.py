@@ -72,7 +72,8 @@ def service_env(tmp_path: Path, ports: Ports, cam: Path, broker_port: int, key: 
         "WINGMAN_MQTT__ENABLED": "true",
         "WINGMAN_MQTT__PORT": str(broker_port),
         "WINGMAN_MQTT__COMMAND_TOPIC": "true",
-        "WINGMAN_MQTT__COMMAND_KEY_FILE": str(key),
+        "WINGMAN_MQTT__COMMAND_KEYS_FILE": str(key),
+        "WINGMAN_SERVICE__STATE_DIR": str(tmp_path / "state"),
         "WINGMAN_MQTT__RECONNECT_MAX_S": "1.0",
         "WINGMAN_STATUS__SOCKET_PATH": str(tmp_path / "run" / "status.sock"),
         "WINGMAN_SERVICE__AUTO_START": "true",
@@ -114,8 +115,9 @@ async def publish(port: int, key: bytes, body: dict[str, Any]) -> None:
     import aiomqtt
 
     msg = {**body, "time_unix_s": time.time(), "nonce": secrets.token_hex(8)}
+    topic = "wingman/follower1/cmd"
     async with aiomqtt.Client("127.0.0.1", port) as c:
-        await c.publish("wingman/follower1/cmd", sign_command(key, msg), qos=1)
+        await c.publish(topic, sign_command(key, "gcs", topic, msg), qos=1)
 
 
 def inject_gps_off(gcs_transport: asyncio.DatagramTransport, follower_gcs_port: int) -> None:
@@ -128,8 +130,9 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
     ports = Ports.pick()
     cam = tmp_path / "cam.sock"
     key_bytes = secrets.token_bytes(32)
-    key = tmp_path / "cmd.key"
-    key.write_bytes(key_bytes)
+    key = tmp_path / "cmd.keys"
+    key.write_text(f"gcs {key_bytes.hex()}\n")
+    key.chmod(0o600)
     notify_path = tmp_path / "notify.sock"
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(notify_path))
