@@ -429,9 +429,22 @@ class MqttReporter:
             for topic in self._neighbour_topics:
                 await _call(client.subscribe(topic, qos=0))
         self.subscribed = True
-        async with compat.TaskGroup() as tg:
-            tg.create_task(self._drain(client), name="companion.mqtt.publish")
-            tg.create_task(self._receive(client), name="companion.mqtt.receive")
+        # Not a TaskGroup: Python 3.11's leaves this task "cancelling" when a child fails while it waits in
+        # __aexit__ (fixed in 3.12), and _call() then took the next session's first subscribe for a
+        # cancellation: the connection loop ended quietly after a lost connection, never to resubscribe.
+        tasks = (
+            asyncio.create_task(self._drain(client), name="companion.mqtt.publish"),
+            asyncio.create_task(self._receive(client), name="companion.mqtt.receive"),
+        )
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        for task in done:
+            task.result()  # the error that ended the session (a loop that returns means the same)
+        raise aiomqtt.MqttError("session ended")
 
     async def _drain(self, client: aiomqtt.Client) -> None:
         while True:
