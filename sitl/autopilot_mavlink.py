@@ -31,6 +31,7 @@ from sitl.autopilot_state import (
 from sitl.commander import mode_can_run
 from sitl.control import NAN
 from sitl.estimator import GpsFailure, VisionSample
+from sitl.links import VehicleSigning
 from sitl.modes import NavState, nav_state_from_mode
 from sitl.offboard import OffboardSetpoint, parse_attitude_target, parse_global_int, parse_local_ned
 from sitl.params import PARAM_TYPE_INT32, decode_value, encode_value
@@ -62,6 +63,9 @@ def _fin(value: Any) -> float:
 
 class AutopilotMavlink(AutopilotFlight):
     """The MAVLink endpoint of an autopilot (see :class:`~sitl.autopilot.Autopilot`)."""
+
+    #: MAVLink 2 signing, once SETUP_SIGNING gave a key (None: everything is accepted, nothing signed).
+    signing: VehicleSigning | None = None
 
     # ------------------------------------------------------------------ incoming
     def handle_message(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
@@ -400,6 +404,27 @@ class AutopilotMavlink(AutopilotFlight):
         # PX4 answers every set (changed or not) with the stored value, on every link.
         self._broadcast(self._param_value(name))
 
+    # --- signing
+    def _on_setup_signing(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
+        """A signing key, as PX4 takes it: only while disarmed; an all-zero key and timestamp turn it off."""
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        if self.armed:
+            self.counters["signing_refused_armed"] += 1
+            log.warning("%s: SETUP_SIGNING refused while armed", self.name)
+            return
+        key = bytes(msg.secret_key)
+        if len(key) != 32:
+            self.counters["signing_refused"] += 1
+            return
+        if not any(key) and int(msg.initial_timestamp) == 0:
+            self.signing = None
+            log.info("%s: MAVLink signing off", self.name)
+            return
+        self.signing = VehicleSigning(key, int(msg.initial_timestamp))
+        self.counters["signing_key_set"] += 1
+        log.info("%s: MAVLink signing key accepted", self.name)
+
     # --- misc
     def _on_timesync(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
         if int(msg.tc1) == 0:
@@ -471,4 +496,5 @@ MESSAGE_HANDLERS: Final[dict[str, _MessageHandler]] = {
     "MISSION_REQUEST_LIST": AutopilotMavlink._on_mission_request_list,
     "MISSION_COUNT": AutopilotMavlink._on_mission_count,
     "HEARTBEAT": AutopilotMavlink._on_heartbeat,
+    "SETUP_SIGNING": AutopilotMavlink._on_setup_signing,
 }
