@@ -78,6 +78,8 @@ class LinkConfig(Section):
     def _signing_needs(self) -> LinkConfig:
         if self.signing and not self.signing_key_file:
             raise ValueError("signing = true needs signing_key_file")
+        if self.signing and self.system_id == 0:
+            raise ValueError("signing = true needs the autopilot's system_id (not 0)")
         if self.signing and self.url.partition("://")[0] not in ("udpin", "udpout", "serial"):
             raise ValueError("signing needs a udpin://, udpout:// or serial:// url (the relay speaks those)")
         return self

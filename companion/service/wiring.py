@@ -13,15 +13,16 @@ import importlib
 import json
 import logging
 import math
+import os
 import time
 from collections.abc import Callable
 from typing import Any
 
-from companion.config import Config
+from companion.config import Config, resolve_state_dir
 from companion.kernel import compat
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock, MonotonicClock
-from companion.kernel.errors import CompanionError, NotBuiltError, first_companion_error
+from companion.kernel.errors import CompanionError, ConfigError, NotBuiltError, first_companion_error
 from companion.kernel.flight import NEVER_S, Severity, VehicleState
 from companion.mission.types import (
     MissionInputs,
@@ -320,8 +321,17 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
 
         from companion.vehicle.mavsdk_link import MavsdkVehicleLink  # noqa: PLC0415 (mavsdk: heavy)
 
+        background: dict[str, Callable[[], Any]] = {}
+        extra_status: dict[str, Callable[[], Any]] = {}
+        link_cfg = cfg.link
+        if cfg.link.signing:
+            # MAVSDK cannot sign: it talks to the relay, which signs and checks for it (signing_relay.py).
+            relay = await open_signing_relay(cfg, stack)
+            link_cfg = cfg.link.model_copy(update={"url": relay.mavsdk_url})
+            background["companion.signing"] = relay.run
+            extra_status["mavlink_signing"] = relay.stats
         link = await stack.enter_async_context(
-            MavsdkVehicleLink(cfg.link, clock, leader_system_id=cfg.leader.mavlink_system_id)
+            MavsdkVehicleLink(link_cfg, clock, leader_system_id=cfg.leader.mavlink_system_id)
         )
         flight = FlightAdapter(cfg, link, clock, stage)
 
@@ -342,13 +352,28 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             on_leader_position=flight.on_leader_position,
             on_neighbour_pose=flight.on_neighbour_pose if cfg.formation.neighbour_ids else None,
             background={
+                **background,
                 "companion.vehicle": link.run,
                 "companion.attitude": flight.feed_telemetry,
             },
+            extra_status=extra_status,
             link_ready=link.wait_ready,
         )
 
     return open_parts
+
+
+async def open_signing_relay(cfg: Config, stack: contextlib.AsyncExitStack) -> Any:
+    """The MAVLink signing relay for ``cfg.link`` on ``stack``; a key that cannot be used is a ConfigError."""
+    from companion.vehicle.mavlink_signing import load_key  # noqa: PLC0415 (only with signing)
+    from companion.vehicle.signing_relay import SigningRelay  # noqa: PLC0415
+
+    try:
+        key = await asyncio.to_thread(load_key, cfg.link.signing_key_file)
+    except (OSError, ValueError) as exc:
+        raise ConfigError("[link] signing_key_file", [str(exc)]) from None
+    state_dir = resolve_state_dir(cfg.service.state_dir, os.environ)
+    return await stack.enter_async_context(SigningRelay(cfg.link, key, state_dir))
 
 
 def load_detect(cfg: Config) -> DetectStage:

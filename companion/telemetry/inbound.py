@@ -19,13 +19,25 @@ import hashlib
 import hmac
 import json
 import math
-import os
 import re
-import stat
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
+
+from companion.kernel.secret_files import read_secret
+
+__all__ = [
+    "MIN_KEY_BYTES",
+    "InboundRejectedError",
+    "Keyring",
+    "canonical_body",
+    "format_keyring",
+    "mac_hex",
+    "parse_keyring",
+    "parse_object",
+    "read_secret",
+    "sign",
+]
 
 #: A shorter key is guessable; 32 random bytes is what the docs tell operators to generate.
 MIN_KEY_BYTES = 16
@@ -168,18 +180,3 @@ def parse_keyring(text: str) -> Keyring:
 def format_keyring(keys: Iterable[tuple[str, bytes]]) -> str:
     """The text of a keyring file (what :func:`parse_keyring` reads)."""
     return "".join(f"{key_id} {key.hex()}\n" for key_id, key in keys)
-
-
-def read_secret(path: str | os.PathLike[str]) -> bytes:
-    """A secret file's bytes; OSError when it cannot be read, PermissionError when others may read it.
-
-    A key or password that every local user can read is no secret: refused, as ssh refuses such a key.
-    """
-    p = Path(path)
-    with p.open("rb") as f:
-        mode = os.fstat(f.fileno()).st_mode
-        if stat.S_IMODE(mode) & 0o077:
-            raise PermissionError(
-                f"{p} is readable or writable by others (mode {stat.S_IMODE(mode):04o}); chmod 600 it"
-            )
-        return f.read()
