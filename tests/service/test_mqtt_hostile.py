@@ -19,9 +19,9 @@ Loop lag: a probe task sleeps 5 ms at a time on the reporter's loop and records,
 woke (wall clock) and how much CPU time the loop's thread used since the previous wake-up. Only the CPU
 figure is charged to our code: on a shared machine the operating system can deschedule the whole process
 for longer than 50 ms, which shows in the wall-clock lag but not in the thread's CPU time, whereas a
-handler that blocks the loop (parsing 8 MB of JSON took 2.5 s) burns that CPU on the loop's thread. The
-CPU figure must stay under the 50 ms bound; the wall-clock lag is reported and held to 1 s, which a
-blocking handler of that kind would still exceed.
+handler that blocks the loop (parsing 8 MB of JSON on it takes seconds) burns that CPU on the loop's
+thread. The CPU figure must stay under the 50 ms bound; the wall-clock lag is reported and held to 1 s,
+which a blocking handler of that kind would still exceed.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ CMD = "wingman/f1/cmd"
 LEADER = "wingman/leader/position"
 NEIGHBOUR = "wingman/f2/pose"
 TOPICS = (CMD, LEADER, NEIGHBOUR)
-#: The bound the issue sets on the event loop, s.
+#: The longest the event loop may be held by our code, s.
 LOOP_BOUND_S = 0.050
 
 
