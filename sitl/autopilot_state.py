@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Final
 
@@ -185,6 +185,8 @@ class AutopilotState:
         self._motors: tuple[float, float, float, float] | None = MOTORS_OFF
         self._integrate = False
         self._statustext_sent: dict[str, float] = {}
+        #: The last STATUSTEXTs sent, (sim time s, MAV_SEVERITY, text): what a harness records of the run.
+        self.texts_sent: deque[tuple[float, int, str]] = deque(maxlen=2000)
         self._apply_params()
 
     # ------------------------------------------------------------------ time
@@ -336,6 +338,7 @@ class AutopilotState:
         if len(self._statustext_sent) > 256:
             self._statustext_sent.clear()
         log.info("%s: %s", self.name, text)
+        self.texts_sent.append((self.t_s, severity, text))
         self._broadcast(
             mavlink.MAVLink_statustext_message(severity, text[:50].encode("ascii", "replace"), 0, 0)
         )

@@ -74,6 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--no-camera", action="store_true", help="no camera (MAVLink only)")
     s.add_argument(
+        "--autopilot",
+        choices=("builtin", "px4"),
+        default="builtin",
+        help="builtin: the simulator's own PX4-like autopilot (default); px4: a real PX4 SITL process per "
+        "vehicle with SIH physics ([px4] binary in the config, or SITL_PX4__BINARY)",
+    )
+    s.add_argument(
         "--component",
         action="append",
         default=None,
@@ -89,10 +96,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seq-len", type=int, default=6, help="frames per sequence (splits are by sequence)")
     d.add_argument(
         "--profile",
-        choices=("wide", "formation", "clutter"),
+        choices=("wide", "formation", "clutter", "near"),
         default="wide",
         help="wide: drones seen every way (default); formation: the follower's in-flight view of the leader; "
-        "clutter: that view with a tree or building behind the leader",
+        "clutter: that view with a tree or building behind the leader; near: the formation view at 5-12 m, "
+        "mostly with a structure behind the leader",
     )
     d.set_defaults(handler=_lazy("sitl.dataset", "main_dataset", "dataset"))
 

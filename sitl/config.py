@@ -65,6 +65,19 @@ class ServeConfig(Section):
     components: tuple[str, ...] = ()
 
 
+class Px4Config(Section):
+    """The PX4 backend (``sitl serve --autopilot px4``): one real PX4 SITL process per vehicle."""
+
+    #: A PX4 SITL build's ``bin/px4`` (its ``etc/`` beside ``bin/``), or a name on PATH.
+    #: Environment: ``SITL_PX4__BINARY``.
+    binary: str = "px4"
+    #: Where each vehicle's ULog flight log and PX4 console log are copied when it stops ("": nowhere).
+    log_dir: str = ""
+    #: PX4 instance number of the first vehicle (vehicle k is instance base + k: UDP 14540 + base + k ...);
+    #: -1 picks the lowest base whose ports are all free.
+    instance_base: int = Field(-1, ge=-1, le=9)
+
+
 class VehicleConfig(Section):
     """One simulated vehicle."""
 
@@ -84,6 +97,7 @@ class SitlConfig(Section):
     world: WorldConfig = WorldConfig()
     mavlink: MavlinkConfig = MavlinkConfig()
     serve: ServeConfig = ServeConfig()
+    px4: Px4Config = Px4Config()
     vehicles: tuple[VehicleConfig, ...] = (
         VehicleConfig(name="leader", role="leader", spawn_ned_m=(8.0, 0.0, 0.0)),
         VehicleConfig(name="follower", role="follower"),

@@ -58,6 +58,8 @@ LOOP_PERIOD_S = 0.002
 DATAGRAM_BYTES = 1400
 
 Component = Callable[["SimHandle"], Awaitable[None]]
+#: MAV_SEVERITY names, 0 to 7.
+SEVERITY = ("emergency", "alert", "critical", "error", "warning", "notice", "info", "debug")
 
 
 class BindError(CompanionError):
@@ -89,6 +91,18 @@ class SimHandle:
 
     def truth(self, name: str) -> VehicleTruth:
         return self._world.truth(name)
+
+    def mode(self, name: str) -> tuple[str, bool]:
+        """The autopilot's flight mode (PX4's UI name) and whether it is armed."""
+        ap = self._world.autopilot(name)
+        return ap.nav_state.ui_name, ap.armed
+
+    def status_texts(self, name: str) -> list[tuple[float, str, str]]:
+        """The autopilot's STATUSTEXTs so far: (sim time s, severity, text)."""
+        return [
+            (t_s, SEVERITY[sev] if 0 <= sev < len(SEVERITY) else str(sev), text)
+            for t_s, sev, text in self._world.autopilot(name).texts_sent
+        ]
 
     def _notify(self) -> None:
         self._advanced.set()
@@ -457,6 +471,12 @@ def main(args: argparse.Namespace) -> int:
         from sitl.render.server import make_camera_component  # noqa: PLC0415 (renderer: heavy)
 
         components.append(make_camera_component(args.camera))
+    if getattr(args, "autopilot", "builtin") == "px4":
+        from sitl.px4.serve import serve as serve_px4  # noqa: PLC0415 (only for this backend)
+
+        return serve_px4(
+            cfg, scenario, speed_factor=speed, seed=getattr(args, "seed", None), components=components
+        )
     server = Server(
         cfg, scenario, speed_factor=speed, seed=getattr(args, "seed", None), components=components
     )

@@ -38,6 +38,14 @@ def register(sub: Any) -> None:
         "lockstep for --seeds; 'all' flies the paper's four real and the others lockstep",
     )
     p.add_argument(
+        "--autopilot",
+        choices=("builtin", "px4"),
+        default="builtin",
+        help="builtin: the simulator's own PX4-like autopilot (default); px4: real PX4 SITL with SIH "
+        "physics, the real path only, 'all' = the paper's four (the build: SITL_PX4__BINARY or [px4] binary "
+        "in config/sitl.toml)",
+    )
+    p.add_argument(
         "--detector",
         choices=("network", "truth"),
         default="network",
@@ -90,8 +98,13 @@ def _sim(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     harness = args.harness or ("lockstep" if args.seeds or _is_formation(args.scenario) else "real")
+    if args.autopilot == "px4" and (args.harness == "lockstep" or args.seeds is not None):
+        raise SystemExit("companion sim: --autopilot px4 flies the real path only (no --seeds, no lockstep)")
+    if args.autopilot == "px4" and args.harness is None:
+        harness = "real"
     common: dict[str, Any] = {
         "harness": harness,
+        "autopilot": args.autopilot,
         "detector": args.detector,
         "speed": args.speed,
         "duration_s": args.duration,
@@ -137,8 +150,13 @@ def _sim(args: argparse.Namespace) -> int:
         return 0
     if args.scenario == "all":
         specs = [
-            RunSpec(name, args.seed, out / name, **{**common, "harness": _all_harness(name, args.harness)})
-            for name in all_scenarios()
+            RunSpec(
+                name,
+                args.seed,
+                out / name,
+                **{**common, "harness": _all_harness(name, args.harness, args.autopilot)},
+            )
+            for name in (PAPER_SCENARIOS if args.autopilot == "px4" else all_scenarios())
         ]
         summary = run_many(specs, out, jobs=args.jobs, env=env, stream=sys.stdout, monte_carlo=False)
         # The paper's table beside ours on the terminal too: the first thing a user wants to see.
@@ -179,9 +197,11 @@ def _sim(args: argparse.Namespace) -> int:
 PAPER_SCENARIOS = ("straight", "circle", "gps-loss", "visibility")
 
 
-def _all_harness(name: str, forced: str | None) -> str:
+def _all_harness(name: str, forced: str | None, autopilot: str = "builtin") -> str:
     if forced is not None:
         return forced
+    if autopilot == "px4":
+        return "real"
     return "real" if name in PAPER_SCENARIOS else "lockstep"
 
 

@@ -34,6 +34,8 @@ from companion.lab.evaluation.report import write_json
 log = logging.getLogger(__name__)
 
 Harness = Literal["real", "lockstep"]
+#: ``builtin``: the simulator's own PX4-like autopilot; ``px4``: real PX4 SITL (the real path only).
+Autopilot = Literal["builtin", "px4"]
 DetectorChoice = Literal["network", "truth"]
 #: After the formation window a run keeps flying this long (s) when ``--duration`` reshapes it.
 TAIL_S = 2.0
@@ -53,6 +55,7 @@ class RunSpec:
     seed: int
     out_dir: Path
     harness: Harness = "real"
+    autopilot: Autopilot = "builtin"
     detector: DetectorChoice = "network"
     speed: float = 1.0
     duration_s: float | None = None
@@ -105,6 +108,8 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     if scenario.formation:
         return _run_formation(spec, run_file, scenario, cfg, path, progress=progress)
     wall0 = time.perf_counter()
+    if spec.harness == "lockstep" and spec.autopilot != "builtin":
+        raise ConfigError(spec.scenario, ["PX4 runs in real time: --autopilot px4 flies the real path only"])
     if spec.harness == "lockstep":
         stage = load_detect(cfg, spec.detector)
         description = stage.description
@@ -118,7 +123,7 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
                 spec.seed,
                 cfg,
                 spec.out_dir / "logs",
-                RealOptions(speed=spec.speed, progress=progress),
+                RealOptions(speed=spec.speed, progress=progress, autopilot=spec.autopilot),
             )
         )
     wall_s = time.perf_counter() - wall0
@@ -241,7 +246,7 @@ def child_args(spec: RunSpec) -> list[str]:
     """The ``companion sim`` command line of one child run."""
     args = [sys.executable, "-m", "companion", "sim", "--scenario", spec.scenario, "--seed", str(spec.seed)]
     args += ["--out", str(spec.out_dir), "--speed", repr(spec.speed), "--harness", spec.harness]
-    args += ["--detector", spec.detector, "--progress", "json"]
+    args += ["--autopilot", spec.autopilot, "--detector", spec.detector, "--progress", "json"]
     if spec.duration_s is not None:
         args += ["--duration", repr(spec.duration_s)]
     if not spec.plots:
@@ -256,7 +261,7 @@ async def _run_child(child: _Child, env: dict[str, str], line: ProgressLine, chi
     (child.spec.out_dir / "report.json").unlink(missing_ok=True)  # a failed rerun leaves no stale report
     child.started_s = time.monotonic()
     with (child.spec.out_dir / "sim.log").open("ab") as err:
-        from companion.lab.evaluation.procs import die_with_parent  # noqa: PLC0415
+        from companion.kernel.children import die_with_parent  # noqa: PLC0415
 
         child.proc = await asyncio.create_subprocess_exec(
             *child_args(child.spec),

@@ -12,12 +12,12 @@ import random
 import signal
 import socket
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Self
 
+from companion.kernel.children import die_with_parent
 from companion.kernel.errors import CompanionError
 from companion.kernel.shipped import project_root
 
@@ -98,19 +98,6 @@ class SitlPorts(PortBlock):
     @property
     def truth(self) -> int:
         return self.base + 8
-
-
-def die_with_parent() -> None:
-    """In the child before exec: SIGTERM when the parent dies, however it dies (Linux only).
-
-    Without it an interrupted or killed run left ``sitl serve`` and its render worker running.
-    """
-    if sys.platform != "linux":
-        return
-    import ctypes  # noqa: PLC0415
-
-    pr_set_pdeathsig = 1
-    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
 class Child:

@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import random
+import resource
 import shutil
 import sys
 import tempfile
@@ -105,6 +106,8 @@ class RealOptions:
 
     speed: float = 1.0
     snapshots: int = 5
+    #: ``builtin``: the simulator's own autopilot; ``px4``: a real PX4 SITL process per vehicle.
+    autopilot: str = "builtin"
     #: Called now and then with the sim time (a progress line).
     progress: Callable[[float], None] | None = None
 
@@ -130,6 +133,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     clock_path = sock_dir / "clock"
     truth_path = work_dir / "truth.f64"
     settings = {
+        "autopilot_log_path": str(work_dir / "autopilot.jsonl"),
         "camera_socket": str(sock_dir / "camera.sock"),
         "camera_rate_hz": scenario.run.camera_rate_hz,
         "clock_path": str(clock_path),
@@ -150,14 +154,17 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
         RUN_ENV: str(settings_path),
         **sitl_environment(cfg, ports, base_vehicles),
     }
+    follower_port = ports.follower_api
+    if options.autopilot == "px4":
+        follower_port = _px4_environment(env, base_vehicles, work_dir)
     args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--no-camera"]
-    args += ["--config", str(SITL_BASE_CONFIG)]
+    args += ["--config", str(SITL_BASE_CONFIG), "--autopilot", options.autopilot]
     args += ["--scenario", str(scenario_file), "--speed", repr(options.speed), "--seed", str(seed)]
     args += ["--component", COMPONENT]
     sim = Child(args, env, work_dir / "sitl.log")
     service_cfg = cfg.model_copy(
         update={
-            "link": cfg.link.model_copy(update={"url": f"udpin://0.0.0.0:{ports.follower_api}"}),
+            "link": cfg.link.model_copy(update={"url": f"udpin://0.0.0.0:{follower_port}"}),
             "camera": cfg.camera.model_copy(
                 update={"source": "sim", "path": settings["camera_socket"], "stamps": "source"}
             ),
@@ -172,6 +179,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
         scenario.run.formation_start_s + scenario.run.formation_duration_s,
     )
     wall0 = time.perf_counter()
+    cpu0 = _cpu_s()
     sim_clock: SimClock | None = None
     service: Any = None
     try:
@@ -220,10 +228,63 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
             "service_latency_ms": latency,
             "frames_received": service.frames() if service is not None else {},
             "run_wall_s": round(time.perf_counter() - wall0, 2),
+            "run_cpu_s": {k: round(v - cpu0[k], 2) for k, v in _cpu_s().items()},
             "sim_end_s": round(end_s, 2),
+            "autopilot": read_autopilot_log(work_dir / "autopilot.jsonl", options.autopilot, work_dir),
         }
     )
     return RunResult(scorer.freeze(), scorer.snapshots, extra, observer)
+
+
+def _px4_environment(env: dict[str, str], base_vehicles: list[dict[str, Any]], work_dir: Path) -> int:
+    """``SITL_PX4__*`` for a PX4 run (free instance numbers, logs kept in ``work_dir``); the follower's port.
+
+    The PX4 build comes from ``SITL_PX4__BINARY`` or the simulator config's ``[px4] binary``; a missing one
+    is one line here, before anything starts.
+    """
+    from sitl.config import load_sitl_config  # noqa: PLC0415
+    from sitl.px4.instance import Px4Build, Px4Ports, free_instance_base  # noqa: PLC0415
+
+    binary = env.get("SITL_PX4__BINARY") or load_sitl_config(SITL_BASE_CONFIG, environ={}).px4.binary
+    Px4Build.locate(binary)
+    base = free_instance_base(len(base_vehicles))
+    env["SITL_PX4__INSTANCE_BASE"] = str(base)
+    env["SITL_PX4__LOG_DIR"] = str(work_dir)
+    env["SITL_PX4__BINARY"] = binary
+    index = next(i for i, v in enumerate(base_vehicles) if v.get("role") == "follower")
+    return Px4Ports(base + index).api_remote
+
+
+def _cpu_s() -> dict[str, float]:
+    """CPU seconds (user + system) of this process (the service) and of its finished children (simulator)."""
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return {"service": me.ru_utime + me.ru_stime, "simulator": kids.ru_utime + kids.ru_stime}
+
+
+#: Words in an autopilot's STATUSTEXT that mark a failsafe it chose by itself.
+FAILSAFE_WORDS = ("failsafe", "blind land")
+
+
+def read_autopilot_log(path: Path, backend: str, work_dir: Path) -> dict[str, Any]:
+    """The follower's and leader's modes and texts as recorded by the simulator, and PX4's flight logs."""
+    modes: list[dict[str, Any]] = []
+    texts: list[dict[str, Any]] = []
+    if path.exists():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            with contextlib.suppress(ValueError):
+                row = json.loads(line)
+                (modes if "mode" in row else texts).append(row)
+    failsafes = [
+        t for t in texts if t["vehicle"] == "follower" and any(w in t["text"].lower() for w in FAILSAFE_WORDS)
+    ]
+    return {
+        "backend": backend,
+        "follower_modes": [m for m in modes if m["vehicle"] == "follower"],
+        "leader_modes": [m for m in modes if m["vehicle"] == "leader"],
+        "texts": texts,
+        "follower_failsafes": failsafes,
+        "flight_logs": sorted(str(p) for p in work_dir.glob("px4-*.ulg")),
+    }
 
 
 def _snapshot(fr: TraceFrame) -> Any:

@@ -137,10 +137,39 @@ def report_markdown(report: Mapping[str, Any]) -> str:
     if report["transitions"]:
         lines += ["", "## Mission transitions", "", "| t (s) | from | to | reason |", "|---|---|---|---|"]
         lines += [f"| {t:.2f} | {a} | {b} | {r} |" for t, a, b, r in report["transitions"]]
+    lines += _autopilot_markdown(report.get("autopilot"))
     plots = report.get("plots")
     if plots:
         lines += ["", "## Plots", ""] + [f"![{Path(p).stem}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+#: STATUSTEXT severities the report lists (the others are in report.json).
+_LOUD = frozenset({"emergency", "alert", "critical", "error", "warning"})
+
+
+def _autopilot_markdown(ap: Mapping[str, Any] | None) -> list[str]:
+    """What the follower's autopilot did by itself: its modes, its loud texts, its failsafes, its logs."""
+    if not ap:
+        return []
+    name = "PX4 SITL (SIH)" if ap.get("backend") == "px4" else "the simulator's own autopilot"
+    modes = " -> ".join(
+        f"{m['mode']}{'' if m['armed'] else ' (disarmed)'} at {m['t_s']:.1f} s" for m in ap["follower_modes"]
+    )
+    lines = ["", f"## Autopilot: {name}", "", f"Follower modes (HEARTBEAT): {modes or 'none seen'}."]
+    failsafes = ap.get("follower_failsafes", [])
+    lines.append(
+        "Follower failsafes: "
+        + ("; ".join(f"{f['t_s']:.1f} s {f['text']}" for f in failsafes) if failsafes else "none")
+        + "."
+    )
+    loud = [t for t in ap.get("texts", []) if t["vehicle"] == "follower" and t["severity"] in _LOUD]
+    if loud:
+        lines += ["", "| t (s) | severity | follower's STATUSTEXT |", "|---|---|---|"]
+        lines += [f"| {t['t_s']:.2f} | {t['severity']} | {t['text']} |" for t in loud]
+    if ap.get("flight_logs"):
+        lines += ["", "Flight logs (ULog): " + ", ".join(f"`{p}`" for p in ap["flight_logs"]) + "."]
+    return lines
 
 
 def summary_markdown(reports: Mapping[str, Mapping[str, Any]]) -> str:

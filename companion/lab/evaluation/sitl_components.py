@@ -6,10 +6,12 @@ Three tasks beside the simulation, configured by the JSON file named in ``$WINGM
 * ``clock``: publishes the sim time for the service (:mod:`companion.lab.evaluation.simclock`);
 * ``truth``: records both vehicles' truth for scoring (:mod:`companion.lab.evaluation.truthlog`);
 * ``camera``: the renderer's :class:`~sitl.render.server.CameraServer` for the follower at the scenario's
-  camera rate, blind to the leader inside the scenario's ``[run] leader_hidden_s`` windows.
+  camera rate, blind to the leader inside the scenario's ``[run] leader_hidden_s`` windows;
+* ``autopilot``: every vehicle's flight modes (from its HEARTBEAT) and STATUSTEXTs, as JSON lines, so the
+  report shows what the autopilot itself did (its failsafes above all), on either backend.
 
 Keys: ``camera_socket``, ``camera_rate_hz``, ``clock_path``, ``truth_path``, ``truth_rate_hz``, ``seed``,
-``mount`` (the service's ``[camera.mount]``), ``leader_hidden_s``.
+``mount`` (the service's ``[camera.mount]``), ``leader_hidden_s``, ``autopilot_log_path`` (optional).
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ async def run(sim: Any) -> None:
             _truth(sim, Path(settings["truth_path"]), float(settings["truth_rate_hz"])), name="sim.truth"
         )
         tg.create_task(_camera(sim, settings), name="sim.camera")
+        if settings.get("autopilot_log_path"):
+            tg.create_task(_autopilot_log(sim, Path(settings["autopilot_log_path"])), name="sim.autopilot")
 
 
 async def _clock(sim: Any, path: Path) -> None:
@@ -57,6 +61,32 @@ async def _truth(sim: Any, path: Path, rate_hz: float) -> None:
             t_s = sim.t_s
             writer.write(truth_row(t_s, sim.truth("follower"), sim.truth("leader")))
             next_s = max(next_s + period_s, t_s)
+
+
+#: How often the autopilots' modes and texts are polled, sim s.
+AUTOPILOT_POLL_S = 0.05
+
+
+async def _autopilot_log(sim: Any, path: Path) -> None:
+    """Mode changes and STATUSTEXTs of every vehicle, one JSON object a line, flushed as they come."""
+    modes: dict[str, tuple[str, bool]] = {}
+    texts_seen: dict[str, int] = {}
+    with path.open("w", encoding="utf-8") as out:
+        while True:
+            t_s = sim.t_s
+            for name in sim.names:
+                mode = tuple(sim.mode(name))
+                if modes.get(name) != mode:
+                    modes[name] = mode
+                    row = {"t_s": round(t_s, 3), "vehicle": name, "mode": mode[0], "armed": bool(mode[1])}
+                    out.write(json.dumps(row) + "\n")
+                texts = sim.status_texts(name)
+                for text_t_s, severity, text in texts[texts_seen.get(name, 0) :]:
+                    row = {"t_s": round(text_t_s, 3), "vehicle": name, "severity": severity, "text": text}
+                    out.write(json.dumps(row) + "\n")
+                texts_seen[name] = len(texts)
+            out.flush()
+            await sim.wait_until(t_s + AUTOPILOT_POLL_S)
 
 
 async def _camera(sim: Any, settings: dict[str, Any]) -> None:
