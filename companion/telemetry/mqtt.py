@@ -625,11 +625,12 @@ async def _call(awaitable: Awaitable[T]) -> T:
 
     aiomqtt 2.5 waits with ``asyncio.wait_for``, which on Python 3.11 can swallow a cancellation that
     arrives as the awaited operation completes (CPython gh-86296, fixed in 3.12). The task then keeps
-    running with its cancellation pending and a TaskGroup waiting on it hangs: re-raise it here.
+    running with its cancellation pending and a TaskGroup waiting on it hangs: re-raise it here. (On 3.10
+    only the backport's TaskGroup tasks count cancellations; others have no ``cancelling()``.)
     """
     result = await awaitable
-    task = asyncio.current_task()
-    if task is not None and task.cancelling():
+    cancelling = getattr(asyncio.current_task(), "cancelling", None)
+    if cancelling is not None and cancelling():
         raise asyncio.CancelledError
     return result
 
