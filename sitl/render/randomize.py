@@ -28,7 +28,12 @@ SPLITS = ("train", "val", "test")
 #: frame). ``formation``: the follower's own view in flight (camera within about 15 deg of level, the leader
 #: 2-15 m away near the middle of the image, usually the f450 the simulator flies), so the detector sees
 #: the case the closed loop lives in (a dark airframe against ground, horizon and tree line) often enough.
-PROFILES = ("wide", "formation", "clutter")
+#: ``clutter``: that view with a structure behind the leader. ``near``: the view of a formation slot, the
+#: leader 5-12 m away (small at the whole-frame input: about 15-35 px of a 416 px letterbox for an f450),
+#: with a tree, conifer, building or wall behind it in most sequences, where a detector loses it.
+PROFILES = ("wide", "formation", "clutter", "near")
+#: Leader range of the ``near`` profile, m.
+NEAR_RANGE_M = (5.0, 12.0)
 
 
 def split_of(seed: int, index: int) -> str:
@@ -362,8 +367,8 @@ def sample_sequence(
     """
     if profile not in PROFILES:
         raise ValueError(f"unknown dataset profile {profile!r} (one of {', '.join(PROFILES)})")
-    # clutter: the formation view with a structure behind the leader in most sequences.
-    formation = profile in ("formation", "clutter")
+    # clutter and near: the formation view with a structure behind the leader in most sequences.
+    formation = profile in ("formation", "clutter", "near")
     rng = np.random.default_rng([seed, index])
     split = split_of(seed, index)
     visual = sample_visual(rng)
@@ -397,7 +402,9 @@ def sample_sequence(
         # 1-20 m, but never so far that the airframe spans fewer than ~8 px (a micro quad: 7 m).
         far_m = min(20.0, max(3.0, intr.fx_px * visual.leader.resolved_span_m / 8.0))
         near_m = 1.0
-        if formation:  # a follower flies 2-15 m behind; it keeps the leader near the image centre
+        if profile == "near":  # a formation slot's range; a small airframe only as far as it shows
+            near_m, far_m = NEAR_RANGE_M[0], max(NEAR_RANGE_M[0] + 1.0, min(far_m, NEAR_RANGE_M[1]))
+        elif formation:  # a follower flies 2-15 m behind; it keeps the leader near the image centre
             near_m, far_m = 2.0, min(far_m, 15.0)
         for _ in range(20):
             rng_m = _log_uniform(rng, near_m, far_m) if rng.random() < 0.5 else rng.uniform(near_m, far_m)
@@ -418,16 +425,17 @@ def sample_sequence(
         for t, cam in zip(times, cameras, strict=True):
             p = p_leader0 + v_leader * t
             p[2] = min(p[2], -0.4)
-            # Both move during the sequence: keep the range within 1-20 m in every frame.
+            # Both move during the sequence: keep the range within 1-20 m (near: its band) in every frame.
             rel = p - cam.p_ned_cam_m
             dist = float(np.linalg.norm(rel))
-            p = cam.p_ned_cam_m + rel * (min(max(dist, 1.0), far_m) / max(dist, 1e-9))
+            closest_m = near_m if profile == "near" else 1.0
+            p = cam.p_ned_cam_m + rel * (min(max(dist, closest_m), far_m) / max(dist, 1e-9))
             p[2] = min(p[2], -0.4)
             leaders.append((R_from_euler(float(tilt[0]), float(tilt[1]), yaw0 + yaw_rate * t), p))
         if rng.random() < 0.15:
             radius = 0.5 * visual.leader.resolved_span_m + 0.1
             occluders.append(_occluder_between(rng, cameras[0].p_ned_cam_m, p_leader0, radius))
-        if profile == "clutter" and rng.random() < 0.75:
+        if profile in ("clutter", "near") and rng.random() < (0.75 if profile == "clutter" else 0.6):
             occluders.append(_backdrop_behind(rng, cameras[0].p_ned_cam_m, p_leader0))
     if occluders:
         visual = visual.model_copy(update={"occluders": tuple(occluders)})

@@ -73,6 +73,30 @@ def test_clutter_profile_puts_a_structure_behind_the_leader() -> None:
     assert 0.6 * n_leader <= n_behind <= 0.9 * n_leader  # 75 % drawn
 
 
+def test_near_profile_keeps_the_leader_at_a_formation_slots_range() -> None:
+    """Every frame of a near sequence has the leader 5-12 m away, near the image centre; formation's own
+    sequences are not changed by the profile's existence (the same seed gives the same views)."""
+    n_leader, ranges = 0, []
+    for i in range(80):
+        spec = sample_sequence(9, i, 3, INTR, profile="near")
+        if spec.leaders is None:
+            continue
+        n_leader += 1
+        for cam, (_, p_leader) in zip(spec.cameras, spec.leaders, strict=True):
+            ranges.append(float(np.linalg.norm(cam.to_cam(p_leader))))
+    assert n_leader > 55
+    assert min(ranges) >= 5.0 - 0.5  # the leader's altitude floor may pull a frame a little nearer
+    assert max(ranges) <= 12.0 + 1e-6
+    assert np.median(ranges) > 7.0
+    with_backdrop = sum(
+        1
+        for i in range(80)
+        if (spec := sample_sequence(9, i, 1, INTR, profile="near")).leaders is not None
+        and any(o.kind in ("tree", "conifer", "building", "wall") for o in spec.visual.occluders)
+    )
+    assert 0.45 * n_leader <= with_backdrop <= 0.85 * n_leader  # 60 % drawn, a few occluders in front too
+
+
 def test_wide_profile_is_the_default_and_unchanged_by_the_option() -> None:
     a = sample_sequence(1, 7, 3, INTR)
     b = sample_sequence(1, 7, 3, INTR, profile="wide")
