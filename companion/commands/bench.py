@@ -18,7 +18,9 @@ def register(sub: Any) -> None:
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     p.add_argument("--frames", type=int, default=200, help="frames timed per runtime (after 10 warm-up)")
     p.add_argument(
-        "--runtimes", default="torch,onnx", help="comma list: torch, onnx (CUDA added when present)"
+        "--runtimes",
+        default="torch,onnx",
+        help="comma list: torch, onnx (with their CUDA and TensorRT runtimes where present)",
     )
     p.add_argument(
         "--data",
@@ -32,10 +34,8 @@ def register(sub: Any) -> None:
 
 def _bench(args: argparse.Namespace) -> int:
     cfg = load(args)
-    import importlib.util
-
-    from companion.lab.bench import format_bench, run_bench
-    from companion.perception.detector import load_detector
+    from companion.lab.bench import format_bench, gpu_network_ms, gpu_runtimes, run_bench
+    from companion.perception.detector import load_detector, model_files
     from companion.perception.detector.roi import RoiDetector
 
     wanted = [r.strip() for r in args.runtimes.split(",") if r.strip()]
@@ -48,18 +48,19 @@ def _bench(args: argparse.Namespace) -> int:
         detectors[f"{key}-cpu"] = load_detector(cfg.detector, runtime=name)
         if name == "onnx" and cfg.detector.roi_enabled:
             detectors[f"{key}-cpu+window"] = RoiDetector(detectors[f"{key}-cpu"], cfg.detector)
-    if "torch" in wanted and importlib.util.find_spec("torch") is not None:
-        import torch
-
-        if torch.cuda.is_available():
-            detectors["torch-cuda"] = load_detector(cfg.detector, runtime="torch", device="cuda")
+    gpu = gpu_runtimes()
+    if "torch" in wanted and gpu["torch-cuda"] and not gpu["torch-cuda"].startswith("absent"):
+        detectors["torch-cuda"] = load_detector(cfg.detector, runtime="torch", device="cuda")
     if "onnx" in wanted:
-        import onnxruntime as ort
-
-        if "CUDAExecutionProvider" in ort.get_available_providers():
-            detectors["onnxruntime-cuda"] = load_detector(cfg.detector, runtime="onnx", device="cuda")
+        for name in ("cuda", "tensorrt"):
+            if gpu[f"onnxruntime-{name}"] == "present":
+                detectors[f"onnxruntime-{name}"] = load_detector(cfg.detector, runtime="onnx", device=name)
     frames = _frames(args, cfg)
     result = run_bench(cfg, detectors, frames, pose_filter=pose_filter_stages)
+    result["gpu"] = {"runtimes": gpu}
+    if "torch-cuda" in detectors:
+        weights = model_files(cfg.detector)[0]
+        result["gpu"]["torch_cuda_network"] = gpu_network_ms(weights, frames, cfg.detector.input_size_px)
     print(format_bench(result))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

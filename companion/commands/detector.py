@@ -46,7 +46,10 @@ def register(sub: Any) -> None:
     )
     t.add_argument("--epoch-images", type=int, default=0, help="images per epoch (0: all training images)")
     t.add_argument(
-        "--augment", choices=("default", "real-camera"), default="real-camera", help="augmentation recipe"
+        "--augment",
+        choices=("default", "real-camera", "real-camera-window"),
+        default="real-camera",
+        help="augmentation recipe (real-camera-window: also the tracking window's view of the leader)",
     )
     t.add_argument(
         "--paste-from",
@@ -62,6 +65,14 @@ def register(sub: Any) -> None:
     )
     t.add_argument(
         "--paste-p", type=float, default=0.3, help="share of samples that get a pasted object (default 0.3)"
+    )
+    t.add_argument(
+        "--size-weight",
+        action="append",
+        default=[],
+        metavar="NAME=W",
+        help="weight (0-1) of the box size in the loss for this --data source's images: below 1 for loosely "
+        "labelled sources (repeatable; default 1)",
     )
     t.add_argument("--out", default="runs/detector", help="run folder: checkpoints, history, weights")
     t.add_argument("--epochs", type=int, default=30, help="epochs in the learning-rate schedule (default 30)")
@@ -135,6 +146,11 @@ def register(sub: Any) -> None:
         help="also report mAP@0.5 with each value of this manifest column's boxes scaled by the factor best "
         "for it (a diagnostic of loose labels whose margin differs per video; it sees the labels)",
     )
+    e.add_argument(
+        "--window",
+        action="store_true",
+        help="also score the service's tracking window on each labelled leader (detector.roi_* settings)",
+    )
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(handler=_eval)
 
@@ -184,7 +200,7 @@ def _train(args: argparse.Namespace) -> int:
     service = load(args)
     from dataclasses import replace
 
-    from companion.lab.training.augment import REAL_CAMERA, AugmentConfig
+    from companion.lab.training.augment import REAL_CAMERA, REAL_CAMERA_WINDOW, AugmentConfig
     from companion.lab.training.train import train
     from companion.lab.training.train_config import TrainConfig, default_crop_px, parse_source
     from companion.perception.detector.leadernet import ModelSpec
@@ -201,6 +217,7 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     try:
         sources = tuple(parse_source(d) for d in args.data)
+        size_weights = tuple(_name_weight(t) for t in args.size_weight)
     except ValueError as exc:
         print(f"companion detector train: {exc}", file=sys.stderr)
         return 2
@@ -213,11 +230,14 @@ def _train(args: argparse.Namespace) -> int:
         backbone_weights=args.backbone,
         spec=ShuffleDetSpec() if args.arch == "shufflenetv2-fpn" else ModelSpec(),
         augment=replace(
-            REAL_CAMERA if args.augment == "real-camera" else AugmentConfig(),
+            {"real-camera": REAL_CAMERA, "real-camera-window": REAL_CAMERA_WINDOW}.get(
+                args.augment, AugmentConfig()
+            ),
             paste_p=args.paste_p if args.paste_from else 0.0,
         ),
         paste_from=args.paste_from,
         paste_onto=tuple(n.strip() for n in args.paste_onto.split(",") if n.strip()),
+        size_weights=size_weights,
         out=str(args.out),
         epochs=args.epochs,
         batch_size=args.batch_size,
@@ -244,6 +264,18 @@ def _train(args: argparse.Namespace) -> int:
     )
     print(f"{state}; best validation mAP@0.5 {result['best_val_map50']:.3f}; weights in {args.out}/best.pt")
     return 0
+
+
+def _name_weight(text: str) -> tuple[str, float]:
+    """``NAME=W`` -> (name, weight)."""
+    name, sep, value = text.partition("=")
+    try:
+        weight = float(value)
+    except ValueError:
+        weight = math.nan
+    if not sep or not name or not 0.0 <= weight <= 1.0:
+        raise ValueError(f"--size-weight {text}: expected NAME=W with W in [0, 1]")
+    return name, weight
 
 
 def _finetune(args: argparse.Namespace) -> int:
@@ -347,6 +379,7 @@ def _eval(args: argparse.Namespace) -> int:
             columns=columns,
             sheet=sheet,
             size_oracle_by=args.size_oracle,
+            window=det_cfg if args.window else None,
         )
         summary["data"] = str(data)
         summary["split"] = split
@@ -355,6 +388,14 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"{data}{f' [{split}]' if split else ''}: {detector.runtime} at {detector.input_size_px} px")
         print(format_summary(summary))
         print(format_groups(summary["by_column"]))
+        if summary["by_range_m"]:
+            print(format_range_bins(summary["by_range_m"], summary.get("window", {}).get("by_range_m")))
+        if "window" in summary:
+            w = summary["window"]
+            print(
+                f"tracking window ({w['images']} labelled frames): recall {100 * w['recall']:.1f}% "
+                f"(at IoU 0.25 {100 * w['recall_loose']:.1f}%), mAP@0.5 {100 * w['map50']:.1f}%"
+            )
         if "size_oracle" in summary:
             o = summary["size_oracle"]
             print(
@@ -392,6 +433,27 @@ def format_groups(by_column: dict[str, dict[str, dict[str, Any]]]) -> str:
                     f"false positives {pct(f['leader_free_fp_rate'])} of {f['leader_free_images']} empty"
                 )
             lines.append(f"  {value:<16} " + "; ".join(parts))
+    return "\n".join(lines)
+
+
+def format_range_bins(whole: list[dict[str, Any]], window: list[dict[str, Any]] | None = None) -> str:
+    """Recall and AP per range bin, whole frame (and in the tracking window), as a table."""
+
+    def pct(v: Any) -> str:
+        return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f}"
+
+    win = {tuple(b["range_m"]): b for b in window or []}
+    head = "range m     boxes  recall  AP@0.5  AP@0.25"
+    lines = ["by range (whole frame" + (" | window" if window is not None else "") + "):"]
+    lines.append(f"  {head}" + ("  | recall  AP@0.5" if window is not None else ""))
+    for b in whole:
+        lo, hi = b["range_m"]
+        row = f"  {lo:>4g}-{hi:<4g} {b['leader_boxes']:>7} {pct(b['recall']):>7} {pct(b['map50']):>7} "
+        row += f"{pct(b['ap25']):>8}"
+        if window is not None:
+            w = win.get((lo, hi))
+            row += f"  | {pct(w['recall']) if w else 'n/a':>6} {pct(w['map50']) if w else 'n/a':>7}"
+        lines.append(row)
     return "\n".join(lines)
 
 

@@ -20,6 +20,7 @@ import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -193,6 +194,70 @@ def run_bench(
     return out
 
 
+def gpu_runtimes() -> dict[str, str]:
+    """Which GPU runtimes this machine has: name -> the device it runs on, or ``absent: why``.
+
+    torch on CUDA, and ONNX Runtime's CUDA and TensorRT execution providers (the CPU build of
+    onnxruntime has neither).
+    """
+    import importlib.util  # noqa: PLC0415
+
+    out: dict[str, str] = {}
+    if importlib.util.find_spec("torch") is None:
+        out["torch-cuda"] = "absent: torch is not installed"
+    else:
+        import torch  # noqa: PLC0415
+
+        ok = torch.cuda.is_available()
+        out["torch-cuda"] = torch.cuda.get_device_name(0) if ok else "absent: torch sees no CUDA device"
+    if importlib.util.find_spec("onnxruntime") is None:
+        out["onnxruntime-cuda"] = out["onnxruntime-tensorrt"] = "absent: onnxruntime is not installed"
+    else:
+        import onnxruntime as ort  # noqa: PLC0415
+
+        have = ort.get_available_providers()
+        for name, provider in (("cuda", "CUDAExecutionProvider"), ("tensorrt", "TensorrtExecutionProvider")):
+            out[f"onnxruntime-{name}"] = (
+                "present" if provider in have else f"absent: this onnxruntime build has no {provider}"
+            )
+    return out
+
+
+def gpu_network_ms(
+    weights: Path, frames: list[RgbdFrame], input_size_px: int, warmup: int = 20
+) -> dict[str, Any]:
+    """The network's own time on the GPU (torch, CUDA events), per frame, input already on the device.
+
+    What ``inference`` of the ``torch-cuda`` runtime adds to it is the copies to and from the GPU and the
+    launch overhead the service pays per frame. fp32, batch 1, BatchNorm folded, as the service runs it.
+    """
+    import torch  # noqa: PLC0415
+
+    from companion.perception.detector.letterbox import Letterboxer  # noqa: PLC0415
+    from companion.perception.detector.torch_engine import TorchEngine  # noqa: PLC0415
+
+    engine = TorchEngine(weights, threads=1, device="cuda")
+    lb = Letterboxer(input_size_px)
+    inputs = [torch.from_numpy(lb(f.rgb)[0].copy()).cuda() for f in frames]
+    start = torch.cuda.Event(enable_timing=True)  # type: ignore[no-untyped-call]
+    end = torch.cuda.Event(enable_timing=True)  # type: ignore[no-untyped-call]
+    samples = []
+    with torch.inference_mode():
+        for i in range(-warmup, len(inputs)):
+            x = inputs[i % len(inputs)]
+            start.record()
+            engine.net(x)
+            end.record()
+            end.synchronize()
+            if i >= 0:
+                samples.append(start.elapsed_time(end))
+    return {
+        "device": torch.cuda.get_device_name(0),
+        "input_shape": list(inputs[0].shape),
+        "network": percentiles_ms(samples),
+    }
+
+
 def _load_average() -> list[float] | None:
     import os  # noqa: PLC0415
 
@@ -231,6 +296,18 @@ def format_bench(result: dict[str, Any]) -> str:
         }.get(s, s)
         lines.append(f"{label:<22}" + "".join(cells))
     lines.append(f"total = {' + '.join(result['total_covers'])}")
+    gpu = result.get("gpu")
+    if gpu:
+        for name, state in gpu["runtimes"].items():
+            lines.append(f"{name}: {state}")
+        net = gpu.get("torch_cuda_network")
+        if net:
+            v = net["network"]
+            shape = "x".join(str(d) for d in net["input_shape"][2:])
+            lines.append(
+                f"network alone on {net['device']} (torch, CUDA events, input {shape}): "
+                f"p50 {v['p50_ms']:.3f} / p95 {v['p95_ms']:.3f} / p99 {v['p99_ms']:.3f} ms"
+            )
     for n in names:
         fb = result["runtimes"][n].get("window_fallback_fraction")
         if fb is not None:

@@ -1,19 +1,19 @@
 """Training augmentations (numpy + OpenCV), each a pure function of its inputs and a seeded generator.
 
-Geometry: mosaic (four images around a random centre) or a single image at a random scale and position;
-horizontal flips. Appearance, covering what real cameras do to a frame: HSV jitter, exposure (gain and
-gamma), white balance (per-channel gains), defocus (disc), Gaussian or motion blur, sensor noise (shot and
-read noise), JPEG artefacts and video-codec-like artefacts (4:2:0 chroma, coarse quantisation), greyscale,
-cut-outs (random occluders), and copy-paste: labelled objects of another image (a real drone with its
-label's margin of sky or trees) blended onto the sample, so each real drone is seen on many backgrounds and
-beside the birds and aircraft of the drone-free frames. Boxes follow the geometry; a box that is mostly cut
-away loses its label *and* its pixels are greyed out, so the network never sees an unlabelled leader as
-background.
+Geometry: mosaic (four images around a random centre), a single image at a random scale and position, or the
+service's tracking window on a labelled leader (magnified as at run time); horizontal flips. Appearance,
+covering what real cameras do to a frame: HSV jitter, exposure (gain and gamma), white balance (per-channel
+gains), defocus (disc), Gaussian or motion blur, sensor noise (shot and read noise), JPEG artefacts and
+video-codec-like artefacts (4:2:0 chroma, coarse quantisation), greyscale, cut-outs (random occluders), and
+copy-paste: labelled objects of another image (a real drone with its label's margin of sky or trees) blended
+onto the sample, so each real drone is seen on many backgrounds and beside the birds and aircraft of the
+drone-free frames. Boxes follow the geometry; a box that is mostly cut away loses its label *and* its pixels
+are greyed out, so the network never sees an unlabelled leader as background.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -54,6 +54,15 @@ class AugmentConfig:
     #: run-time size.
     paste_p: float = 0.0
     paste_scale_range: tuple[float, float] = (0.7, 1.4)
+    #: The tracking window's view of a labelled leader (:func:`window_view`), probability per sample that is
+    #: not a mosaic; its magnification (network px per frame px), box multiple, smallest width (frame px),
+    #: a camera frame's longer side (px) and motion blur (frame px, before magnification).
+    window_p: float = 0.0
+    window_magnification: tuple[float, float] = (1.5, 2.0)
+    window_box_multiple: float = 3.0
+    window_min_px: float = 128.0
+    window_frame_px: float = 640.0
+    window_motion_blur_px: tuple[float, float] = (1.0, 3.0)
 
 
 def place_boxes(
@@ -102,7 +111,14 @@ def random_placement(
     h, w = img.shape[:2]
     f = scale * ref_px / max(h, w)
     nw, nh = max(1, round(w * f)), max(1, round(h * f))
-    resized = resize_image(img, nw, nh)
+    return _on_canvas(resize_image(img, nw, nh), boxes * np.float32(f), size_px=size_px, rng=rng, cfg=cfg)
+
+
+def _on_canvas(
+    resized: Image, boxes: Boxes, *, size_px: int, rng: np.random.Generator, cfg: AugmentConfig
+) -> tuple[Image, Boxes]:
+    """``resized`` (boxes in its pixels) at a random position on a ``size_px`` square canvas."""
+    nh, nw = resized.shape[:2]
     canvas = np.full((size_px, size_px, 3), PAD_VALUE, np.uint8)
     # Offset of the resized image's top-left corner on the canvas (negative: the image is cropped).
     ox = int(rng.integers(min(0, size_px - nw), max(0, size_px - nw) + 1))
@@ -111,12 +127,51 @@ def random_placement(
     dx0, dy0 = max(0, ox), max(0, oy)
     cw, ch = min(nw - sx0, size_px - dx0), min(nh - sy0, size_px - dy0)
     canvas[dy0 : dy0 + ch, dx0 : dx0 + cw] = resized[sy0 : sy0 + ch, sx0 : sx0 + cw]
-    b = boxes * np.float32(f) + np.array([ox, oy, ox, oy], np.float32)
+    b = boxes + np.array([ox, oy, ox, oy], np.float32)
     region = (dx0, dy0, dx0 + cw, dy0 + ch)
     kept = place_boxes(
         canvas, b, region, min_visible_fraction=cfg.min_visible_fraction, min_box_px=cfg.min_box_px
     )
     return canvas, kept
+
+
+def window_view(
+    img: Image, boxes: Boxes, *, size_px: int, ref_px: int, rng: np.random.Generator, cfg: AugmentConfig
+) -> tuple[Image, Boxes] | None:
+    """The service's window on a tracked leader (:mod:`companion.perception.detector.roi`), on a canvas.
+
+    A window of ``window_box_multiple`` box widths (at least ``window_min_px`` frame pixels) at the frame's
+    aspect, centred on one labelled box with the tracker's few-pixel error, enlarged bilinearly by a
+    magnification drawn from ``window_magnification`` network px per frame px (the run time's 1.75x with
+    some spread; the window's input stays at most ``ref_px``), then, half the time, the short motion blur
+    of a follower turning during the exposure at that scale. A camera frame's longer side is
+    ``window_frame_px``; cached images are smaller, so sizes scale by the ratio. None: no box, or the
+    window would cover most of the frame (the service then searches the whole frame).
+    """
+    if len(boxes) == 0:
+        return None
+    h, w = img.shape[:2]
+    k = max(h, w) / cfg.window_frame_px  # cached px per camera-frame px
+    x0, y0, x1, y1 = (float(v) for v in boxes[int(rng.integers(len(boxes)))])
+    bw, bh = x1 - x0, y1 - y0
+    ww = max(cfg.window_min_px * k, cfg.window_box_multiple * max(bw, bh * w / h))
+    if ww > 0.6 * w:
+        return None
+    wh = min(float(h), ww * h / w)
+    cx = (x0 + x1) / 2 + rng.normal(0.0, 0.1) * bw
+    cy = (y0 + y1) / 2 + rng.normal(0.0, 0.1) * bh
+    wx = round(min(max(cx - ww / 2, 0.0), w - ww))
+    wy = round(min(max(cy - wh / 2, 0.0), h - wh))
+    iw, ih = max(1, round(ww)), max(1, round(wh))
+    crop = img[wy : wy + ih, wx : wx + iw]
+    mag = min(float(rng.uniform(*cfg.window_magnification)), ref_px * k / iw)  # network px per frame px
+    f = mag / k
+    nw, nh = max(1, round(crop.shape[1] * f)), max(1, round(crop.shape[0] * f))
+    resized = resize_image(np.ascontiguousarray(crop), nw, nh)
+    if rng.random() < 0.5:
+        resized = motion_blur(resized, mag * rng.uniform(*cfg.window_motion_blur_px), rng.uniform(0, 180))
+    b = (boxes - np.array([wx, wy, wx, wy], np.float32)) * np.float32(f)
+    return _on_canvas(resized, b, size_px=size_px, rng=rng, cfg=cfg)
 
 
 def mosaic(
@@ -253,6 +308,11 @@ REAL_CAMERA = AugmentConfig(
 )
 
 
+#: ``REAL_CAMERA`` plus the tracking window's view of the leader (:func:`window_view`) for a third of the
+#: samples that are not mosaics: the leader at the size and softness the service's window shows it.
+REAL_CAMERA_WINDOW = replace(REAL_CAMERA, window_p=0.35)
+
+
 def exposure(img: Image, rng: np.random.Generator) -> Image:
     """Exposure gain (0.6-1.5x) and gamma (0.7-1.4) through one lookup table."""
     gain, gamma = rng.uniform(0.6, 1.5), rng.uniform(0.7, 1.4)
@@ -296,10 +356,17 @@ def blur(img: Image, rng: np.random.Generator, with_defocus: bool = True) -> Ima
         return np.asarray(cv2.GaussianBlur(img, (0, 0), sigma), np.uint8)
     if with_defocus and u < 0.55:
         return defocus(img, rng.uniform(1.0, 2.0))
-    length = int(rng.integers(3, 8))
+    return motion_blur(img, float(rng.integers(3, 8)), float(rng.uniform(0, 180)))
+
+
+def motion_blur(img: Image, length_px: float, angle_deg: float) -> Image:
+    """A linear motion blur ``length_px`` long (rounded, at least 2 px to do anything) at ``angle_deg``."""
+    length = round(length_px)
+    if length < 2:
+        return img
     kernel = np.zeros((length, length), np.float32)
     kernel[length // 2, :] = 1.0 / length
-    rot = cv2.getRotationMatrix2D(((length - 1) / 2, (length - 1) / 2), float(rng.uniform(0, 180)), 1.0)
+    rot = cv2.getRotationMatrix2D(((length - 1) / 2, (length - 1) / 2), angle_deg, 1.0)
     kernel = np.asarray(cv2.warpAffine(kernel, rot, (length, length)), np.float32)
     kernel /= max(float(kernel.sum()), 1e-6)
     return np.asarray(cv2.filter2D(img, -1, kernel), np.uint8)
@@ -382,7 +449,12 @@ def training_sample(
             cfg=cfg,
         )
     else:
-        img, boxes = random_placement(
+        placed = None
+        if cfg.window_p and rng.random() < cfg.window_p:
+            placed = window_view(
+                cache.image(index), cache.boxes(index), size_px=size_px, ref_px=ref_px, rng=rng, cfg=cfg
+            )
+        img, boxes = placed or random_placement(
             cache.image(index),
             cache.boxes(index),
             size_px=size_px,

@@ -5,6 +5,12 @@ the manifest's text columns (e.g. ``distance_bin``, ``drone_type``: recall and m
 boxes, the false-positive rate where it has leader-free images), and a contact sheet: crops of the worst
 misses (labelled leaders the detector scored lowest) and the worst false positives (highest-scoring
 detections that match no label), for people to look at.
+
+Where the manifest gives the leader's range (renders), recall and AP per 2 m range bin
+(:func:`range_bins`), for the whole frame and, with ``window``, for the service's tracking window on the
+leader (:func:`collect_window`): the window the service would search had the tracker held the labelled box
+(:func:`companion.perception.detector.roi.roi_window`), letterboxed at its magnification, its edge-cut boxes
+dropped as the service drops them.
 """
 
 from __future__ import annotations
@@ -17,9 +23,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.config import DetectorConfig
 from companion.lab.training.metrics import DetectionStats, ap50_scaled, scaled_boxes
 from companion.perception.detector.dataset import Sample, read_labels, read_rgb
 from companion.perception.detector.postprocess import box_iou
+from companion.perception.detector.roi import cut_by_window, roi_window
 from companion.perception.detector.runtime import FrameDetector
 
 #: Predictions below this score still count for AP (the precision-recall curve); the operating point uses
@@ -29,6 +37,8 @@ AP_SCORE_FLOOR = 0.001
 DEFAULT_COLUMNS = ("distance_bin", "drone_type", "airframe", "time_of_day")
 #: IoU at which a detection counts as finding a labelled leader (the operating point, contact sheet).
 MATCH_IOU = 0.5
+#: Width of the range bins of :func:`range_bins`, m.
+RANGE_BIN_M = 2.0
 
 
 @dataclass(frozen=True)
@@ -231,6 +241,74 @@ def collect(detector: FrameDetector, samples: Sequence[Sample], progress: bool =
     return stats
 
 
+def range_bins(
+    stats: DetectionStats, conf_threshold: float, bin_m: float = RANGE_BIN_M
+) -> list[dict[str, Any]]:
+    """Figures per ``bin_m`` range bin ([lo, hi) m) of the images whose range is known, nearest first.
+
+    Each bin's recall (IoU 0.5 and 0.25, at ``conf_threshold``), mAP@0.5 and AP@0.25 are over its own
+    images: their labelled boxes and every prediction on them.
+    """
+    groups: dict[int, list[Any]] = {}
+    for r in stats.records:
+        if r.range_m is not None and np.isfinite(r.range_m):
+            groups.setdefault(int(r.range_m // bin_m), []).append(r)
+    out = []
+    for b in sorted(groups):
+        full = DetectionStats(groups[b]).summary(conf_threshold)
+        out.append(
+            {
+                "range_m": [b * bin_m, (b + 1) * bin_m],
+                "images": full["images"],
+                "leader_boxes": full["leader_boxes"],
+                "recall": full["recall"],
+                "recall_loose": full["recall_loose"],
+                "map50": full["map50"],
+                "ap25": full["ap25"],
+            }
+        )
+    return out
+
+
+def collect_window(
+    detector: FrameDetector, samples: Sequence[Sample], cfg: DetectorConfig, progress: bool = True
+) -> DetectionStats:
+    """The detector in the tracking window on each labelled leader (frames without a label: skipped).
+
+    The window is :func:`~companion.perception.detector.roi.roi_window` of the frame's largest label, as if
+    the tracker held that box; where none fits (a leader so near that the window would cover most of the
+    frame) the frame is searched whole at the detector's input, as the service does.
+    """
+    stats = DetectionStats()
+    iterator: Sequence[Sample] = samples
+    if progress:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        iterator = tqdm(samples, desc="evaluating (window)", unit="img", leave=False)
+    for s in iterator:
+        if s.label_path is None:
+            continue
+        rgb = read_rgb(s.image_path)
+        h, w = rgb.shape[:2]
+        labels = read_labels(s, w, h)
+        if not len(labels):
+            continue
+        big = labels[int(np.argmax((labels[:, 2] - labels[:, 0]) * (labels[:, 3] - labels[:, 1])))]
+        win = roi_window(_tuple(big), w, h, cfg)
+        if win is None:
+            boxes, scores = detector.raw(rgb, AP_SCORE_FLOOR)
+            boxes = boxes.copy()
+        else:
+            found = detector.detect_window(
+                rgb, (win.x0_px, win.y0_px, win.w_px, win.h_px), win.input_size_px, AP_SCORE_FLOOR
+            ).detections
+            kept = [d for d in found if not cut_by_window(d.box_xyxy_px, win, w, h)]
+            boxes = np.asarray([d.box_xyxy_px for d in kept], np.float32).reshape(-1, 4)
+            scores = np.asarray([d.score for d in kept], np.float32)
+        stats.add(boxes, scores, labels, s.range_m, False)
+    return stats
+
+
 def evaluate(
     detector: FrameDetector,
     samples: Sequence[Sample],
@@ -240,14 +318,22 @@ def evaluate(
     sheet: Path | None = None,
     sheet_cases: int = 12,
     size_oracle_by: str | None = None,
+    window: DetectorConfig | None = None,
 ) -> dict[str, Any]:
     """Run ``detector`` on every sample and summarise (see :meth:`DetectionStats.summary`).
 
-    Adds ``by_column`` (:func:`group_summaries`) and, with ``sheet``, writes the contact sheet there.
+    Adds ``by_column`` (:func:`group_summaries`), ``by_range_m`` (:func:`range_bins`, empty without
+    ranges), with ``window`` (the service's detector settings) the same figures in the tracking window
+    (:func:`collect_window`) under ``window``, and with ``sheet`` writes the contact sheet there.
     """
     stats = collect(detector, samples, progress)
     out = stats.summary(detector.conf_threshold)
     out["by_column"] = group_summaries(stats, samples, columns, detector.conf_threshold)
+    out["by_range_m"] = range_bins(stats, detector.conf_threshold)
+    if window is not None:
+        win_stats = collect_window(detector, samples, window, progress)
+        out["window"] = win_stats.summary(detector.conf_threshold)
+        out["window"]["by_range_m"] = range_bins(win_stats, detector.conf_threshold)
     if size_oracle_by:
         out["size_oracle"] = size_oracle(stats, samples, size_oracle_by)
     if sheet is not None:

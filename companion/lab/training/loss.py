@@ -5,6 +5,12 @@ prediction is both confident and well placed (score^alpha * IoU^beta) become pos
 them; their soft target score is that alignment, rescaled so the best cell of each box gets its IoU.
 Candidates are the cells whose centre lies inside the box *or* within ``center_radius`` strides of its centre,
 so that a leader of a few pixels (smaller than a stride) still gets positives.
+
+The box term can trust a sample's box less on size than on position (``size_weight`` per image): hand
+labels of real video carry a margin that changes from video to video, so their centre is worth more than
+their extent. CIoU's loss splits exactly into a position part (centre distance, and the IoU lost to the
+offset) and a size part (the IoU of the box moved onto the label's centre, and the aspect term), and the
+size part and the DFL edge distributions are scaled by the image's weight (1: plain CIoU and DFL).
 """
 
 from __future__ import annotations
@@ -71,6 +77,29 @@ def box_iou_pairwise(a: Tensor, b: Tensor) -> Tensor:
     area_a = (a[..., 2] - a[..., 0]).clamp(min=0) * (a[..., 3] - a[..., 1]).clamp(min=0)
     area_b = (b[..., 2] - b[..., 0]).clamp(min=0) * (b[..., 3] - b[..., 1]).clamp(min=0)
     return inter / (area_a + area_b - inter + _EPS)
+
+
+def ciou_loss_parts(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """``1 - CIoU`` of matched boxes (N, 4) split into (position, size) parts that sum to it.
+
+    Size: ``1 - IoU`` of ``a`` moved onto ``b``'s centre, plus the aspect-ratio penalty. Position: the
+    normalised centre distance plus the IoU the offset costs (centred IoU minus IoU, >= 0 for axis-aligned
+    boxes, whose overlap is largest with coincident centres).
+    """
+    iou = box_iou_pairwise(a, b)
+    shift = ((b[:, :2] + b[:, 2:]) - (a[:, :2] + a[:, 2:])) / 2
+    centred = a + torch.cat((shift, shift), -1)
+    iou_c = box_iou_pairwise(centred, b)
+    cw = torch.maximum(a[:, 2], b[:, 2]) - torch.minimum(a[:, 0], b[:, 0])
+    ch = torch.maximum(a[:, 3], b[:, 3]) - torch.minimum(a[:, 1], b[:, 1])
+    c2 = cw**2 + ch**2 + _EPS
+    rho2 = ((a[:, 0] + a[:, 2] - b[:, 0] - b[:, 2]) ** 2 + (a[:, 1] + a[:, 3] - b[:, 1] - b[:, 3]) ** 2) / 4
+    wa, ha = a[:, 2] - a[:, 0], (a[:, 3] - a[:, 1]).clamp(min=_EPS)
+    wb, hb = b[:, 2] - b[:, 0], (b[:, 3] - b[:, 1]).clamp(min=_EPS)
+    v = (4 / torch.pi**2) * (torch.atan(wb / hb) - torch.atan(wa / ha)) ** 2
+    with torch.no_grad():
+        alpha = v / (v - iou + 1.0).clamp(min=1e-7)
+    return rho2 / c2 + (iou_c - iou), (1.0 - iou_c) + v * alpha
 
 
 def ciou(a: Tensor, b: Tensor) -> Tensor:
@@ -183,8 +212,9 @@ class DetectionLoss:
         self.strides = net.spec.strides
 
     def __call__(
-        self, feats: list[Tensor], gt_boxes: Tensor, gt_mask: Tensor
+        self, feats: list[Tensor], gt_boxes: Tensor, gt_mask: Tensor, size_weight: Tensor | None = None
     ) -> tuple[Tensor, dict[str, float]]:
+        """``size_weight`` (B,): per image, the weight of the box's size part and DFL (None: all 1)."""
         points, stride_col = anchor_points(feats, self.strides)
         flat = flatten_levels(feats).float()
         box_logits, cls_logits = flat[..., :-1], flat[..., -1]
@@ -206,12 +236,19 @@ class DetectionLoss:
         fg = asg.fg_mask
         if bool(fg.any()):
             w = asg.target_scores[fg]
-            loss_box = ((1.0 - ciou(pred_boxes[fg], asg.target_boxes[fg])) * w).sum() / score_sum
+            if size_weight is None:
+                loss_box = ((1.0 - ciou(pred_boxes[fg], asg.target_boxes[fg])) * w).sum() / score_sum
+                w_edges = w
+            else:
+                sw = size_weight.to(w.dtype).unsqueeze(1).expand_as(fg)[fg]
+                position, size = ciou_loss_parts(pred_boxes[fg], asg.target_boxes[fg])
+                loss_box = ((position + sw * size) * w).sum() / score_sum
+                w_edges = w * sw
             pts = points.unsqueeze(0).expand_as(pred_boxes[..., :2])[fg]
             st = stride_col.unsqueeze(0).expand(fg.shape[0], -1, -1)[fg]
             tb = asg.target_boxes[fg]
             target_ltrb = torch.cat((pts - tb[:, :2], tb[:, 2:] - pts), -1) / st
-            loss_dfl = (dfl_loss(box_logits[fg], target_ltrb, self.reg_max) * w).sum() / score_sum
+            loss_dfl = (dfl_loss(box_logits[fg], target_ltrb, self.reg_max) * w_edges).sum() / score_sum
         else:
             loss_box = flat.sum() * 0.0
             loss_dfl = flat.sum() * 0.0

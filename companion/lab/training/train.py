@@ -147,6 +147,26 @@ def validate(
     return stats.summary(conf_threshold)
 
 
+def batch_size_weights(
+    cfg: TrainConfig, names: list[str], shares: list[int], device: torch.device
+) -> torch.Tensor | None:
+    """The box loss's size weight of each position of a batch (None: every source trusted, weight 1).
+
+    A mixed batch holds ``shares[i]`` images of source ``i`` in source order (:class:`MixedBatchSampler`),
+    so the weight of each position is fixed.
+    """
+    if not cfg.size_weights:
+        return None
+    given = dict(cfg.size_weights)
+    unknown = sorted(set(given) - set(names))
+    if unknown:
+        raise ValueError(f"--size-weight {','.join(unknown)}: no source of that name ({', '.join(names)})")
+    if any(not 0.0 <= w <= 1.0 for w in given.values()):
+        raise ValueError("--size-weight: weights must be in [0, 1]")
+    per_image = np.repeat([given.get(n, 1.0) for n in names], shares)
+    return torch.as_tensor(per_image, dtype=torch.float32, device=device)
+
+
 def save_checkpoint(path: Path, **state: Any) -> None:
     """Write atomically (a crash mid-write never destroys the previous checkpoint)."""
     tmp = path.with_suffix(".tmp")
@@ -216,6 +236,7 @@ def train(
     n_images = cfg.epoch_images or sum(sizes)
     bs = min(cfg.batch_size, sum(sizes))
     sampler = MixedBatchSampler(sizes, [s.weight for s in sources], bs, max(1, n_images // bs), cfg.seed)
+    size_weight = batch_size_weights(cfg, names, sampler.shares, device)
     loader = DataLoader(
         dataset,
         batch_sampler=sampler,
@@ -287,7 +308,7 @@ def train(
             )
             with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=use_amp):
                 feats = model(x)
-            loss, parts = criterion(feats, boxes.to(device), mask.to(device))
+            loss, parts = criterion(feats, boxes.to(device), mask.to(device), size_weight)
             opt.zero_grad(set_to_none=True)
             scaler.scale(loss).backward()  # type: ignore[no-untyped-call]
             scaler.unscale_(opt)

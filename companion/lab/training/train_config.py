@@ -93,6 +93,9 @@ class TrainConfig:
     paste_from: str = ""
     #: The sources whose samples get pasted objects; empty: every source.
     paste_onto: tuple[str, ...] = ()
+    #: (source name, weight) pairs: the weight of the size part of the box loss for that source's images
+    #: (:mod:`companion.lab.training.loss`), below 1 for loosely labelled sources; unnamed sources: 1.
+    size_weights: tuple[tuple[str, float], ...] = ()
     spec: DetectorSpec = field(default_factory=ShuffleDetSpec)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)

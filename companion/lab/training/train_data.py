@@ -24,7 +24,8 @@ from companion.lab.training.train_config import DataSource, TrainConfig
 from companion.perception.detector.dataset import Sample, find_samples, list_splits
 
 
-def _held_out(group: str, fraction: float) -> bool:
+def held_out(group: str, fraction: float) -> bool:
+    """Whether training holds out recording ``group`` for validation (a fixed share, by its name's hash)."""
     digest = hashlib.sha1(group.encode(), usedforsecurity=False).digest()
     return int.from_bytes(digest[:4], "big") / 2**32 < fraction
 
@@ -42,8 +43,8 @@ def source_splits(src: DataSource, cfg: TrainConfig) -> tuple[list[Sample], list
             val_samples = []
     else:
         every = find_samples(root, None)
-        train_samples = [s for s in every if not _held_out(s.group, cfg.holdout_fraction)]
-        val_samples = [s for s in every if _held_out(s.group, cfg.holdout_fraction)]
+        train_samples = [s for s in every if not held_out(s.group, cfg.holdout_fraction)]
+        val_samples = [s for s in every if held_out(s.group, cfg.holdout_fraction)]
         held = {s.group for s in val_samples} & {s.group for s in train_samples}
         if held:
             raise ValueError(f"{src.name}: recordings in both the train and val images: {sorted(held)[:3]}")

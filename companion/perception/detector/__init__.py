@@ -24,6 +24,14 @@ log = logging.getLogger(__name__)
 
 Runtime = Literal["torch", "onnx"]
 
+#: ONNX Runtime's execution providers for a ``device`` of :func:`load_detector`, in order of preference
+#: (a device not listed: every provider the installed build has, in its own order).
+ONNX_PROVIDERS: dict[str, list[str]] = {
+    "cpu": ["CPUExecutionProvider"],
+    "cuda": ["CUDAExecutionProvider", "CPUExecutionProvider"],
+    "tensorrt": ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"],
+}
+
 
 def model_files(cfg: DetectorConfig, root: Path | None = None) -> tuple[Path, Path]:
     """The torch weights and the ONNX export named by ``cfg.model_path`` (either may be given), resolved."""
@@ -68,8 +76,7 @@ def load_detector(
     if path != named:
         verify_model_file(path)
     if chosen == "onnx":
-        providers = ["CPUExecutionProvider"] if device == "cpu" else None
-        engine: OnnxEngine | object = OnnxEngine(path, cfg.threads, providers)
+        engine: OnnxEngine | object = OnnxEngine(path, cfg.threads, ONNX_PROVIDERS.get(device))
     else:
         if importlib.util.find_spec("torch") is None:
             raise ModelError("detector.runtime 'torch' needs torch, which is not installed; use 'onnx'")
