@@ -183,11 +183,31 @@ def render_status(s: dict[str, Any]) -> str:
         )
     mq = s.get("mqtt") or {}
     if mq.get("enabled"):
+        refused = mq.get("commands_rejected") or 0
+        shares = sum((mq.get("shares_rejected") or {}).values())
+        bad = f", refused {refused} commands and {shares} shares" if refused or shares else ""
         rows.append(
             (
                 "mqtt",
                 f"{'connected' if mq.get('connected') else 'DISCONNECTED'}, {mq.get('published')} sent, "
-                f"{mq.get('buffered')} buffered, {mq.get('dropped')} dropped",
+                f"{mq.get('buffered')} buffered, {mq.get('dropped')} dropped{bad}",
+            )
+        )
+    sig = s.get("mavlink_signing")
+    if sig:
+        counters = sig.get("counters") or {}
+        dropped = sum(
+            v
+            for k, v in counters.items()
+            if k.startswith("in_") and k not in ("in_signed", "in_unsigned_passed")
+        )
+        impostors = sum((sig.get("impostors") or {}).values())
+        rows.append(
+            (
+                "signing",
+                f"{'autopilot signs' if sig.get('autopilot_signs') else 'AUTOPILOT DOES NOT SIGN'}, "
+                f"{counters.get('in_signed', 0)} in, {counters.get('out_signed', 0)} out, {dropped} dropped"
+                + (f", {impostors} IMPOSTOR frames" if impostors else ""),
             )
         )
     for c in s.get("components", []):

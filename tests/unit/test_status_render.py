@@ -44,3 +44,35 @@ def test_status_without_telemetry_says_so() -> None:
     assert rows["flight"] == "altitude - m, battery -"
     assert rows["link"].startswith("system ?, DOWN")
     assert "formation" not in rows
+
+
+def test_status_shows_refused_input_and_mavlink_signing() -> None:
+    text = render_status(
+        {
+            "mission": {"state": "follow"},
+            "link": {},
+            "gps": {},
+            "mqtt": {
+                "enabled": True,
+                "connected": True,
+                "published": 10,
+                "buffered": 0,
+                "dropped": 0,
+                "commands_rejected": 3,
+                "shares_rejected": {"stale": 1, "bad_mac": 1},
+            },
+            "mavlink_signing": {
+                "autopilot_signs": True,
+                "counters": {
+                    "in_signed": 900,
+                    "out_signed": 400,
+                    "in_unsigned_dropped": 7,
+                    "in_unsigned_passed": 5,
+                },
+                "impostors": {"10.0.0.7:14550": 2},
+            },
+        }
+    )
+    rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
+    assert rows["mqtt"].endswith("refused 3 commands and 2 shares")
+    assert rows["signing"] == "autopilot signs, 900 in, 400 out, 7 dropped, 2 IMPOSTOR frames"
