@@ -409,10 +409,16 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
         }
     )
     try:
-        async with (
-            MavsdkVehicleLink(link_cfg, clock, leader_system_id=cfg.leader.mavlink_system_id) as link,
-            compat.TaskGroup() as tg,
-        ):
+        async with contextlib.AsyncExitStack() as stack:
+            if cfg.link.signing:
+                # Through the signing relay, which never sends the key: a health check changes nothing.
+                quiet = cfg.link.model_copy(update={"signing_provision": False})
+                relay = await open_signing_relay(cfg.model_copy(update={"link": quiet}), stack)
+                link_cfg = link_cfg.model_copy(update={"url": relay.mavsdk_url})
+            link = await stack.enter_async_context(
+                MavsdkVehicleLink(link_cfg, clock, leader_system_id=cfg.leader.mavlink_system_id)
+            )
+            tg = await stack.enter_async_context(compat.TaskGroup())
             task = tg.create_task(link.run(), name="companion.health.link")
             try:
                 async with compat.timeout(timeout_s):

@@ -305,3 +305,34 @@ async def test_latency_a_setpoint_pays_for_the_relay(tmp_path: Path) -> None:
         f"{med_relay:.0f} us (p99 {via_relay[int(n * 0.99)] * 1e6:.0f} us): +{med_relay - med_direct:.0f} us"
     )
     assert med_relay - med_direct < 5000  # a bound for a loaded machine; the docs quote the figure
+
+
+async def test_the_health_probe_reads_a_signing_autopilot_through_the_relay(tmp_path: Path) -> None:
+    """``companion health`` without a running service: it reads the autopilot's parameters over the
+    signed link (unsigned reads would be dropped) and never sends the key."""
+    from companion.config import Config, ServiceConfig
+    from companion.service.wiring import autopilot_probe
+    from tests.signing_probe import write_key
+
+    key = secrets.token_bytes(32)
+    key_file = write_key(tmp_path / "signing.key", key)
+    with sitl_serve(speed=1.0) as sim:
+        operator = await MavPeer.open(("127.0.0.1", sim.ports.api_local + 1))
+        operator.setup_signing(FOLLOWER, key)  # provisioned beforehand, as on a vehicle in service
+        operator.close()
+        cfg = Config(
+            link=LinkConfig(
+                url=f"udpin://127.0.0.1:{sim.ports.api_remote + 1}",
+                system_id=FOLLOWER,
+                signing=True,
+                signing_key_file=str(key_file),
+                signing_provision=True,  # the probe turns it off
+            ),
+            service=ServiceConfig(state_dir=str(tmp_path / "state")),
+        )
+        checks = await asyncio.to_thread(autopilot_probe, cfg, 10.0)
+    autopilot = next(c for c in checks if c.name == "autopilot")
+    assert autopilot.ok, autopilot
+    assert "offboard loss: unknown" not in autopilot.detail, autopilot.detail
+    log = "\n".join(sim.output)
+    assert log.count("MAVLink signing key accepted") == 1  # the operator's, not the probe's
