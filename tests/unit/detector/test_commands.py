@@ -90,3 +90,49 @@ def test_manifest_facts_reach_the_samples(tmp_path: Path) -> None:
     assert (s["b"].range_m, s["b"].leader_visible) == (None, False)
     assert (s["d"].range_m, s["d"].leader_visible) == (9.0, False)  # in the scene, out of view
     assert (s["c"].range_m, s["c"].leader_visible, s["c"].label_path) == (None, None, None)
+
+
+def test_bench_names_each_gpu_runtime_or_why_it_is_absent(monkeypatch: pytest.MonkeyPatch) -> None:
+    import onnxruntime as ort
+    import torch
+
+    from companion.lab.bench import format_bench, gpu_runtimes
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CPUExecutionProvider"])
+    absent = gpu_runtimes()
+    assert absent["torch-cuda"] == "absent: torch sees no CUDA device"
+    assert absent["onnxruntime-cuda"].startswith("absent: ")
+    assert absent["onnxruntime-tensorrt"].startswith("absent: ")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda _=0: "Some GPU")
+    monkeypatch.setattr(
+        ort, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    )
+    present = gpu_runtimes()
+    assert present == {
+        "torch-cuda": "Some GPU",
+        "onnxruntime-cuda": "present",
+        "onnxruntime-tensorrt": "absent: this onnxruntime build has no TensorrtExecutionProvider",
+    }
+    result = {
+        "frames": 1,
+        "frame_size_px": [640, 480],
+        "input_size_px": 416,
+        "threads": 2,
+        "machine": "x",
+        "load_average_1_5_15": None,
+        "total_covers": ["preprocess"],
+        "runtimes": {},
+        "gpu": {
+            "runtimes": absent,
+            "torch_cuda_network": {
+                "device": "Some GPU",
+                "input_shape": [1, 3, 320, 416],
+                "network": percentiles_ms([3.0, 3.1, 2.9]),
+            },
+        },
+    }
+    text = format_bench(result)
+    assert "onnxruntime-tensorrt: absent" in text
+    assert "network alone on Some GPU (torch, CUDA events, input 320x416): p50 3.000" in text
