@@ -111,7 +111,12 @@ class FlightCore:
         return track
 
     def feed_telemetry(self) -> None:
-        """Copy each new attitude and velocity sample from the link into perception's histories."""
+        """Copy each new attitude and velocity sample from the link into perception's histories.
+
+        Velocity only while PX4's estimate is valid: after a GPS loss PX4's dead-reckoned velocity jumps by
+        metres per second within seconds, and the tracker would take the jumps for the follower's own
+        manoeuvres (ego-motion); without it the track predicts on its own relative velocity.
+        """
         v = self.link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
             self._attitude_stamp_s = v.attitude_stamp_s
@@ -120,7 +125,8 @@ class FlightCore:
             )
         if v.velocity_stamp_s > self._velocity_stamp_s:
             self._velocity_stamp_s = v.velocity_stamp_s
-            self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
+            if self.machine.gps_ok and v.position_valid is not False:
+                self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
 
     def _expect(self, stamp_s: float) -> tuple[Expectation | None, list[Expectation]]:
         """Where the leader and the neighbours should be at a frame's stamp (see estimation.identity)."""

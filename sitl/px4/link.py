@@ -11,11 +11,15 @@ stays free for the companion under test, exactly as on a vehicle.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import socket
+import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
@@ -70,14 +74,20 @@ class StatusText:
     text: str
 
 
-class Px4Link(asyncio.DatagramProtocol):
-    """The simulator's end of one PX4 instance's display link; the latest of everything it said."""
+class Px4Link:
+    """The simulator's end of one PX4 instance's display link; the latest of everything it said.
 
-    def __init__(self, name: str, sysid: int, px4_port: int) -> None:
+    Datagrams are received and parsed in a thread of their own: PX4 runs on in its own process whatever
+    this one does, and a busy event loop here (the renderer starting, a loaded host) must not make PX4's
+    clock or ground truth look older than they are. Each datagram also wakes the event loop
+    (:attr:`received`), and every new PX4 time goes to the :attr:`on_clock` callbacks from that thread.
+    """
+
+    def __init__(self, name: str, sysid: int, px4_port: int, local_port: int) -> None:
         self.name = name
         self.sysid = sysid
         self.px4_addr = ("127.0.0.1", px4_port)
-        self.transport: asyncio.DatagramTransport | None = None
+        self.local_addr = ("127.0.0.1", local_port)
         self.counters: Counter[str] = Counter()
         self.truth: TruthSample | None = None
         self.heartbeat: Any = None
@@ -90,15 +100,55 @@ class Px4Link(asyncio.DatagramProtocol):
         self.texts: list[StatusText] = []
         self.boot_s = 0.0
         self.received = asyncio.Event()
+        #: Called with PX4's boot time (s) from the receiving thread each time it advances.
+        self.on_clock: list[Callable[[float], None]] = []
         self._packers: dict[tuple[int, int], mavlink.MAVLink] = {}
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
 
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = cast(asyncio.DatagramTransport, transport)
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Bind the display link's port and start receiving."""
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind(self.local_addr)
+        except OSError as exc:
+            sock.close()
+            raise OSError(f"px4 {self.name}: cannot bind UDP {self.local_addr[1]}: {exc.strerror}") from None
+        sock.settimeout(0.2)
+        self._sock, self._loop = sock, loop
+        self._thread = threading.Thread(target=self._receive, name=f"px4-link-{self.name}", daemon=True)
+        self._thread.start()
 
-    def error_received(self, exc: Exception) -> None:
-        self.counters["send_errors"] += 1
+    def close(self) -> None:
+        """Stop receiving and release the port. Idempotent."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
 
-    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+    def _receive(self) -> None:
+        sock = self._sock
+        assert sock is not None  # noqa: S101 (started by open)
+        while not self._stop.is_set():
+            try:
+                data = sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self.datagram_received(data)
+
+    def _wake(self) -> None:
+        self.received.set()
+        self.received = asyncio.Event()
+
+    def datagram_received(self, data: bytes) -> None:
+        """Parse one datagram and keep what it says (the receiving thread; tests call it directly)."""
         parser = mavlink.MAVLink(None)
         parser.robust_parsing = True
         try:
@@ -107,12 +157,22 @@ class Px4Link(asyncio.DatagramProtocol):
             self.counters["bad_datagrams"] += 1
             return
         mono_s = time.monotonic()
+        boot_s = self.boot_s
         for msg in msgs:
             if msg.get_srcSystem() != self.sysid:
                 continue
             self._on_message(msg, mono_s)
-        self.received.set()
-        self.received = asyncio.Event()
+        if self.boot_s != boot_s:
+            for callback in list(self.on_clock):
+                try:
+                    callback(self.boot_s)
+                except Exception:  # a listener that is gone (its file closed) never stops the link
+                    self.on_clock.remove(callback)
+                    log.debug("px4 %s: clock listener dropped", self.name, exc_info=True)
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):  # the loop closed in between
+                loop.call_soon_threadsafe(self._wake)
 
     def _on_message(self, msg: Any, mono_s: float) -> None:
         kind = msg.get_type()
@@ -155,7 +215,8 @@ class Px4Link(asyncio.DatagramProtocol):
 
     def send(self, msg: Any, src_system: int = OWN_SYSTEM, src_component: int = OWN_COMPONENT) -> None:
         """Pack ``msg`` as (``src_system``, ``src_component``) and send it to PX4."""
-        if self.transport is None:
+        sock = self._sock
+        if sock is None:
             return
         key = (src_system, src_component)
         packer = self._packers.get(key)
@@ -163,12 +224,23 @@ class Px4Link(asyncio.DatagramProtocol):
             packer = self._packers[key] = mavlink.MAVLink(
                 None, srcSystem=src_system, srcComponent=src_component
             )
-        self.transport.sendto(msg.pack(packer), self.px4_addr)
+        try:
+            sock.sendto(msg.pack(packer), self.px4_addr)
+        except OSError:
+            self.counters["send_errors"] += 1
 
     def command(self, command: int, *params: float) -> None:
         """A COMMAND_LONG to the autopilot (no retry: callers repeat until the state shows it worked)."""
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         self.send(mavlink.MAVLink_command_long_message(self.sysid, 1, command, 0, *p))
+
+    def heartbeat_out(self) -> None:
+        """A ground station's HEARTBEAT: PX4 sends STATUSTEXT only to a link whose partner it has heard."""
+        self.send(
+            mavlink.MAVLink_heartbeat_message(
+                mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3
+            )
+        )
 
     def request_streams(self) -> None:
         """Ask PX4 for this link's streams (repeated until they arrive: UDP and a booting PX4 drop some)."""

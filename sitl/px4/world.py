@@ -205,7 +205,7 @@ class Px4World:
                 **vc.params,
             }
             inst = Px4Instance(build, base + k, vc.name, params, speed_factor=speed_factor)
-            link = Px4Link(vc.name, k + 1, inst.ports.sih_local)
+            link = Px4Link(vc.name, k + 1, inst.ports.sih_local, inst.ports.sih_remote)
             self.vehicles.append(Px4Vehicle(vc.name, k + 1, vc.role, vc.spawn_ned_m, inst, link))
         self._by_name = {v.name: v for v in self.vehicles}
         self._clock = next((v for v in self.vehicles if v.role == "follower"), self.vehicles[0])
@@ -254,6 +254,14 @@ class Px4World:
         while self.t_s < t_s:
             await link.received.wait()
 
+    def on_time(self, callback: Callable[[float], None]) -> None:
+        """Have ``callback(t_s)`` called with each new world time, from the thread that receives it.
+
+        The run's clock for the service is published this way: straight from PX4's clock stream, however
+        busy this process's event loop is.
+        """
+        self._clock.link.on_clock.append(callback)
+
     def mode(self, name: str) -> tuple[str, bool]:
         """PX4's flight mode of ``name`` (its UI name) and whether it is armed, from its HEARTBEAT."""
         hb = self.vehicle(name).link.heartbeat
@@ -280,10 +288,7 @@ class Px4World:
         loop = asyncio.get_running_loop()
         try:
             for v in self.vehicles:
-                await loop.create_datagram_endpoint(
-                    lambda v=v: v.link,  # type: ignore[misc]
-                    local_addr=("127.0.0.1", v.instance.ports.sih_remote),
-                )
+                v.link.open(loop)
                 v.instance.start()
             await self._wait_ready(stop)
             if stop.is_set():
@@ -308,8 +313,7 @@ class Px4World:
     def close(self) -> None:
         """Stop every PX4, keep its flight log (when ``log_dir`` is set) and remove its working folder."""
         for v in self.vehicles:
-            if v.link.transport is not None:
-                v.link.transport.close()
+            v.link.close()
             self.flight_logs += v.instance.remove(self.log_dir)
 
     async def _wait_ready(self, stop: asyncio.Event) -> None:
@@ -323,6 +327,7 @@ class Px4World:
             if now >= next_request:
                 next_request = now + 1.0
                 for v in self.vehicles:
+                    v.link.heartbeat_out()
                     if not v.link.streams_flowing():
                         v.link.request_streams()
             if all(
@@ -348,8 +353,13 @@ class Px4World:
         """Mode changes into the log; a PX4 that dies ends the run with its log (never a silent stop)."""
         modes: dict[str, tuple[str, bool]] = {}
         clocks = {v.name: (v.link.boot_s, time.monotonic()) for v in self.vehicles}
+        next_heartbeat = 0.0
         while True:
             now = time.monotonic()
+            if now >= next_heartbeat:
+                next_heartbeat = now + 1.0
+                for v in self.vehicles:
+                    v.link.heartbeat_out()
             for v in self.vehicles:
                 last_s, since = clocks[v.name]
                 if v.link.boot_s != last_s:
@@ -376,7 +386,11 @@ class Px4World:
             await asyncio.sleep(0.2)
 
     async def _fly(self) -> None:
-        """The leader's pilot, the GPS schedule and the wind, stepped on world time."""
+        """The leader's pilot and the GPS schedule, stepped on world time.
+
+        A PX4 shell command takes a new process and can take seconds on a busy host, so each runs in a task
+        of its own: the pilot's 20 Hz setpoints never wait for one.
+        """
         pilots = []
         gps_events: list[tuple[float, Px4Vehicle, bool]] = []
         if self.scenario is not None:

@@ -47,6 +47,12 @@ async def run(sim: Any) -> None:
 
 async def _clock(sim: Any, path: Path) -> None:
     with SimClockWriter(path) as writer:
+        writer.publish(sim.t_s, time.monotonic())
+        if hasattr(sim, "on_time"):
+            # An autopilot in its own process (PX4) keeps time whatever this loop does: publish from its
+            # clock stream as it arrives.
+            sim.on_time(lambda t_s: writer.publish(t_s, time.monotonic()))
+            await asyncio.Event().wait()
         while True:
             writer.publish(sim.t_s, time.monotonic())
             await sim.wait_until(sim.t_s + CLOCK_PERIOD_S)
