@@ -116,6 +116,10 @@ def _result_name(exc: MavsdkError) -> str:
     return getattr(result, "name", None) or str(exc)
 
 
+#: Wall time PX4 is given to apply a new MIS_TAKEOFF_ALT before the takeoff command, s.
+TAKEOFF_PARAM_SETTLE_S = 0.3
+
+
 class MavsdkVehicleLink:
     """The autopilot over MAVSDK 4. See the module docstring for the lifecycle and the quirks handled."""
 
@@ -370,6 +374,10 @@ class MavsdkVehicleLink:
         except (MavsdkError, TimeoutError) as exc:
             why = _result_name(exc) if isinstance(exc, MavsdkError) else "TIMEOUT"
             log.warning("vehicle link: takeoff altitude not set (%s); PX4 uses MIS_TAKEOFF_ALT", why)
+        else:
+            # PX4's navigator takes a parameter change on one of its next cycles: a takeoff sent at once after
+            # the write climbed to the old MIS_TAKEOFF_ALT (2.5 m) in one of three PX4 SITL flights.
+            await asyncio.sleep(TAKEOFF_PARAM_SETTLE_S)
         await self._action_call("takeoff", "takeoff")
 
     async def land(self) -> None:
