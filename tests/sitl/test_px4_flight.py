@@ -1,0 +1,102 @@
+"""One short flight of the service against real PX4 SITL: take-off, follow, GPS loss, the service's landing.
+
+PX4 is the build named by ``SITL_PX4__BINARY``, else ``../shared/px4-sitl`` beside the checkout. The
+follower loses its GPS in formation and the scenario's policy is ``land``: what must hold is that the
+service, not PX4, decides what happens next. PX4 stays in the modes the service asked for (Hold, Takeoff,
+Offboard), says no failsafe, and the follower lands and disarms under the service's control.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SHARED_PX4 = REPO.parent / "shared" / "px4-sitl" / "bin" / "px4"
+
+SCENARIO = """
+schema_version = 1
+name = "px4-gps-loss-land"
+description = "Leader north at 2 m/s; the follower's GPS stops in formation; the follower lands itself."
+seed = 1
+
+[run]
+duration_s = 58.0
+formation_start_s = 24.0
+formation_duration_s = 6.0
+takeoff_altitude_m = 5.0
+camera_rate_hz = 15.0
+
+[leader]
+type = "straight"
+start_s = 24.0
+altitude_m = 5.0
+speed_m_s = 2.0
+
+[[vehicles.follower.gps.outages]]
+at_s = 30.0
+kind = "off"
+
+[wind]
+mean_speed_m_s = 1.0
+from_deg = 270.0
+
+[companion.mission]
+gps_loss_policy = "land"
+"""
+
+#: The modes PX4 enters only by its own failsafes in this flight (the service asks for none of them).
+FAILSAFE_MODES = {"Land", "Descend", "Return", "Altitude", "Position", "Termination"}
+
+
+def _px4_binary() -> str | None:
+    named = os.environ.get("SITL_PX4__BINARY")
+    if named:
+        return named
+    return str(SHARED_PX4) if SHARED_PX4.is_file() else None
+
+
+@pytest.mark.sitl
+@pytest.mark.render
+@pytest.mark.slow
+@pytest.mark.lab
+@pytest.mark.timeout(300)
+def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path) -> None:
+    binary = _px4_binary()
+    if binary is None:
+        pytest.skip(f"no PX4 SITL build: set SITL_PX4__BINARY or put one at {SHARED_PX4}")
+    scenario = tmp_path / "px4-gps-loss-land.toml"
+    scenario.write_text(SCENARIO)
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "SITL_PX4__BINARY": binary}
+    before = set(Path(tempfile.gettempdir()).glob("wingman-px4-*"))
+    cmd = [sys.executable, "-m", "companion", "sim", "--scenario", str(scenario), "--autopilot", "px4",
+           "--no-plots", "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    ap = report["autopilot"]
+    assert ap["backend"] == "px4"
+    # The service flew: take-off, formation, then its own landing on the GPS loss.
+    states = [(t[1], t[2], t[3]) for t in report["transitions"]]
+    assert ("TAKEOFF", "ACQUIRE", "TAKEOFF_DONE") in states
+    assert any(to == "FOLLOW" for _, to, _ in states)
+    gps_lost = [s for s in states if s[2] == "GPS_LOST"]
+    assert gps_lost, states
+    assert gps_lost[0][1] == "CONTROLLED_LANDING"
+    assert report["outcome"] == "landed_safely"
+    # PX4 did only what it was asked: no failsafe text, no failsafe mode, disarmed at the end.
+    assert ap["follower_failsafes"] == []
+    modes = [m["mode"] for m in ap["follower_modes"]]
+    assert "Offboard" in modes
+    assert not FAILSAFE_MODES & set(modes), modes
+    assert ap["follower_modes"][-1]["armed"] is False
+    # PX4's flight logs are kept beside the report; its working folders are gone.
+    assert any(p.endswith("px4-follower-0.ulg") and Path(p).stat().st_size > 0 for p in ap["flight_logs"])
+    assert set(Path(tempfile.gettempdir()).glob("wingman-px4-*")) <= before
