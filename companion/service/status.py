@@ -35,10 +35,14 @@ Handler = Callable[[], Mapping[str, Any]]
 CommandHandler = Callable[[list[str]], Mapping[str, Any]]
 
 
-class ServiceNotRunningError(CompanionError):
-    """Nothing answers on the status socket."""
+#: Exit code of a client command (``status``, ``start``, ``command``) that found no service to answer it.
+EXIT_NOT_RUNNING = 5
 
-    exit_code = 1
+
+class ServiceNotRunningError(CompanionError):
+    """No service answers on the status socket: not running, not answering, or not ours to open."""
+
+    exit_code = EXIT_NOT_RUNNING
 
 
 class StatusSocketError(CompanionError):
@@ -163,7 +167,10 @@ def query_status(path: Path, request: str = "status", timeout_s: float = 3.0) ->
         try:
             sock.connect(str(path))
         except (FileNotFoundError, ConnectionRefusedError):
-            raise ServiceNotRunningError(f"service not running (nothing listens on {path})") from None
+            raise ServiceNotRunningError(
+                f"service not running: nothing listens on {path} (start it with `companion run`; "
+                "a service with another config: --config PATH)"
+            ) from None
         except PermissionError:
             raise ServiceNotRunningError(
                 f"no permission to open {path} (run as the service's user or a member of its group)"

@@ -57,12 +57,37 @@ def test_run_with_a_missing_model_fails_before_opening_anything(tmp_path: Path, 
     assert "vehicle link" not in r.stderr  # the link was never opened
 
 
-def test_status_and_start_without_a_service(tmp_path: Path, repo_root: Path) -> None:
-    env = {"WINGMAN_STATUS__SOCKET_PATH": str(tmp_path / "none.sock")}
-    for cmd in ("status", "start"):
-        r = companion(cmd, cwd=repo_root, env=env)
-        assert r.returncode == 1
-        assert r.stderr.strip() == f"companion: service not running (nothing listens on {tmp_path}/none.sock)"
+def test_status_start_and_commands_without_a_service(tmp_path: Path, repo_root: Path) -> None:
+    """Not running is exit 5 and says how to start it; a refusal would be 1, a usage error 2."""
+    sock = tmp_path / "none.sock"
+    env = {"WINGMAN_STATUS__SOCKET_PATH": str(sock)}
+    line = (
+        f"companion: service not running: nothing listens on {sock} (start it with `companion run`; "
+        "a service with another config: --config PATH)"
+    )
+    for args in (("status",), ("start",), ("command", "land"), ("command", "set_offset", "0", "0", "6")):
+        r = companion(*args, cwd=repo_root, env=env)
+        assert (r.returncode, r.stderr.strip()) == (5, line), args
+    r = companion("status", "--json", cwd=repo_root, env=env)
+    assert r.returncode == 5
+    assert json.loads(r.stdout) == {
+        "running": False,
+        "error": line.removeprefix("companion: "),
+        "exit_code": 5,
+    }
+    r = companion("status", "--json", cwd=repo_root, env={**env, "WINGMAN_LINK__URL": "foo"})
+    assert r.returncode == 2
+    answer = json.loads(r.stdout)  # a config error is JSON too
+    assert answer["running"] is False
+    assert answer["error"].startswith("$WINGMAN_LINK__URL: link.url: expected one of")
+    for args in (("set_offset", "1"), ("land", "3")):
+        r = companion("command", *args, cwd=repo_root, env=env)
+        assert r.returncode == 2, args  # a usage error, found before the service is asked
+        assert "service not running" not in r.stderr
+    assert (
+        "set_offset takes 3 numbers X Y Z (m), got 1"
+        in companion("command", "set_offset", "1", cwd=repo_root, env=env).stderr
+    )
 
 
 def test_health_without_a_service_reports_every_check(tmp_path: Path, repo_root: Path) -> None:
