@@ -8,8 +8,8 @@ fly this class; they differ only in the clock and the link they hand it and in h
   estimate and the depth guard's reading);
 * :meth:`feed_telemetry` whenever telemetry may have moved (the follower's attitude and velocity into
   perception's histories, on the frames' clock);
-* :meth:`request_command` for every operator command (CLI, MQTT): always through the mission machine's
-  checks, never straight to the autopilot.
+* :meth:`request_command` and :meth:`operator_start` for every operator command (CLI, MQTT): always
+  through the mission machine's checks, never straight to the autopilot; answered with what was done.
 """
 
 from __future__ import annotations
@@ -188,9 +188,13 @@ class FlightCore:
     def request_shutdown(self) -> None:
         self.runner.request_shutdown()
 
-    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        """An operator command through the mission machine's checks; the one-line reply."""
-        return self.runner.request_command(name, offset_cam_m)
+    async def operator_start(self) -> str:
+        """See :meth:`MissionRunner.operator_start`."""
+        return await self.runner.operator_start()
+
+    async def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
+        """An operator command through the mission machine's checks; the one-line answer."""
+        return await self.runner.request_command(name, offset_cam_m)
 
     async def run(self) -> None:
         """The mission until its shutdown action is under way."""

@@ -189,9 +189,15 @@ class FlightAdapter:
     def request_shutdown(self) -> None:
         self.core.request_shutdown()
 
-    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        """Land, hold or set_offset through the mission machine's checks; the one-line reply."""
-        reply = self.core.request_command(name, offset_cam_m)
+    async def operator_start(self) -> str:
+        """An operator's start through the mission machine's checks; what it did, in one line."""
+        reply = await self.core.operator_start()
+        (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
+        return reply
+
+    async def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
+        """Land, hold or set_offset through the mission machine's checks; what it did, in one line."""
+        reply = await self.core.request_command(name, offset_cam_m)
         (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
         return reply
 
