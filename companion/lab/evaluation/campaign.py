@@ -96,7 +96,8 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     from companion.lab.evaluation.tomlw import dumps  # noqa: PLC0415
 
     path = scenario_path(spec.scenario)
-    scenario = effective_scenario(path, spec.duration_s)
+    # The run's own seed in its scenario.toml: the folder alone reproduces the run.
+    scenario = effective_scenario(path, spec.duration_s).model_copy(update={"seed": spec.seed})
     spec.out_dir.mkdir(parents=True, exist_ok=True)
     run_file = spec.out_dir / "scenario.toml"
     run_file.write_text(dumps(scenario.model_dump(mode="json")))
