@@ -15,6 +15,7 @@ fly this class; they differ only in the clock and the link they hand it and in h
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -91,6 +92,7 @@ class FlightCore:
         #: The follower's own velocity without GPS (the tracker's ego-motion), and the last aided one.
         self.ego = EgoVelocityObserver()
         self._v_aided: Vec3T | None = None
+        self._ego_said = False
         #: Auto-labelling while GPS is good (``[autolabel] enabled``); its writer runs with :meth:`run`.
         self.autolabel = AutoLabelTap(cfg, self.pipeline.camera) if cfg.autolabel.enabled else None
         # Formations: the leader told apart from neighbours by shares and the plan.
@@ -137,8 +139,12 @@ class FlightCore:
                 if R is not None:
                     ego.learn(stamp_s, v.v_ned_m_s, R)
                 self._v_aided = v.v_ned_m_s
+                self._ego_said = False
                 self.pipeline.velocity.push(stamp_s, ego.to_attitude_frame(v.v_ned_m_s))
             elif R is not None and self._v_aided is not None:
+                if not self._ego_said:
+                    self._ego_said = True
+                    _say_ego_model(ego)
                 v_own = ego.step(stamp_s, R, self._v_aided)
                 if v_own is not None:
                     self.pipeline.velocity.push(stamp_s, v_own)
@@ -214,3 +220,19 @@ class FlightCore:
 def _brought_to(p_ned_m: Vec3T, v_ned_m_s: Vec3T, age_s: float) -> Vec3:
     """A shared position ``age_s`` old, moved on at its shared velocity (NED, m)."""
     return np.asarray(p_ned_m, dtype=np.float64) + age_s * np.asarray(v_ned_m_s, dtype=np.float64)
+
+
+def _say_ego_model(ego: EgoVelocityObserver) -> None:
+    """One line at a GPS loss: what the follower's velocity will come from now."""
+    m = ego.model()
+    if m is None:
+        log.warning("ego velocity: no drag model learnt before the GPS loss; the track predicts alone")
+        return
+    log.info(
+        "ego velocity without GPS: drag %.2f 1/s, wind push (%.2f, %.2f) m/s^2, heading error %.1f deg "
+        "(%d samples)",
+        m.drag_per_s,
+        *m.push_ne_m_s2,
+        math.degrees(m.heading_error_rad),
+        m.samples,
+    )
