@@ -10,6 +10,9 @@ fly this class; they differ only in the clock and the link they hand it and in h
   perception's histories, on the frames' clock);
 * :meth:`request_command` and :meth:`operator_start` for every operator command (CLI, MQTT): always
   through the mission machine's checks, never straight to the autopilot; answered with what was done.
+
+Observers (:attr:`FlightCore.observers`, e.g. the live view and the flight log) see every processed frame,
+control step and transition after the flight has used it; they never feed anything back.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -48,6 +51,16 @@ log = logging.getLogger(__name__)
 SHARE_STALE_S = 1.0
 
 
+class FlightObserver(Protocol):
+    """Sees the flight without touching it. Called on the flight loop: must return at once and never raise."""
+
+    def on_frame(self, frame: RgbdFrame, result: DetectorResult, track: Any) -> None: ...
+
+    def on_step(self, inputs: MissionInputs, out: StepOutput) -> None: ...
+
+    def on_transition(self, tr: Transition) -> None: ...
+
+
 class FlightCore:
     """The mission, its runner and perception after the detector, glued as the service flies them.
 
@@ -74,14 +87,18 @@ class FlightCore:
         self.link = link
         self.stage = stage
         self.machine = MissionMachine(cfg)
+        #: Called after the flight used each frame, step and transition (see :class:`FlightObserver`).
+        self.observers: list[FlightObserver] = []
+        self._on_transition = on_transition
+        self._on_step = on_step
         self.runner = MissionRunner(
             link,
             self.machine,
             clock,
             rate_hz=cfg.link.setpoint_rate_hz,
             command_timeout_s=cfg.link.command_timeout_s,
-            on_transition=on_transition,
-            on_step=on_step,
+            on_transition=self._transition,
+            on_step=self._step,
         )
         # The depth guard looks out as far as the mission's separation barrier needs to brake.
         self.pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=self.machine.limits.brake_m_s2)
@@ -114,7 +131,21 @@ class FlightCore:
         self.runner.submit_obstacle(self.pipeline.obstacle(frame, track))
         if self.autolabel is not None:
             self.autolabel.on_frame(frame, self.link.snapshot(), self.pipeline.attitude)
+        for observer in self.observers:
+            observer.on_frame(frame, result, track)
         return track
+
+    def _transition(self, tr: Transition) -> None:
+        if self._on_transition is not None:
+            self._on_transition(tr)
+        for observer in self.observers:
+            observer.on_transition(tr)
+
+    def _step(self, inputs: MissionInputs, out: StepOutput) -> None:
+        if self._on_step is not None:
+            self._on_step(inputs, out)
+        for observer in self.observers:
+            observer.on_step(inputs, out)
 
     def feed_telemetry(self) -> None:
         """Copy each new attitude and velocity sample from the link into perception's histories.
