@@ -29,6 +29,7 @@ from companion.config.service import (
     resolve_state_dir,
     url_problem,
 )
+from companion.config.viz import VizConfig
 from companion.kernel.config import (
     Section,
     deep_merge,
@@ -58,6 +59,7 @@ __all__ = [
     "ServiceConfig",
     "StatusConfig",
     "TrackerConfig",
+    "VizConfig",
     "apply_plan",
     "check_config",
     "load_config",
@@ -88,6 +90,7 @@ class Config(Section):
     service: ServiceConfig = ServiceConfig()
     logging: LoggingConfig = LoggingConfig()
     autolabel: AutoLabelSection = AutoLabelSection()
+    viz: VizConfig = VizConfig()
 
     @model_validator(mode="after")
     def _truth_needs_truth(self) -> Config:

@@ -29,6 +29,7 @@ PATH_KEYS: tuple[tuple[str, str], ...] = (
     ("status", "socket_path"),
     ("service", "state_dir"),
     ("autolabel", "out_dir"),
+    ("viz", "log_dir"),
 )
 
 

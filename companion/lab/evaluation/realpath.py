@@ -41,6 +41,7 @@ from companion.config import Config
 from companion.lab.evaluation.lockstep import RunResult
 from companion.lab.evaluation.procs import REPO, Child, SimRunError
 from companion.lab.evaluation.procs import SitlPorts as Ports
+from companion.lab.evaluation.runlog import attach_run_log
 from companion.lab.evaluation.scoring import RunScorer, snapshot_times
 from companion.lab.evaluation.simclock import SimClock
 from companion.lab.evaluation.sitl_components import RUN_ENV
@@ -110,6 +111,8 @@ class RealOptions:
     autopilot: str = "builtin"
     #: Called now and then with the sim time (a progress line).
     progress: Callable[[float], None] | None = None
+    #: The run's MCAP log, written by the service's recorder (:mod:`companion.lab.evaluation.runlog`).
+    mcap_path: Path | None = None
 
 
 async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
@@ -205,6 +208,22 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
                 observer.on_step(inputs, out)
 
             flight.runner.on_step = on_step
+            if options.mcap_path is not None:
+                recorder = attach_run_log(
+                    service_cfg,
+                    flight.core,
+                    sim_clock,
+                    options.mcap_path,
+                    synchronous=False,
+                    metadata={
+                        "scenario": str(scenario.name),
+                        "harness": "real",
+                        "autopilot": options.autopilot,
+                    },
+                    health=lambda: {"components": [c.to_json() for c in ctx.health.snapshot()]},
+                )
+                if recorder is not None:
+                    stack.enter_context(recorder)
             return parts
 
         with SystemdNotifier(NotifyConfig()) as notifier:
