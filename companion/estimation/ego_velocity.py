@@ -16,9 +16,8 @@ The model, horizontal NED per unit mass, in level flight (thrust balances gravit
 ``e`` too, linearised (a few degrees). While GPS is good, :meth:`EgoVelocityObserver.learn` fits
 ``(k, c_n, c_e, e)`` by least squares with exponential forgetting to GPS velocity differences; after the
 loss, :meth:`EgoVelocityObserver.step` integrates the model from the last GPS velocity on the attitude
-alone. Its velocities are in the frame of the attitude (PX4's estimated heading), the frame the camera's
-bearings are turned into: :meth:`EgoVelocityObserver.to_attitude_frame` turns GPS velocities into it.
-Pure: times come in, nothing is read from a clock.
+alone, in GPS's frame (the tilt turned back by the fitted heading error), so the velocity the tracker gets
+goes on smoothly from PX4's last aided one. Pure: times come in, nothing is read from a clock.
 """
 
 from __future__ import annotations
@@ -144,32 +143,25 @@ class EgoVelocityObserver:
         self._model = EgoModel(k, (cn, ce), e, self._samples)
         return self._model
 
-    def to_attitude_frame(self, v_ned_m_s: Velocity) -> Velocity:
-        """A GPS-frame velocity turned into the attitude's frame (by the fitted heading error)."""
-        m = self.model()
-        if m is None:
-            return v_ned_m_s
-        return _turn(np.asarray(v_ned_m_s, dtype=np.float64), m.heading_error_rad)
-
     # -- after the loss ------------------------------------------------------------------------------
     def step(self, t_s: float, R_ned_body: Mat3, v_start_ned_m_s: Velocity) -> Vec3 | None:
-        """The follower's velocity at ``t_s`` without GPS, attitude frame (NED m/s); None without a model.
+        """The follower's velocity at ``t_s`` without GPS, GPS's frame (NED m/s); None without a model.
 
-        ``v_start_ned_m_s``: the last GPS-aided velocity, used at the first step after the loss.
+        ``v_start_ned_m_s``: the last GPS-aided velocity, where the first step after the loss starts from.
         """
         m = self.model()
         if m is None:
             return None
         if self._coast is None:
-            v0 = _turn(np.asarray(v_start_ned_m_s, dtype=np.float64), m.heading_error_rad)
+            v0 = np.asarray(v_start_ned_m_s, dtype=np.float64)
             self._coast = (t_s, v0[:2].copy())
             self._coast_since_s = t_s
         t0, v = self._coast
         if t_s - self._coast_since_s > MAX_COAST_S:
             return None
         dt = min(max(t_s - t0, 0.0), MAX_SAMPLE_DT_S)
-        push = _turn(np.array([m.push_ne_m_s2[0], m.push_ne_m_s2[1], 0.0]), m.heading_error_rad)[:2]
-        accel = np.asarray(thrust_accel_h(R_ned_body)) - m.drag_per_s * v + push
+        tilt = _turn(np.array([*thrust_accel_h(R_ned_body), 0.0]), -m.heading_error_rad)[:2]
+        accel = tilt - m.drag_per_s * v + np.asarray(m.push_ne_m_s2)
         v = v + accel * dt
         self._coast = (t_s, v)
         return np.array([v[0], v[1], self._vd_m_s])

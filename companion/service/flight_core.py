@@ -150,11 +150,10 @@ class FlightCore:
     def feed_telemetry(self) -> None:
         """Copy each new attitude and velocity sample from the link into perception's histories.
 
-        The velocity is the tracker's ego-motion. PX4's only while its estimate is GPS-aided (turned into the
-        attitude's frame by the heading error :class:`EgoVelocityObserver` fits): after a GPS loss PX4's
-        dead-reckoned velocity runs off by metres per second within seconds. Then the observer's, from
-        the drag model it learnt meanwhile and the attitude; without a model, none (the track predicts on
-        its own relative velocity).
+        The velocity is the tracker's ego-motion: PX4's only while its estimate is GPS-aided; after a GPS
+        loss PX4's dead-reckoned velocity runs off by metres per second within seconds. Then the
+        :class:`EgoVelocityObserver`'s, from the drag model it learnt meanwhile and the attitude; without a
+        model, none (the track predicts on its own relative velocity).
         """
         v = self.link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
@@ -171,7 +170,7 @@ class FlightCore:
                     ego.learn(stamp_s, v.v_ned_m_s, R)
                 self._v_aided = v.v_ned_m_s
                 self._ego_said = False
-                self.pipeline.velocity.push(stamp_s, ego.to_attitude_frame(v.v_ned_m_s))
+                self.pipeline.velocity.push(stamp_s, v.v_ned_m_s)
             elif R is not None and self._v_aided is not None:
                 if not self._ego_said:
                     self._ego_said = True
