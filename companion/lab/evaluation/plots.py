@@ -53,7 +53,7 @@ STATE_COLOURS = {
     "takeoff": "#d9d9d9",
     "acquire": "#c6dbef",
     "follow": "#e5f5e0",
-    "follow_vision": "#fdd0a2",
+    "follow_vision": "#d4b9da",  # not orange: the formation error is drawn in the follower's orange
     "reacquire": "#fcbba1",
     "hover": "#dadaeb",
     "controlled_landing": "#fa9fb5",
@@ -216,7 +216,7 @@ def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path,
                           lw=0, zorder=4)  # fmt: skip
         if lost.any():
             dev.scatter(err[lost, 1], err[lost, 0], c=t[lost], s=34, cmap="viridis", vmin=lo, vmax=hi,
-                        marker="^", edgecolors=GPS_LOST_COLOUR, linewidths=0.8, zorder=3)  # fmt: skip
+                        marker="^", edgecolors=GPS_LOST_COLOUR, linewidths=0.5, zorder=3)  # fmt: skip
         fig.colorbar(pts, ax=dev, label="sim time (s)", fraction=0.046, pad=0.04)
         reach = float(np.max(np.hypot(err[:, 0], err[:, 1])))
         lim = max(0.3, 1.15 * reach)
