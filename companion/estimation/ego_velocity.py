@@ -48,6 +48,8 @@ _PRIOR_INFO = np.diag([1.0 / 0.5**2, 1.0 / 1.0**2, 1.0 / 1.0**2, 1.0 / 0.1**2]) 
 #: Accepted fits: drag between these (1/s), heading error within this (rad).
 DRAG_RANGE_PER_S = (0.0, 3.0)
 MAX_HEADING_ERROR_RAD = math.radians(30.0)
+#: The fitted heading error is applied only when its one sigma is within this, rad.
+MAX_HEADING_SIGMA_RAD = math.radians(1.5)
 #: After this long without GPS the model's velocity is no longer offered, s (its error has grown).
 MAX_COAST_S = 120.0
 
@@ -66,6 +68,13 @@ class EgoModel:
     push_ne_m_s2: tuple[float, float]
     heading_error_rad: float
     samples: int
+    #: One sigma of the heading error's fit, rad (from the residuals and how much tilt the flight had).
+    heading_sigma_rad: float = math.inf
+
+    @property
+    def heading_trusted(self) -> bool:
+        """Whether the heading error is known well enough to correct the camera's bearings with."""
+        return self.heading_sigma_rad <= MAX_HEADING_SIGMA_RAD
 
 
 class EgoVelocityObserver:
@@ -74,6 +83,8 @@ class EgoVelocityObserver:
     def __init__(self) -> None:
         self._info = _PRIOR_INFO.copy()
         self._vec = _PRIOR_INFO @ _PRIOR_MEAN
+        self._yy = 0.0  # the decayed sum of squared targets, and of rows (for the residuals)
+        self._rows = 0.0
         self._samples = 0
         self._v_min = math.inf
         self._v_max = -math.inf
@@ -128,6 +139,8 @@ class EgoVelocityObserver:
         decay = math.exp(-dt / FORGET_TAU_S)
         self._info = decay * self._info + (1.0 - decay) * _PRIOR_INFO + rows.T @ rows
         self._vec = decay * self._vec + (1.0 - decay) * (_PRIOR_INFO @ _PRIOR_MEAN) + rows.T @ y
+        self._yy = decay * self._yy + float(y @ y)
+        self._rows = decay * self._rows + 2.0
         self._samples += 1
         self._model = None
 
@@ -137,10 +150,15 @@ class EgoVelocityObserver:
             return self._model
         if self._samples < MIN_SAMPLES or self._v_max - self._v_min < MIN_SPEED_SPAN_M_S:
             return None
-        k, cn, ce, e = (float(x) for x in np.linalg.solve(self._info, self._vec))
+        theta = np.linalg.solve(self._info, self._vec)
+        k, cn, ce, e = (float(x) for x in theta)
         if not (DRAG_RANGE_PER_S[0] <= k <= DRAG_RANGE_PER_S[1]) or abs(e) > MAX_HEADING_ERROR_RAD:
             return None
-        self._model = EgoModel(k, (cn, ce), e, self._samples)
+        # Residual variance of the least squares (prior terms left out: they are small by design).
+        rss = max(self._yy - float(theta @ self._vec), 0.0)
+        var_y = rss / max(self._rows - theta.size, 1.0)
+        sigma_e = math.sqrt(var_y * float(np.linalg.inv(self._info)[3, 3]))
+        self._model = EgoModel(k, (cn, ce), e, self._samples, sigma_e)
         return self._model
 
     # -- after the loss ------------------------------------------------------------------------------

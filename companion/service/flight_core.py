@@ -30,8 +30,8 @@ from companion.estimation.identity import Expectation, LeaderIdentity, expectati
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock
-from companion.kernel.flight import NEVER_S, Vec3T
-from companion.kernel.frames import Vec3, quat_from_euler
+from companion.kernel.flight import NEVER_S, Vec3T, VehicleState
+from companion.kernel.frames import Mat3, R_from_euler, Vec3, quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     MissionInputs,
@@ -42,6 +42,7 @@ from companion.mission.types import (
 )
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
+from companion.service.heading import HeadingCorrectedLink
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
 
@@ -84,7 +85,9 @@ class FlightCore:
         on_step: Callable[[MissionInputs, StepOutput], None] | None = None,
     ) -> None:
         self.cfg = cfg
-        self.link = link
+        #: The autopilot as it reports, and as the mission and the camera see it: its heading error out.
+        self.raw_link = link
+        self.link = HeadingCorrectedLink(link)
         self.stage = stage
         self.machine = MissionMachine(cfg)
         #: Called after the flight used each frame, step and transition (see :class:`FlightObserver`).
@@ -92,7 +95,7 @@ class FlightCore:
         self._on_transition = on_transition
         self._on_step = on_step
         self.runner = MissionRunner(
-            link,
+            self.link,
             self.machine,
             clock,
             rate_hz=cfg.link.setpoint_rate_hz,
@@ -155,15 +158,16 @@ class FlightCore:
         :class:`EgoVelocityObserver`'s, from the drag model it learnt meanwhile and the attitude; without a
         model, none (the track predicts on its own relative velocity).
         """
-        v = self.link.snapshot()
+        v = self.raw_link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
             self._attitude_stamp_s = v.attitude_stamp_s
-            self.pipeline.attitude.push(
-                v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)
-            )
+            self.link.update(self.ego.model() if self.machine.gps_ok else None, v.attitude_stamp_s)
+            yaw = v.yaw_rad - self.link.applied_rad
+            self.pipeline.attitude.push(v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, yaw))
         if v.velocity_stamp_s > self._velocity_stamp_s:
             stamp_s = self._velocity_stamp_s = v.velocity_stamp_s
-            R = self.pipeline.attitude.R_at(stamp_s)
+            # The ego model learns PX4's own attitude, heading error and all.
+            R = _R_raw(v)
             ego = self.ego
             if self.machine.gps_ok and v.position_valid is not False:
                 if R is not None:
@@ -266,3 +270,10 @@ def _say_ego_model(ego: EgoVelocityObserver) -> None:
         math.degrees(m.heading_error_rad),
         m.samples,
     )
+
+
+def _R_raw(v: VehicleState) -> Mat3 | None:
+    """``R_ned_body`` from the autopilot's own attitude (None when it is not finite)."""
+    if not all(math.isfinite(x) for x in (v.roll_rad, v.pitch_rad, v.yaw_rad)):
+        return None
+    return R_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)

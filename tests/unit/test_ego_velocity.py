@@ -90,3 +90,16 @@ def test_non_finite_samples_are_ignored() -> None:
     obs.learn(0.0, np.array([math.nan, 0.0, 0.0]), np.eye(3))
     obs.learn(0.3, np.array([0.0, math.inf, 0.0]), np.eye(3))
     assert obs.model() is None
+
+
+def test_a_tilted_flight_trusts_its_heading_fit_and_a_nearly_level_one_does_not() -> None:
+    tilted = EgoVelocityObserver()
+    _fly(tilted, drag=0.9, wind=(1.0, -0.5), err=math.radians(7.0), seconds=60.0, gps=True)
+    m = tilted.model()
+    assert m is not None
+    assert m.heading_trusted
+    assert math.degrees(m.heading_sigma_rad) < 1.0
+    level = EgoVelocityObserver()
+    _fly(level, drag=0.02, wind=(0.0, 0.0), err=math.radians(7.0), seconds=20.0, gps=True)
+    m2 = level.model()
+    assert m2 is None or not m2.heading_trusted
