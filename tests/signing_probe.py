@@ -91,6 +91,16 @@ class MavPeer(asyncio.DatagramProtocol):
         if self.transport is not None:
             self.transport.close()
 
+    def sign_outgoing(self, on: bool) -> None:
+        """Sign what is sent from now on (``on``: with ``key``), or send it unsigned from the same port.
+
+        One port for both matters where the autopilot answers only its link's first partner (PX4's UDP
+        links): a signed and an unsigned request then get their answers, if any, at the same place.
+        """
+        if on and self.key is None:
+            raise ValueError("this peer has no key to sign with")
+        self._packer.signing.sign_outgoing = on
+
     def setup_signing(self, target_system: int, key: bytes, target_component: int = 1) -> None:
         """SETUP_SIGNING: the autopilot signs with ``key`` from now on (it refuses while armed)."""
         self.send(
