@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -75,7 +75,6 @@ def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path)
     scenario.write_text(SCENARIO)
     out = tmp_path / "run"
     env = {**os.environ, "PYTHONPATH": str(REPO), "SITL_PX4__BINARY": binary}
-    before = set(Path(tempfile.gettempdir()).glob("wingman-px4-*"))
     cmd = [sys.executable, "-m", "companion", "sim", "--scenario", str(scenario), "--autopilot", "px4",
            "--no-plots", "--out", str(out)]  # fmt: skip
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
@@ -97,6 +96,10 @@ def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path)
     assert "Offboard" in modes
     assert not FAILSAFE_MODES & set(modes), modes
     assert ap["follower_modes"][-1]["armed"] is False
-    # PX4's flight logs are kept beside the report; its working folders are gone.
+    # PX4's flight logs are kept beside the report; its working folders (named in the run's log) are gone.
     assert any(p.endswith("px4-follower-0.ulg") and Path(p).stat().st_size > 0 for p in ap["flight_logs"])
-    assert set(Path(tempfile.gettempdir()).glob("wingman-px4-*")) <= before
+    folders = re.findall(
+        r"px4 \w+: instance \d+ \(pid \d+\) in (\S+)", (out / "logs" / "sitl.log").read_text()
+    )
+    assert len(folders) == 2
+    assert not any(Path(f).exists() for f in folders)
