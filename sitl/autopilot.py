@@ -82,7 +82,7 @@ class Autopilot(AutopilotMavlink):
         rates = self._rates_sp
         if rates is None:
             return self.inner.update(
-                d.roll_rad, d.pitch_rad, d.yaw_rad, d.p_rad_s, d.q_rad_s, d.r_rad_s,
+                d.roll_rad, d.pitch_rad, self.yaw_est_rad(), d.p_rad_s, d.q_rad_s, d.r_rad_s,
                 self.q_sp, self.yawspeed_ff_rad_s, self.thrust_sp, dt_s, self._integrate,
             )  # fmt: skip
         rp, rq, rr = rates
@@ -94,6 +94,8 @@ class Autopilot(AutopilotMavlink):
     def outer_update(self, t_s: float, dt_s: float) -> None:
         """Sensors, estimator, commander, navigator and position control at sim time ``t_s``."""
         self.t_s = t_s
+        if self.heading_error is not None:
+            self.heading_error.update(dt_s)
         if self._params_version != self.params.version:
             self._apply_params()
         n, e, d, vn, ve, vd = self.dyn.kinematics()
@@ -141,5 +143,5 @@ class Autopilot(AutopilotMavlink):
             home_set=self.home is not None,
             p_ned_m=self.position_ned(),
             v_ned_m_s=self.velocity_ned(),
-            yaw_rad=self.dyn.yaw_rad,
+            yaw_rad=self.yaw_est_rad(),
         )
