@@ -28,8 +28,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from companion.kernel.frames import R_from_euler
 from sitl import telemetry
 from sitl.autopilot_mavlink import AutopilotMavlink
+from sitl.dynamics import GRAVITY_M_S2
 from sitl.modes import NavState
 
 
@@ -90,6 +92,21 @@ class Autopilot(AutopilotMavlink):
             rp, rq, rr, self.thrust_sp, d.p_rad_s, d.q_rad_s, d.r_rad_s, dt_s, self._integrate
         )
 
+    def _imu_accel_ned(self) -> tuple[float, float, float]:
+        """The acceleration an IMU-only estimate integrates, NED m/s^2.
+
+        Specific force turned with the estimated attitude, plus gravity: aerodynamic drag is not in it
+        (EKF2 fuses no drag by default).
+        """
+        d = self.dyn
+        fx, fy, fz = d.specific_force_body()
+        R = R_from_euler(d.roll_rad, d.pitch_rad, self.yaw_est_rad())
+        return (
+            float(R[0, 0] * fx + R[0, 1] * fy + R[0, 2] * fz),
+            float(R[1, 0] * fx + R[1, 1] * fy + R[1, 2] * fz),
+            float(R[2, 0] * fx + R[2, 1] * fy + R[2, 2] * fz) + GRAVITY_M_S2,
+        )
+
     # ------------------------------------------------------------------ 50 Hz loop
     def outer_update(self, t_s: float, dt_s: float) -> None:
         """Sensors, estimator, commander, navigator and position control at sim time ``t_s``."""
@@ -110,6 +127,7 @@ class Autopilot(AutopilotMavlink):
             v_true_m_s=(vn, ve, vd),
             gps=gps,
             vision=vision,
+            a_imu_ned_m_s2=self._imu_accel_ned() if self.est.dead_reckoning else None,
         )
         for severity, text in events.texts:
             self.statustext(severity, text)

@@ -336,7 +336,16 @@ class Estimator:
         v_true_m_s: tuple[float, float, float],
         gps: GpsSample | None,
         vision: VisionSample | None,
+        a_imu_ned_m_s2: tuple[float, float, float] | None = None,
     ) -> EstimatorEvents:
+        """One step at ``t_s``.
+
+        ``a_imu_ned_m_s2``: what the IMU says the acceleration is (specific force turned with the estimated
+        attitude, plus gravity), given while dead-reckoning: then the estimate integrates it instead of the
+        true velocity change, as EKF2 does, and a multicopter's drag (which an accelerometer cannot feel)
+        and the heading error make the velocity run off within seconds, as PX4 SITL's did (1-2 m/s within
+        2-4 s of losing GPS at 2 m/s).
+        """
         self.t_s = t_s
         # Prediction: integrate the IMU's velocity change plus the uncorrected bias error.
         if self._prev_v_true is None:
@@ -346,13 +355,15 @@ class Estimator:
         else:
             pv = self._prev_v_true
             dvn, dve, dvd = v_true_m_s[0] - pv[0], v_true_m_s[1] - pv[1], v_true_m_s[2] - pv[2]
-        self._prev_v_true = v_true_m_s
         b = self._acc_bias
         rw = 0.004 * math.sqrt(dt_s)
         r = self._normals.take(5)
         b[0] += rw * r[0]
         b[1] += rw * r[1]
         b[2] += 0.3 * rw * r[2]
+        if a_imu_ned_m_s2 is not None and self._prev_v_true is not None:
+            dvn, dve, dvd = (a * dt_s for a in a_imu_ned_m_s2)
+        self._prev_v_true = v_true_m_s
         self.vn_m_s += dvn + b[0] * dt_s
         self.ve_m_s += dve + b[1] * dt_s
         self.vd_m_s += dvd + b[2] * dt_s
