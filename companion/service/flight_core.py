@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
+from companion.estimation.ego_velocity import EgoVelocityObserver
 from companion.estimation.identity import Expectation, LeaderIdentity, expectations
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
@@ -87,6 +88,9 @@ class FlightCore:
         self.track: Any = None
         self._attitude_stamp_s = NEVER_S
         self._velocity_stamp_s = NEVER_S
+        #: The follower's own velocity without GPS (the tracker's ego-motion), and the last aided one.
+        self.ego = EgoVelocityObserver()
+        self._v_aided: Vec3T | None = None
         #: Auto-labelling while GPS is good (``[autolabel] enabled``); its writer runs with :meth:`run`.
         self.autolabel = AutoLabelTap(cfg, self.pipeline.camera) if cfg.autolabel.enabled else None
         # Formations: the leader told apart from neighbours by shares and the plan.
@@ -113,9 +117,11 @@ class FlightCore:
     def feed_telemetry(self) -> None:
         """Copy each new attitude and velocity sample from the link into perception's histories.
 
-        Velocity only while PX4's estimate is valid: after a GPS loss PX4's dead-reckoned velocity jumps by
-        metres per second within seconds, and the tracker would take the jumps for the follower's own
-        manoeuvres (ego-motion); without it the track predicts on its own relative velocity.
+        The velocity is the tracker's ego-motion. PX4's only while its estimate is GPS-aided (turned into the
+        attitude's frame by the heading error :class:`EgoVelocityObserver` fits): after a GPS loss PX4's
+        dead-reckoned velocity runs off by metres per second within seconds. Then the observer's, from
+        the drag model it learnt meanwhile and the attitude; without a model, none (the track predicts on
+        its own relative velocity).
         """
         v = self.link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
@@ -124,9 +130,18 @@ class FlightCore:
                 v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)
             )
         if v.velocity_stamp_s > self._velocity_stamp_s:
-            self._velocity_stamp_s = v.velocity_stamp_s
+            stamp_s = self._velocity_stamp_s = v.velocity_stamp_s
+            R = self.pipeline.attitude.R_at(stamp_s)
+            ego = self.ego
             if self.machine.gps_ok and v.position_valid is not False:
-                self.pipeline.velocity.push(v.velocity_stamp_s, v.v_ned_m_s)
+                if R is not None:
+                    ego.learn(stamp_s, v.v_ned_m_s, R)
+                self._v_aided = v.v_ned_m_s
+                self.pipeline.velocity.push(stamp_s, ego.to_attitude_frame(v.v_ned_m_s))
+            elif R is not None and self._v_aided is not None:
+                v_own = ego.step(stamp_s, R, self._v_aided)
+                if v_own is not None:
+                    self.pipeline.velocity.push(stamp_s, v_own)
 
     def _expect(self, stamp_s: float) -> tuple[Expectation | None, list[Expectation]]:
         """Where the leader and the neighbours should be at a frame's stamp (see estimation.identity)."""
