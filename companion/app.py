@@ -238,15 +238,16 @@ class FollowerService:
             self.health.beat(MISSION, detail="PX4 landing")
             await asyncio.sleep(0.2)
 
-    def _request_start(self) -> dict[str, Any]:
+    async def _request_start(self) -> dict[str, Any]:
+        """``start`` over the status socket: what the mission did with it, or why it refused."""
         assert self._parts is not None  # noqa: S101
         if self.stopping:
-            return {"ok": False, "detail": f"stopping ({self._stop_reason})"}
-        self._parts.mission.request_start()
-        log.info("mission start requested over the status socket")
-        return {"ok": True, "detail": "start requested"}
+            reply = f"start refused: the service is stopping ({self._stop_reason})"
+        else:
+            reply = await self._parts.mission.operator_start()
+        return self._answered("start", reply)
 
-    def _operator_command(self, args: list[str]) -> dict[str, Any]:
+    async def _operator_command(self, args: list[str]) -> dict[str, Any]:
         """``command land|hold|set_offset X Y Z`` from the CLI: through the mission machine's checks."""
         assert self._parts is not None  # noqa: S101
         if not args:
@@ -261,8 +262,17 @@ class FollowerService:
             offset = (x, y, z)
         elif rest:
             return {"ok": False, "detail": f"{name} refused: it takes no arguments"}
-        reply = self._parts.mission.request_command(name, offset)
-        return {"ok": " refused: " not in reply, "detail": reply}
+        return self._answered(name, await self._parts.mission.request_command(name, offset))
+
+    def _answered(self, name: str, reply: str) -> dict[str, Any]:
+        """The status socket's answer to an operator, also on MQTT's ``events`` as an MQTT command's is."""
+        ok = " refused: " not in reply
+        if self.mqtt is not None:
+            if ok:
+                self.mqtt.event("command", reply, "notice", cmd=name, source="status socket")
+            else:
+                self.mqtt.event("command_refused", reply, "warning", cmd=name, source="status socket")
+        return {"ok": ok, "detail": reply}
 
     async def _lifecycle(self, mission: MissionPort) -> None:
         await self._stop.wait()
@@ -449,10 +459,10 @@ class FollowerService:
             command_marks=self._command_marks,
         )
 
-    def _on_command(self, cmd: Command) -> str:
+    async def _on_command(self, cmd: Command) -> str:
         """An MQTT operator command: through the mission machine's checks, like the CLI's."""
         assert self._parts is not None  # noqa: S101
-        return self._parts.mission.request_command(cmd.name.value, cmd.offset_cam_m)
+        return await self._parts.mission.request_command(cmd.name.value, cmd.offset_cam_m)
 
     def _state_msg(self) -> StateMsg:
         assert self._parts is not None  # noqa: S101

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from companion.config import Config, load_config
 from companion.kernel.logs import setup_logging
-from companion.kernel.shipped import project_root, resolve
+from companion.kernel.shipped import project_root
 
 #: Relative to the project root (companion/kernel/shipped.py): the working folder, or the installed copy.
 DEFAULT_CONFIG = Path("config/wingman.toml")
@@ -36,8 +36,4 @@ def load(args: argparse.Namespace) -> Config:
     """Load the config and set up logging from it (command-line flags win)."""
     cfg = load_config(config_path(args))
     setup_logging(args.log_format or cfg.logging.format, args.log_level or cfg.logging.level)
-    model = resolve(cfg.detector.model_path)
-    if str(model) != cfg.detector.model_path:
-        # The shipped weights, when the working folder has no models/ of its own.
-        cfg = cfg.model_copy(update={"detector": cfg.detector.model_copy(update={"model_path": str(model)})})
     return cfg

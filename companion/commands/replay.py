@@ -23,7 +23,13 @@ def register(sub: Any) -> None:
     """Add this module's commands to the ``companion`` subparsers."""
     p = sub.add_parser("replay", help="run perception on a recording and write per-frame estimates")
     add_config_arg(p)
-    p.add_argument("--source", required=True, help="file:PATH: a folder recording, a RealSense .bag or .db3")
+    p.add_argument(
+        "--source",
+        required=True,
+        help="file:PATH (a folder recording, a RealSense .bag or .db3), sim (the simulator's camera socket, "
+        "camera.path) or realsense (live); a live source runs until Ctrl-C or --frames",
+    )
+    p.add_argument("--frames", type=int, default=0, help="stop after N frames (0: the whole recording)")
     p.add_argument("--out", default=None, help="CSV of per-frame estimates and errors")
     p.add_argument("--json", default=None, help="also write the summary to this JSON file")
     p.add_argument(
@@ -40,7 +46,12 @@ def register(sub: Any) -> None:
     p.set_defaults(handler=_replay)
     r = sub.add_parser("record", help="record any frame source to the folder format (or a .bag)")
     add_config_arg(r)
-    r.add_argument("--source", required=True, help="sim | realsense | file:PATH")
+    r.add_argument(
+        "--source",
+        required=True,
+        help="file:PATH (a folder recording, a RealSense .bag or .db3), sim (the simulator's camera socket, "
+        "camera.path) or realsense (live)",
+    )
     r.add_argument("--out", required=True, help="output folder, or a RealSense file ending in .bag")
     r.add_argument("--frames", type=int, default=0, help="stop after N frames (0: until Ctrl-C/end)")
     r.add_argument("--format", choices=("png", "jpg"), default="png", help="folder colour images")
@@ -64,11 +75,15 @@ def _replay(args: argparse.Namespace) -> int:
         args.detector, cfg, jitter_px=args.box_jitter_px, seed=args.seed, miss_rate=args.miss_rate
     )
     with _open_out(args.out) as out:
-        summary = asyncio.run(run_replay(cfg, args.source, stage, out_csv=out, realtime=args.realtime))
+        summary = asyncio.run(
+            run_replay(cfg, args.source, stage, out_csv=out, realtime=args.realtime, max_frames=args.frames)
+        )
     for line in summary.lines():
         print(line)
     if args.json:
-        Path(args.json).write_text(json.dumps(summary.as_dict(), indent=2, default=float) + "\n")
+        # No NaN in the file (it is not JSON): what cannot be computed is null.
+        text = json.dumps(summary.as_dict(), indent=2, default=float, allow_nan=False)
+        Path(args.json).write_text(text + "\n")
     return 0 if summary.frames else 1
 
 

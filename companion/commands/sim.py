@@ -24,7 +24,13 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--scenario", default="all", help="scenario name (config/scenarios/NAME.toml), a path, or 'all'"
     )
-    p.add_argument("--seed", type=int, default=1, help="the run's random seed (default 1)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="the run's random seed (default: the scenario's own, `seed` in its file; a run's folder keeps "
+        "its seed in scenario.toml, so `--scenario DIR/scenario.toml` flies it again)",
+    )
     p.add_argument("--seeds", default=None, help="Monte Carlo over seeds, e.g. 1-50 (lockstep harness)")
     p.add_argument("--out", type=Path, default=Path("runs/sim"), help="output folder")
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed factor (real path)")
@@ -152,7 +158,7 @@ def _sim(args: argparse.Namespace) -> int:
         specs = [
             RunSpec(
                 name,
-                args.seed,
+                _seed(name, args.seed),
                 out / name,
                 **{**common, "harness": _all_harness(name, args.harness, args.autopilot)},
             )
@@ -167,7 +173,7 @@ def _sim(args: argparse.Namespace) -> int:
     # One scenario, in this process.
     out.mkdir(parents=True, exist_ok=True)
     _log_to(out / "sim.log" if args.progress == "json" else None, args)
-    spec = RunSpec(args.scenario, args.seed, out, **common)
+    spec = RunSpec(args.scenario, _seed(args.scenario, args.seed), out, **common)
     end_s: list[float] = [float("nan")]
     wall0_s = time.monotonic()
 
@@ -203,6 +209,16 @@ def _all_harness(name: str, forced: str | None, autopilot: str = "builtin") -> s
     if autopilot == "px4":
         return "real"
     return "real" if name in PAPER_SCENARIOS else "lockstep"
+
+
+def _seed(name: str, given: int | None) -> int:
+    """``--seed``, or the scenario file's own seed when it is not given."""
+    if given is not None:
+        return given
+    from companion.lab.evaluation.campaign import effective_scenario
+    from companion.lab.evaluation.setup import scenario_path
+
+    return int(effective_scenario(scenario_path(name), None).seed)
 
 
 def _is_formation(name: str) -> bool:

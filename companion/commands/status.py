@@ -8,30 +8,55 @@ from pathlib import Path
 from typing import Any
 
 from companion.commands._common import add_config_arg, config_path, load
+from companion.kernel.errors import CompanionError
+
+#: Exit codes of the commands that ask the running service (``status``, ``start``, ``command``).
+EXIT_DONE = 0
+#: The service refused (the line says why); for ``status``, never.
+EXIT_REFUSED = 1
+#: 2 is argparse's usage error and a bad config; 5 is companion.service.status.EXIT_NOT_RUNNING.
+EXIT_CODES = (
+    "exit codes: 0 done, 1 refused (the line says why), 2 usage or config error, "
+    "5 no service answers on the status socket (not running)"
+)
+#: Operator commands and how many numbers each takes.
+COMMAND_ARGS = {"land": 0, "hold": 0, "set_offset": 3}
 
 
 def register(sub: Any) -> None:
     """Add this module's commands to the ``companion`` subparsers."""
-    p = sub.add_parser("status", help="show the running service's state")
+    p = sub.add_parser("status", help="show the running service's state", epilog=EXIT_CODES)
     add_config_arg(p)
-    p.add_argument("--json", action="store_true", help="print the raw JSON snapshot")
+    p.add_argument(
+        "--json", action="store_true", help="print the raw JSON snapshot (always JSON, errors included)"
+    )
     p.set_defaults(handler=_status)
     h = sub.add_parser("health", help="run preflight checks; exit 0 healthy, 1 not")
     add_config_arg(h)
     h.add_argument("--json", action="store_true", help="print the checks as JSON")
     h.add_argument("--timeout", type=float, default=5.0, help="seconds per probe (default 5)")
     h.set_defaults(handler=_health)
-    s = sub.add_parser("start", help="ask the running service to start the mission (arm, take off, follow)")
+    s = sub.add_parser(
+        "start",
+        help="ask the running service to start the mission (arm, take off, follow), or to resume it after "
+        "a hold",
+        description="Start the mission: from the ground, arm, take off and follow; in the air (after "
+        "`companion command hold`, a pilot's mode change, or a restart in flight), take the vehicle back "
+        "and follow again. Answers what the mission did, or why it refused.",
+        epilog=EXIT_CODES,
+    )
     add_config_arg(s)
     s.set_defaults(handler=_start)
     c = sub.add_parser(
         "command",
         help="send an operator command to the running service (checked by its mission machine)",
         description="land | hold | set_offset X Y Z: the service's mission machine checks each and "
-        "answers in one line what it did or why it refused (exit 0 done, 1 refused).",
+        "answers in one line what it did or why it refused. After a hold, `companion start` resumes "
+        "following.",
+        epilog=EXIT_CODES,
     )
     add_config_arg(c)
-    c.add_argument("name", choices=["land", "hold", "set_offset"], help="the command")
+    c.add_argument("name", choices=list(COMMAND_ARGS), help="the command")
     c.add_argument(
         "offset_cam_m",
         nargs="*",
@@ -39,38 +64,51 @@ def register(sub: Any) -> None:
         metavar="X Y Z",
         help="set_offset: the leader's slot in the camera frame, m (right, down, forward)",
     )
-    c.set_defaults(handler=_command)
+    c.set_defaults(handler=_command, usage_error=c.error)
+
+
+def _ask(args: argparse.Namespace, request: str) -> int:
+    """Send ``request`` to the running service and print its one-line answer; the exit code."""
+    from companion.service.status import query_status
+
+    cfg = load(args)
+    reply = query_status(Path(cfg.status.socket_path), request)
+    print(reply.get("detail", reply))
+    return EXIT_DONE if reply.get("ok") else EXIT_REFUSED
 
 
 def _start(args: argparse.Namespace) -> int:
-    from companion.service.status import query_status
-
-    cfg = load(args)
-    reply = query_status(Path(cfg.status.socket_path), "start")
-    print(reply.get("detail", reply))
-    return 0 if reply.get("ok") else 1
+    return _ask(args, "start")
 
 
 def _command(args: argparse.Namespace) -> int:
-    from companion.service.status import query_status
-
-    cfg = load(args)
+    need = COMMAND_ARGS[args.name]
+    if len(args.offset_cam_m) != need:
+        # Checked here, before the service is asked: a usage error is one whether it runs or not.
+        args.usage_error(
+            f"{args.name} takes {'no numbers' if need == 0 else f'{need} numbers X Y Z (m)'}, "
+            f"got {len(args.offset_cam_m)}"
+        )
     words = [args.name, *(repr(float(v)) for v in args.offset_cam_m)]
-    reply = query_status(Path(cfg.status.socket_path), "command " + " ".join(words))
-    print(reply.get("detail", reply))
-    return 0 if reply.get("ok") else 1
+    return _ask(args, "command " + " ".join(words))
 
 
 def _status(args: argparse.Namespace) -> int:
     from companion.service.status import query_status
 
-    cfg = load(args)
-    snap = query_status(Path(cfg.status.socket_path), "status")
+    try:
+        cfg = load(args)
+        snap = query_status(Path(cfg.status.socket_path), "status")
+    except CompanionError as exc:
+        if not args.json:
+            raise
+        print(json.dumps({"running": False, "error": str(exc), "exit_code": exc.exit_code}, indent=2))
+        return exc.exit_code
     if args.json:
-        print(json.dumps(snap, indent=2))
+        print(json.dumps({"running": True, **snap}, indent=2))
     else:
         print(render_status(snap))
-    return 0
+    return EXIT_DONE
 
 
 def _health(args: argparse.Namespace) -> int:

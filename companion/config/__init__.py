@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from companion.config.flight import FormationConfig, MissionConfig, SafetyConfig
 from companion.config.formation_plan import FormationPlan, load_plan
+from companion.config.paths import PATH_KEYS, ResolvedPath, resolve_path
 from companion.config.perception import CameraConfig, DetectorConfig, LeaderConfig, PoseConfig, TrackerConfig
 from companion.config.service import (
     AutoLabelSection,
@@ -26,7 +29,15 @@ from companion.config.service import (
     resolve_state_dir,
     url_problem,
 )
-from companion.kernel.config import Section, deep_merge, env_overrides, format_validation_error, read_toml
+from companion.config.viz import VizConfig
+from companion.kernel.config import (
+    Section,
+    deep_merge,
+    env_overrides,
+    env_sources,
+    read_toml,
+    validation_problems,
+)
 from companion.kernel.errors import ConfigError
 
 __all__ = [
@@ -34,6 +45,7 @@ __all__ = [
     "AutoLabelSection",
     "CameraConfig",
     "Config",
+    "ConfigCheck",
     "DetectorConfig",
     "FormationConfig",
     "FormationPlan",
@@ -47,7 +59,9 @@ __all__ = [
     "ServiceConfig",
     "StatusConfig",
     "TrackerConfig",
+    "VizConfig",
     "apply_plan",
+    "check_config",
     "load_config",
     "load_plan",
     "resolve_state_dir",
@@ -76,6 +90,7 @@ class Config(Section):
     service: ServiceConfig = ServiceConfig()
     logging: LoggingConfig = LoggingConfig()
     autolabel: AutoLabelSection = AutoLabelSection()
+    viz: VizConfig = VizConfig()
 
     @model_validator(mode="after")
     def _truth_needs_truth(self) -> Config:
@@ -102,24 +117,132 @@ class Config(Section):
         return v
 
 
-def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> Config:
-    """Load the service config from ``path`` (defaults when None) with environment overrides on top."""
+@dataclass(frozen=True, slots=True)
+class ConfigCheck:
+    """Everything wrong with a config at once, each problem with where its value came from.
+
+    ``config`` is the resolved config when there is no problem in it. ``detector`` is the detector section
+    even when another section is wrong (the model files can still be checked), None when it is wrong itself.
+    """
+
+    config: Config | None
+    problems: list[str]
+    sources: list[str]
+    paths: dict[tuple[str, str], ResolvedPath]
+    detector: DetectorConfig | None
+    #: The config file ("<defaults>" without one).
+    label: str
+    env_keys: dict[tuple[str, ...], str] = field(default_factory=dict)
+
+    def source_of(self, loc: tuple[str, ...]) -> str:
+        """Where the value at ``loc`` came from: ``$WINGMAN_...``, the file, or the file and variables."""
+        for n in range(len(loc), 0, -1):
+            if loc[:n] in self.env_keys:
+                return "$" + self.env_keys[loc[:n]]
+        below = sorted(v for k, v in self.env_keys.items() if k[: len(loc)] == loc)
+        return " + ".join([self.label, *(f"${v}" for v in below)])
+
+    def error(self) -> ConfigError:
+        """The problems as one :class:`ConfigError` (one line each)."""
+        return ConfigError(self.label, self.problems, self.sources)
+
+
+def check_config(path: Path | None, environ: Mapping[str, str] | None = None) -> ConfigCheck:
+    """Read the config and find every problem in it in one pass (an unreadable file ends it at once).
+
+    Relative paths are resolved as :mod:`companion.config.paths` says, so the config holds absolute ones.
+    """
+    env = os.environ if environ is None else environ
     data = read_toml(path) if path is not None else {}
-    data = deep_merge(data, env_overrides(os.environ if environ is None else environ))
+    data = deep_merge(data, env_overrides(env))
+    label = str(path) if path is not None else "<defaults>"
+    base = (path.parent, f"the config file's folder {path.parent.absolute()}") if path else None
+    check = ConfigCheck(None, [], [], {}, None, label, env_sources(env))
+    paths: dict[tuple[str, str], ResolvedPath] = {}
+    for section, key in PATH_KEYS:
+        table = data.get(section)
+        given = table.get(key) if isinstance(table, dict) else _default_path(section, key)
+        if isinstance(given, str) and given:
+            from_env = (section, key) in check.env_keys or (section,) in check.env_keys
+            where = (Path.cwd(), f"the working folder {Path.cwd()}") if from_env or base is None else base
+            paths[section, key] = resolve_path(given, *where)
+    check.paths.update(paths)
+    resolved = deep_merge(
+        data,
+        _nested({(s, k): str(r.path) for (s, k), r in paths.items() if isinstance(data.get(s, {}), dict)}),
+    )
     try:
-        cfg = Config.model_validate(data)
+        cfg: Config | None = Config.model_validate(resolved)
     except ValidationError as exc:
-        raise ConfigError(str(path or "<defaults>"), format_validation_error(exc)) from None
-    if cfg.formation.plan:
-        cfg = apply_plan(cfg, _plan_path(cfg.formation.plan, path))
-    return cfg
+        cfg = None
+        for loc, line in validation_problems(exc, Config):
+            check.problems.append(line)
+            check.sources.append(check.source_of(loc))
+    detector = cfg.detector if cfg is not None else _detector_alone(resolved.get("detector"))
+    plan = cfg.formation.plan if cfg is not None else _str_at(resolved, "formation", "plan")
+    if plan and not Path(plan).is_file():
+        rp = paths["formation", "plan"]
+        check.problems.append(f"formation.plan: file not found: {rp.path}{rp.note()}")
+        check.sources.append(check.source_of(("formation", "plan")))
+    elif plan and cfg is not None:
+        try:
+            cfg = apply_plan(cfg, Path(plan))
+        except ConfigError as exc:
+            check.problems.extend(exc.problems)
+            check.sources.extend(exc.sources)
+    return ConfigCheck(
+        cfg if not check.problems else None,
+        check.problems,
+        check.sources,
+        check.paths,
+        detector,
+        label,
+        check.env_keys,
+    )
 
 
-def _plan_path(name: str, config_path: Path | None) -> Path:
-    p = Path(name)
-    if not p.is_absolute() and config_path is not None and (config_path.parent / p).exists():
-        return config_path.parent / p
-    return p
+def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> Config:
+    """Load the service config from ``path`` (defaults when None) with environment overrides on top.
+
+    Raises :class:`ConfigError` with every problem, one line each (see :func:`check_config`).
+    """
+    check = check_config(path, environ)
+    if check.config is None:
+        raise check.error()
+    return check.config
+
+
+def _default_path(section: str, key: str) -> object:
+    sub = Config.model_fields[section].default
+    return getattr(sub, key, None)
+
+
+def _nested(flat: Mapping[tuple[str, str], str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for (section, key), value in flat.items():
+        out.setdefault(section, {})[key] = value
+    return out
+
+
+def _str_at(data: Mapping[str, Any], section: str, key: str) -> str:
+    table = data.get(section)
+    value = table.get(key) if isinstance(table, dict) else None
+    return value if isinstance(value, str) else ""
+
+
+def _detector_alone(table: object) -> DetectorConfig | None:
+    """The detector section on its own, for the model checks of a config that is wrong elsewhere."""
+    known = {
+        k: v
+        for k, v in (table if isinstance(table, dict) else {}).items()
+        if k in DetectorConfig.model_fields
+    }
+    for keys in (known, {k: v for k, v in known.items() if k in ("model_path", "model_sha256", "runtime")}):
+        try:
+            return DetectorConfig.model_validate(keys)
+        except ValidationError:
+            continue
+    return None
 
 
 def apply_plan(cfg: Config, plan_path: Path) -> Config:

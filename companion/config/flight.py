@@ -63,9 +63,10 @@ class FormationConfig(Section):
     steady_link_age_s: float = Field(0.02, gt=0)
     steady_link_hold_s: float = Field(3.0, ge=0)
     steady_hit_ratio: float = Field(0.8, ge=0.0, le=1.0)
-    #: A formation plan (``config/formations/*.toml``; relative to the config file's folder, then to the
-    #: working folder). Empty: a lone follower on ``offset_cam_m``. With a plan the service flies the slot
-    #: named by ``vehicle_id``: ``offset_cam_m`` and ``slot_leader_m`` are set from it at load time.
+    #: A formation plan (``config/formations/*.toml``; a relative path as companion/config/paths.py says:
+    #: the config file's folder, then the shipped files). Empty: a lone follower on ``offset_cam_m``. With a
+    #: plan the service flies the slot named by ``vehicle_id``: ``offset_cam_m`` and ``slot_leader_m`` are
+    #: set from it at load time.
     plan: str = ""
     #: The follower's place in the leader's level heading frame (forward, right, down), m. With the leader's
     #: shared heading the follower holds this place as the leader turns; without it (or None) only the range

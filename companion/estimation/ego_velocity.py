@@ -16,9 +16,8 @@ The model, horizontal NED per unit mass, in level flight (thrust balances gravit
 ``e`` too, linearised (a few degrees). While GPS is good, :meth:`EgoVelocityObserver.learn` fits
 ``(k, c_n, c_e, e)`` by least squares with exponential forgetting to GPS velocity differences; after the
 loss, :meth:`EgoVelocityObserver.step` integrates the model from the last GPS velocity on the attitude
-alone. Its velocities are in the frame of the attitude (PX4's estimated heading), the frame the camera's
-bearings are turned into: :meth:`EgoVelocityObserver.to_attitude_frame` turns GPS velocities into it.
-Pure: times come in, nothing is read from a clock.
+alone, in GPS's frame (the tilt turned back by the fitted heading error), so the velocity the tracker gets
+goes on smoothly from PX4's last aided one. Pure: times come in, nothing is read from a clock.
 """
 
 from __future__ import annotations
@@ -49,6 +48,8 @@ _PRIOR_INFO = np.diag([1.0 / 0.5**2, 1.0 / 1.0**2, 1.0 / 1.0**2, 1.0 / 0.1**2]) 
 #: Accepted fits: drag between these (1/s), heading error within this (rad).
 DRAG_RANGE_PER_S = (0.0, 3.0)
 MAX_HEADING_ERROR_RAD = math.radians(30.0)
+#: The fitted heading error is applied only when its one sigma is within this, rad.
+MAX_HEADING_SIGMA_RAD = math.radians(1.5)
 #: After this long without GPS the model's velocity is no longer offered, s (its error has grown).
 MAX_COAST_S = 120.0
 
@@ -67,6 +68,13 @@ class EgoModel:
     push_ne_m_s2: tuple[float, float]
     heading_error_rad: float
     samples: int
+    #: One sigma of the heading error's fit, rad (from the residuals and how much tilt the flight had).
+    heading_sigma_rad: float = math.inf
+
+    @property
+    def heading_trusted(self) -> bool:
+        """Whether the heading error is known well enough to correct the camera's bearings with."""
+        return self.heading_sigma_rad <= MAX_HEADING_SIGMA_RAD
 
 
 class EgoVelocityObserver:
@@ -75,6 +83,8 @@ class EgoVelocityObserver:
     def __init__(self) -> None:
         self._info = _PRIOR_INFO.copy()
         self._vec = _PRIOR_INFO @ _PRIOR_MEAN
+        self._yy = 0.0  # the decayed sum of squared targets, and of rows (for the residuals)
+        self._rows = 0.0
         self._samples = 0
         self._v_min = math.inf
         self._v_max = -math.inf
@@ -129,6 +139,8 @@ class EgoVelocityObserver:
         decay = math.exp(-dt / FORGET_TAU_S)
         self._info = decay * self._info + (1.0 - decay) * _PRIOR_INFO + rows.T @ rows
         self._vec = decay * self._vec + (1.0 - decay) * (_PRIOR_INFO @ _PRIOR_MEAN) + rows.T @ y
+        self._yy = decay * self._yy + float(y @ y)
+        self._rows = decay * self._rows + 2.0
         self._samples += 1
         self._model = None
 
@@ -138,38 +150,36 @@ class EgoVelocityObserver:
             return self._model
         if self._samples < MIN_SAMPLES or self._v_max - self._v_min < MIN_SPEED_SPAN_M_S:
             return None
-        k, cn, ce, e = (float(x) for x in np.linalg.solve(self._info, self._vec))
+        theta = np.linalg.solve(self._info, self._vec)
+        k, cn, ce, e = (float(x) for x in theta)
         if not (DRAG_RANGE_PER_S[0] <= k <= DRAG_RANGE_PER_S[1]) or abs(e) > MAX_HEADING_ERROR_RAD:
             return None
-        self._model = EgoModel(k, (cn, ce), e, self._samples)
+        # Residual variance of the least squares (prior terms left out: they are small by design).
+        rss = max(self._yy - float(theta @ self._vec), 0.0)
+        var_y = rss / max(self._rows - theta.size, 1.0)
+        sigma_e = math.sqrt(var_y * float(np.linalg.inv(self._info)[3, 3]))
+        self._model = EgoModel(k, (cn, ce), e, self._samples, sigma_e)
         return self._model
-
-    def to_attitude_frame(self, v_ned_m_s: Velocity) -> Velocity:
-        """A GPS-frame velocity turned into the attitude's frame (by the fitted heading error)."""
-        m = self.model()
-        if m is None:
-            return v_ned_m_s
-        return _turn(np.asarray(v_ned_m_s, dtype=np.float64), m.heading_error_rad)
 
     # -- after the loss ------------------------------------------------------------------------------
     def step(self, t_s: float, R_ned_body: Mat3, v_start_ned_m_s: Velocity) -> Vec3 | None:
-        """The follower's velocity at ``t_s`` without GPS, attitude frame (NED m/s); None without a model.
+        """The follower's velocity at ``t_s`` without GPS, GPS's frame (NED m/s); None without a model.
 
-        ``v_start_ned_m_s``: the last GPS-aided velocity, used at the first step after the loss.
+        ``v_start_ned_m_s``: the last GPS-aided velocity, where the first step after the loss starts from.
         """
         m = self.model()
         if m is None:
             return None
         if self._coast is None:
-            v0 = _turn(np.asarray(v_start_ned_m_s, dtype=np.float64), m.heading_error_rad)
+            v0 = np.asarray(v_start_ned_m_s, dtype=np.float64)
             self._coast = (t_s, v0[:2].copy())
             self._coast_since_s = t_s
         t0, v = self._coast
         if t_s - self._coast_since_s > MAX_COAST_S:
             return None
         dt = min(max(t_s - t0, 0.0), MAX_SAMPLE_DT_S)
-        push = _turn(np.array([m.push_ne_m_s2[0], m.push_ne_m_s2[1], 0.0]), m.heading_error_rad)[:2]
-        accel = np.asarray(thrust_accel_h(R_ned_body)) - m.drag_per_s * v + push
+        tilt = _turn(np.array([*thrust_accel_h(R_ned_body), 0.0]), -m.heading_error_rad)[:2]
+        accel = tilt - m.drag_per_s * v + np.asarray(m.push_ne_m_s2)
         v = v + accel * dt
         self._coast = (t_s, v)
         return np.array([v[0], v[1], self._vd_m_s])

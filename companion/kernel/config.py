@@ -7,6 +7,7 @@ from ``WINGMAN_*`` variables, double underscores between levels and TOML literal
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -25,21 +26,61 @@ class Section(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
-def format_validation_error(exc: ValidationError) -> list[str]:
-    """One line per problem: ``dotted.key: what is wrong (got <value>)``."""
-    lines = []
+def validation_problems(
+    exc: ValidationError, model: type[BaseModel] | None = None
+) -> list[tuple[tuple[str, ...], str]]:
+    """One ``(key path, line)`` per problem; the line reads ``dotted.key: what is wrong (got <value>)``.
+
+    With ``model`` (the validated class), an unknown key names the closest known one ("did you mean").
+    """
+    out: list[tuple[tuple[str, ...], str]] = []
     for err in exc.errors():
-        key = ".".join(str(p) for p in err["loc"])
+        loc = tuple(str(p) for p in err["loc"])
+        key = ".".join(loc)
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
+            close = difflib.get_close_matches(loc[-1], _known_keys(model, loc[:-1]), n=1, cutoff=0.6)
+            if close:
+                msg += f" (did you mean {'.'.join((*loc[:-1], close[0]))}?)"
         if not key:
-            lines.append(msg)  # a rule across sections: its message names the keys
+            # A rule across sections: its message names the keys ("link.system_id: ...").
+            named = msg.partition(":")[0]
+            out.append((tuple(named.split(".")) if " " not in named else (), msg))
             continue
         got = err.get("input")
-        shown = "" if err["type"] in ("extra_forbidden", "missing") else f" (got {got!r})"
-        lines.append(f"{key}: {msg}{shown}")
-    return lines
+        quiet = err["type"] in ("extra_forbidden", "missing") or "(got " in msg  # the message shows it
+        shown = "" if quiet else f" (got {got!r})"
+        out.append((loc, f"{key}: {msg}{shown}"))
+    return out
+
+
+def format_validation_error(exc: ValidationError, model: type[BaseModel] | None = None) -> list[str]:
+    """One line per problem: ``dotted.key: what is wrong (got <value>)`` (see :func:`validation_problems`)."""
+    return [line for _, line in validation_problems(exc, model)]
+
+
+def _known_keys(model: type[BaseModel] | None, loc: tuple[str, ...]) -> list[str]:
+    """The keys a table at ``loc`` of ``model`` may hold (empty when ``loc`` is not a table of it)."""
+    for part in loc:
+        if model is None:
+            return []
+        field = model.model_fields.get(part)
+        ann = field.annotation if field is not None else None
+        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+    return list(model.model_fields) if model is not None else []
+
+
+def env_sources(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[tuple[str, ...], str]:
+    """Key path -> the ``PREFIX_SECTION__KEY`` variable that sets it (see :func:`env_overrides`)."""
+    out: dict[tuple[str, ...], str] = {}
+    for name in environ:
+        if not name.startswith(prefix) or name == f"{prefix}CONFIG":
+            continue
+        path = tuple(p.lower() for p in name[len(prefix) :].split("__") if p)
+        if path:
+            out[path] = name
+    return out
 
 
 def env_overrides(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[str, Any]:

@@ -11,14 +11,19 @@ class CompanionError(Exception):
 
 
 class ConfigError(CompanionError):
-    """The configuration is invalid. Carries one human-readable line per problem."""
+    """The configuration is invalid. Carries one human-readable line per problem.
+
+    ``sources``, when given, names where each problem's value came from (a file, an environment
+    variable), one per problem; otherwise every problem is ``source``'s.
+    """
 
     exit_code = 2
 
-    def __init__(self, source: str, problems: list[str]) -> None:
+    def __init__(self, source: str, problems: list[str], sources: list[str] | None = None) -> None:
         self.source = source
         self.problems = problems
-        super().__init__("\n".join(f"{source}: {p}" for p in problems))
+        self.sources = sources if sources is not None else [source] * len(problems)
+        super().__init__("\n".join(f"{s}: {p}" for s, p in zip(self.sources, problems, strict=True)))
 
 
 class ModelError(CompanionError):

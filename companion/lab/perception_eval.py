@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -47,6 +48,22 @@ class FrameError:
     paper_err_m: float | None = None
 
 
+def _json_safe(value: Any) -> Any:
+    """``value`` with every NaN or infinity as None: JSON has no NaN (a reader's parser may refuse it)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _cell(value: float, width: int) -> str:
+    """A table cell: the value to 3 decimals, or ``-`` where there was nothing to compute."""
+    return f"{value:>{width}.3f}" if math.isfinite(value) else f"{'-':>{width}}"
+
+
 def _rmse(values: Sequence[float]) -> float:
     return math.sqrt(sum(v * v for v in values) / len(values)) if values else math.nan
 
@@ -58,8 +75,11 @@ class Summary:
     frames: int = 0
     #: Frames whose track was usable (confirmed or coasting), with or without ground truth.
     frames_tracked: int = 0
+    #: Frames with a ground-truth record (a rendered recording's truth.jsonl line), the leader in view or not.
     frames_with_truth: int = 0
-    #: Frames with ground truth and a usable track (the errors are over these).
+    #: Frames whose ground truth has the leader in view (a true box): errors can only be computed on these.
+    frames_in_view: int = 0
+    #: Frames with the leader in view and a usable track (the errors are over these).
     frames_usable: int = 0
     errors: list[FrameError] = field(default_factory=list)
     stage_ms: dict[str, list[float]] = field(default_factory=dict)
@@ -100,26 +120,37 @@ class Summary:
             }
 
         pos, brg, _, _, n = self.rmse_in(0.0, math.inf)
-        return {
-            "frames": self.frames,
-            "frames_tracked": self.frames_tracked,
-            "frames_with_truth": self.frames_with_truth,
-            "frames_usable": self.frames_usable,
-            "coverage": self.frames_usable / self.frames_with_truth if self.frames_with_truth else math.nan,
-            "rmse_m": pos,
-            "bearing_rmse_deg": brg,
-            "bins": [band(lo, hi) for lo, hi in RANGE_BINS_M],
-            "bands": [band(lo, hi) for lo, hi in BANDS_M],
-            "stage_ms_p50": {k: float(np.percentile(v, 50)) for k, v in self.stage_ms.items() if v},
-            "stage_ms_p95": {k: float(np.percentile(v, 95)) for k, v in self.stage_ms.items() if v},
-            "n": n,
-        }
+        out: dict[str, object] = _json_safe(
+            {
+                "frames": self.frames,
+                "frames_tracked": self.frames_tracked,
+                "frames_with_truth": self.frames_with_truth,
+                "frames_leader_in_view": self.frames_in_view,
+                "frames_usable": self.frames_usable,
+                "coverage": self.frames_usable / self.frames_in_view if self.frames_in_view else None,
+                "rmse_m": pos,
+                "bearing_rmse_deg": brg,
+                "bins": [band(lo, hi) for lo, hi in RANGE_BINS_M],
+                "bands": [band(lo, hi) for lo, hi in BANDS_M],
+                "stage_ms_p50": {k: float(np.percentile(v, 50)) for k, v in self.stage_ms.items() if v},
+                "stage_ms_p95": {k: float(np.percentile(v, 95)) for k, v in self.stage_ms.items() if v},
+                "n": n,
+            }
+        )
+        return out
 
     def lines(self) -> list[str]:
         """A human-readable table."""
         out = [
             f"frames {self.frames}, tracked {self.frames_tracked} (confirmed or coasting), "
-            f"with ground truth {self.frames_with_truth}, tracked with ground truth {self.frames_usable}",
+            f"with ground truth {self.frames_with_truth} (the leader in view in {self.frames_in_view}), "
+            f"tracked with the leader in view {self.frames_usable}",
+        ]
+        if not self.frames_with_truth:
+            out.append("no ground truth in this recording: estimates only, no errors to compute")
+        elif not self.frames_in_view:
+            out.append("the ground truth has the leader in view in no frame: no errors to compute")
+        out += [
             "rmse: tracker output vs truth (camera frame); raw: this frame's pose measurement; paper: depth"
             " = median of a 5x5 patch at the box centre, unfiltered (paper n: frames where it had depth)",
             f"{'range m':>10} {'n':>6} {'rmse m':>8} {'bearing deg':>12} {'raw m':>8} {'paper m':>8}"
@@ -129,7 +160,7 @@ class Summary:
             pos, brg, meas, paper, n = self.rmse_in(lo, hi)
             label = f"{lo:g}-{hi:g}" if math.isfinite(hi) else f">={lo:g}"
             out.append(
-                f"{label:>10} {n:>6} {pos:>8.3f} {brg:>12.3f} {meas:>8.3f} {paper:>8.3f}"
+                f"{label:>10} {n:>6} {_cell(pos, 8)} {_cell(brg, 12)} {_cell(meas, 8)} {_cell(paper, 8)}"
                 f" {self.paper_n_in(lo, hi):>8}"
             )
         for stage, ms in self.stage_ms.items():

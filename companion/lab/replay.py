@@ -138,9 +138,12 @@ def evaluate_frame(
             el_deg=_fmt(math.degrees(est.elevation_rad)),
         )
     truth = frame.truth
-    if truth is None or truth.box_xyxy_px is None:
+    if truth is None:
         return row
     summary.frames_with_truth += 1
+    if truth.box_xyxy_px is None:
+        return row  # the leader out of view: nothing to compare with
+    summary.frames_in_view += 1
     p_true = truth.p_cam_leader_m
     rng = float(np.linalg.norm(p_true))
     row.update(
@@ -174,8 +177,13 @@ async def run_replay(
     *,
     out_csv: io.TextIOBase | None = None,
     realtime: bool = False,
+    max_frames: int = 0,
 ) -> Summary:
-    """Run perception over a recording; write CSV rows to ``out_csv`` and return the summary."""
+    """Run perception over a source; write CSV rows to ``out_csv`` and return the summary.
+
+    ``max_frames``: stop after that many frames (0: at the end of a recording; a live source, ``sim`` or
+    ``realsense``, runs until interrupted).
+    """
     camera = parse_source(source_spec, cfg.camera).model_copy(update={"realtime": realtime, "loop": False})
     source = open_source(camera)
     summary = Summary()
@@ -214,4 +222,6 @@ async def run_replay(
             )
             if writer is not None:
                 writer.writerow(row)
+            if max_frames and summary.frames >= max_frames:
+                break
     return summary

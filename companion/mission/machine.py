@@ -7,6 +7,7 @@ States and the ladder (see :class:`~companion.mission.types.MissionState`)::
     FOLLOW / FOLLOW_VISION --leader lost--> REACQUIRE (coast, then yaw scan) --timeout--> abort
     FOLLOW / FOLLOW_VISION / REACQUIRE --estimate stale--> HOVER --stall timeout--> abort
     abort: GPS healthy -> PX4_HOLD | PX4_LAND | PX4_RTL (leader_lost_action); no GPS -> CONTROLLED_LANDING
+    PX4_HOLD / PX4_IN_CONTROL --operator start, GPS healthy--> ACQUIRE (follow again)
     CONTROLLED_LANDING -> LANDED -> DISARMED
 
 Rules that hold in every state:
@@ -57,7 +58,18 @@ from companion.mission.types import (
     Transition,
 )
 
-__all__ = ["AIRBORNE_STATES", "OFFBOARD_STATES", "PX4_STATES", "MissionMachine"]
+__all__ = ["AIRBORNE_STATES", "OFFBOARD_STATES", "PX4_STATES", "START_IGNORED", "MissionMachine"]
+
+#: States where a start has nothing to act on: the mission is under way, or the vehicle is coming down.
+START_IGNORED = OFFBOARD_STATES | {
+    MissionState.ARMING,
+    MissionState.TAKEOFF,
+    MissionState.ACQUIRE,
+    MissionState.PX4_LAND,
+    MissionState.PX4_RTL,
+    MissionState.LANDED,
+    MissionState.LINK_LOST,
+}
 
 
 class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
@@ -78,10 +90,11 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
                 self._ego.push(min(veh.velocity_stamp_s, now_s), np.array(veh.v_ned_m_s))
         else:
             self._ego.clear()
-        if inp.start_requested and not self._prev_start:
+        # A start is kept until a state can act on it; where none can, it is dropped (never kept for later).
+        if inp.start_requested and not self._prev_start and self.state not in START_IGNORED:
             self._start_latched = True
         self._prev_start = inp.start_requested
-        if inp.takeover_requested and not self._prev_takeover:
+        if inp.takeover_requested and not self._prev_takeover and self.state not in START_IGNORED:
             self._takeover_latched = True
         self._prev_takeover = inp.takeover_requested
         if inp.leader is not None and inp.leader.usable and self._fresh(inp.leader):
@@ -207,7 +220,53 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
             return f"the companion is not flying the vehicle (state {st.value})"
         if cmd == OperatorCommand.HOLD and not self.gps.ok:
             return "hold needs GPS (PX4 cannot hold without a position); land instead"
+        if cmd == OperatorCommand.HOLD and st == MissionState.PX4_HOLD:
+            return "already holding (PX4 Hold); companion start follows again"
+        if cmd == OperatorCommand.LAND and st == MissionState.PX4_LAND:
+            return "already landing (PX4 Land)"
         return None
+
+    def start_refusal(self, veh: VehicleState) -> str | None:
+        """Why an operator's start would do nothing now (None: the next step acts on it).
+
+        From the ground a start arms once preflight passes; in the air (OBSERVE, after a hold, or after a
+        pilot's or failsafe's mode change) it takes the vehicle back and acquires the leader again, with
+        GPS only (no GPS and no verdict yet in OBSERVE: refused; a confirmed loss there lands under control).
+        """
+        st = self.state
+        if self._shutting_down:
+            return "the service is stopping"
+        if st in (MissionState.WAIT_LINK, MissionState.LINK_LOST):
+            return f"no link to the autopilot (state {st.value})"
+        if st in (MissionState.PREFLIGHT, MissionState.DISARMED):
+            if st == MissionState.PREFLIGHT and veh.armed and veh.in_air:
+                return None  # found flying: the start takes it (OBSERVE's rules)
+            problems = self._preflight_problems(veh)
+            return f"preflight: {', '.join(problems)}" if problems else None
+        if st == MissionState.OBSERVE:
+            if self.gps.ok or self.gps.loss_confirmed(veh, self._now_s):
+                return None
+            return "no GPS verdict yet (a fix, or a confirmed loss); try again in a few seconds"
+        if st in (MissionState.PX4_HOLD, MissionState.PX4_IN_CONTROL):
+            if not (veh.armed and veh.in_air):
+                return f"the vehicle is not flying (state {st.value})"
+            if not self.gps.ok:
+                return "no GPS: the companion takes the vehicle back only with a position (land instead)"
+            return None
+        if st in (MissionState.PX4_LAND, MissionState.PX4_RTL):
+            return f"PX4 is {'landing' if st == MissionState.PX4_LAND else 'returning'} the vehicle: " + (
+                "companion command hold first, then start" if self.gps.ok else "no GPS to hold it"
+            )
+        if st == MissionState.CONTROLLED_LANDING:
+            return "the companion is landing the vehicle (no GPS)"
+        if st == MissionState.LANDED:
+            return "landed and disarming: start again once disarmed"
+        return f"the mission is already under way (state {st.value})"
+
+    def withdraw_start(self) -> None:
+        """Forget a start that was not acted on (the operator was told it was refused)."""
+        self._start_latched = False
+        self._takeover_latched = False
 
     def set_slot(self, offset_cam_m: tuple[float, float, float]) -> str | None:
         """Change the formation slot in flight. Returns why it is refused, or None when applied.

@@ -166,6 +166,7 @@ class Reason(StrEnum):
     HOLD_TIMEOUT = "shutdown hold elapsed: landing"
     OPERATOR_LAND = "operator asked to land"
     OPERATOR_HOLD = "operator asked to hold"
+    OPERATOR_START = "operator asked to follow again"
 
 
 #: How each reason is reported to the ground station.
@@ -189,6 +190,7 @@ REASON_SEVERITY: dict[Reason, Severity] = {
     Reason.AIRBORNE_NOT_STARTED: Severity.WARNING,
     Reason.OPERATOR_LAND: Severity.NOTICE,
     Reason.OPERATOR_HOLD: Severity.NOTICE,
+    Reason.OPERATOR_START: Severity.NOTICE,
 }
 
 

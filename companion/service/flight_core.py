@@ -8,15 +8,19 @@ fly this class; they differ only in the clock and the link they hand it and in h
   estimate and the depth guard's reading);
 * :meth:`feed_telemetry` whenever telemetry may have moved (the follower's attitude and velocity into
   perception's histories, on the frames' clock);
-* :meth:`request_command` for every operator command (CLI, MQTT): always through the mission machine's
-  checks, never straight to the autopilot.
+* :meth:`request_command` and :meth:`operator_start` for every operator command (CLI, MQTT): always
+  through the mission machine's checks, never straight to the autopilot; answered with what was done.
+
+Observers (:attr:`FlightCore.observers`, e.g. the live view and the flight log) see every processed frame,
+control step and transition after the flight has used it; they never feed anything back.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -26,8 +30,8 @@ from companion.estimation.identity import Expectation, LeaderIdentity, expectati
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock
-from companion.kernel.flight import NEVER_S, Vec3T
-from companion.kernel.frames import Vec3, quat_from_euler
+from companion.kernel.flight import NEVER_S, Vec3T, VehicleState
+from companion.kernel.frames import Mat3, R_from_euler, Vec3, quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     MissionInputs,
@@ -38,6 +42,7 @@ from companion.mission.types import (
 )
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
+from companion.service.heading import HeadingCorrectedLink
 from companion.service.mission_runner import MissionRunner
 from companion.vehicle.link import VehicleLink
 
@@ -45,6 +50,16 @@ log = logging.getLogger(__name__)
 
 #: A shared position (leader's or a neighbour's) older than this is not used to tell them apart, s.
 SHARE_STALE_S = 1.0
+
+
+class FlightObserver(Protocol):
+    """Sees the flight without touching it. Called on the flight loop: must return at once and never raise."""
+
+    def on_frame(self, frame: RgbdFrame, result: DetectorResult, track: Any) -> None: ...
+
+    def on_step(self, inputs: MissionInputs, out: StepOutput) -> None: ...
+
+    def on_transition(self, tr: Transition) -> None: ...
 
 
 class FlightCore:
@@ -70,17 +85,23 @@ class FlightCore:
         on_step: Callable[[MissionInputs, StepOutput], None] | None = None,
     ) -> None:
         self.cfg = cfg
-        self.link = link
+        #: The autopilot as it reports, and as the mission and the camera see it: its heading error out.
+        self.raw_link = link
+        self.link = HeadingCorrectedLink(link)
         self.stage = stage
         self.machine = MissionMachine(cfg)
+        #: Called after the flight used each frame, step and transition (see :class:`FlightObserver`).
+        self.observers: list[FlightObserver] = []
+        self._on_transition = on_transition
+        self._on_step = on_step
         self.runner = MissionRunner(
-            link,
+            self.link,
             self.machine,
             clock,
             rate_hz=cfg.link.setpoint_rate_hz,
             command_timeout_s=cfg.link.command_timeout_s,
-            on_transition=on_transition,
-            on_step=on_step,
+            on_transition=self._transition,
+            on_step=self._step,
         )
         # The depth guard looks out as far as the mission's separation barrier needs to brake.
         self.pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=self.machine.limits.brake_m_s2)
@@ -91,6 +112,7 @@ class FlightCore:
         #: The follower's own velocity without GPS (the tracker's ego-motion), and the last aided one.
         self.ego = EgoVelocityObserver()
         self._v_aided: Vec3T | None = None
+        self._ego_said = False
         #: Auto-labelling while GPS is good (``[autolabel] enabled``); its writer runs with :meth:`run`.
         self.autolabel = AutoLabelTap(cfg, self.pipeline.camera) if cfg.autolabel.enabled else None
         # Formations: the leader told apart from neighbours by shares and the plan.
@@ -112,33 +134,51 @@ class FlightCore:
         self.runner.submit_obstacle(self.pipeline.obstacle(frame, track))
         if self.autolabel is not None:
             self.autolabel.on_frame(frame, self.link.snapshot(), self.pipeline.attitude)
+        for observer in self.observers:
+            observer.on_frame(frame, result, track)
         return track
+
+    def _transition(self, tr: Transition) -> None:
+        if self._on_transition is not None:
+            self._on_transition(tr)
+        for observer in self.observers:
+            observer.on_transition(tr)
+
+    def _step(self, inputs: MissionInputs, out: StepOutput) -> None:
+        if self._on_step is not None:
+            self._on_step(inputs, out)
+        for observer in self.observers:
+            observer.on_step(inputs, out)
 
     def feed_telemetry(self) -> None:
         """Copy each new attitude and velocity sample from the link into perception's histories.
 
-        The velocity is the tracker's ego-motion. PX4's only while its estimate is GPS-aided (turned into the
-        attitude's frame by the heading error :class:`EgoVelocityObserver` fits): after a GPS loss PX4's
-        dead-reckoned velocity runs off by metres per second within seconds. Then the observer's, from
-        the drag model it learnt meanwhile and the attitude; without a model, none (the track predicts on
-        its own relative velocity).
+        The velocity is the tracker's ego-motion: PX4's only while its estimate is GPS-aided; after a GPS
+        loss PX4's dead-reckoned velocity runs off by metres per second within seconds. Then the
+        :class:`EgoVelocityObserver`'s, from the drag model it learnt meanwhile and the attitude; without a
+        model, none (the track predicts on its own relative velocity).
         """
-        v = self.link.snapshot()
+        v = self.raw_link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
             self._attitude_stamp_s = v.attitude_stamp_s
-            self.pipeline.attitude.push(
-                v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)
-            )
+            self.link.update(self.ego.model() if self.machine.gps_ok else None, v.attitude_stamp_s)
+            yaw = v.yaw_rad - self.link.applied_rad
+            self.pipeline.attitude.push(v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, yaw))
         if v.velocity_stamp_s > self._velocity_stamp_s:
             stamp_s = self._velocity_stamp_s = v.velocity_stamp_s
-            R = self.pipeline.attitude.R_at(stamp_s)
+            # The ego model learns PX4's own attitude, heading error and all.
+            R = _R_raw(v)
             ego = self.ego
             if self.machine.gps_ok and v.position_valid is not False:
                 if R is not None:
                     ego.learn(stamp_s, v.v_ned_m_s, R)
                 self._v_aided = v.v_ned_m_s
-                self.pipeline.velocity.push(stamp_s, ego.to_attitude_frame(v.v_ned_m_s))
+                self._ego_said = False
+                self.pipeline.velocity.push(stamp_s, v.v_ned_m_s)
             elif R is not None and self._v_aided is not None:
+                if not self._ego_said:
+                    self._ego_said = True
+                    _say_ego_model(ego)
                 v_own = ego.step(stamp_s, R, self._v_aided)
                 if v_own is not None:
                     self.pipeline.velocity.push(stamp_s, v_own)
@@ -188,9 +228,13 @@ class FlightCore:
     def request_shutdown(self) -> None:
         self.runner.request_shutdown()
 
-    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        """An operator command through the mission machine's checks; the one-line reply."""
-        return self.runner.request_command(name, offset_cam_m)
+    async def operator_start(self) -> str:
+        """See :meth:`MissionRunner.operator_start`."""
+        return await self.runner.operator_start()
+
+    async def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
+        """An operator command through the mission machine's checks; the one-line answer."""
+        return await self.runner.request_command(name, offset_cam_m)
 
     async def run(self) -> None:
         """The mission until its shutdown action is under way."""
@@ -210,3 +254,26 @@ class FlightCore:
 def _brought_to(p_ned_m: Vec3T, v_ned_m_s: Vec3T, age_s: float) -> Vec3:
     """A shared position ``age_s`` old, moved on at its shared velocity (NED, m)."""
     return np.asarray(p_ned_m, dtype=np.float64) + age_s * np.asarray(v_ned_m_s, dtype=np.float64)
+
+
+def _say_ego_model(ego: EgoVelocityObserver) -> None:
+    """One line at a GPS loss: what the follower's velocity will come from now."""
+    m = ego.model()
+    if m is None:
+        log.warning("ego velocity: no drag model learnt before the GPS loss; the track predicts alone")
+        return
+    log.info(
+        "ego velocity without GPS: drag %.2f 1/s, wind push (%.2f, %.2f) m/s^2, heading error %.1f deg "
+        "(%d samples)",
+        m.drag_per_s,
+        *m.push_ne_m_s2,
+        math.degrees(m.heading_error_rad),
+        m.samples,
+    )
+
+
+def _R_raw(v: VehicleState) -> Mat3 | None:
+    """``R_ned_body`` from the autopilot's own attitude (None when it is not finite)."""
+    if not all(math.isfinite(x) for x in (v.roll_rad, v.pitch_rad, v.yaw_rad)):
+        return None
+    return R_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad)

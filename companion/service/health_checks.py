@@ -13,7 +13,7 @@ import importlib
 import logging
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -21,9 +21,9 @@ from typing import Any
 import aiomqtt
 import numpy as np
 
-from companion.config import Config, load_config
+from companion.config import Config, ConfigCheck, DetectorConfig, check_config
 from companion.kernel import compat
-from companion.kernel.errors import CompanionError
+from companion.kernel.errors import CompanionError, ModelError
 from companion.service.status import ServiceNotRunningError, query_status
 from companion.telemetry.mqtt import load_mqtt_credentials
 
@@ -60,25 +60,91 @@ class HealthReport:
         }
 
 
-def check_config(path: Path) -> tuple[Config | None, CheckResult]:
-    """Load and validate the config."""
+@dataclass(frozen=True, slots=True)
+class ConfigVerdict:
+    """What ``companion check-config`` reports: the config's problems and the model files' (one pass)."""
+
+    check: ConfigCheck
+    #: The model files' problems (``detector.model_path: ...``), one line each.
+    model: list[str]
+
+    @property
+    def config(self) -> Config | None:
+        """The resolved config when nothing at all is wrong with it."""
+        return self.check.config if not self.model else None
+
+    @property
+    def problems(self) -> list[str]:
+        return [*self.check.problems, *self.model]
+
+    @property
+    def sources(self) -> list[str]:
+        return [*self.check.sources, *[self.check.source_of(("detector", "model_path"))] * len(self.model)]
+
+    def lines(self) -> list[str]:
+        """``source: problem``, one per problem."""
+        return [f"{s}: {p}" for s, p in zip(self.sources, self.problems, strict=True)]
+
+
+def verify_config(path: Path | None, environ: Mapping[str, str] | None = None) -> ConfigVerdict:
+    """Every problem of the config at ``path`` and of the model files it names, in one pass.
+
+    Raises :class:`ConfigError` only for a file that cannot be read or parsed at all.
+    """
+    check = check_config(path, environ)
+    resolved = check.paths.get(("detector", "model_path"))
+    return ConfigVerdict(check, model_problems(check.detector, resolved.note() if resolved else ""))
+
+
+def model_problems(detector: DetectorConfig | None, note: str = "") -> list[str]:
+    """What ``companion run`` would refuse about the model files, one line each (empty: none).
+
+    The file ``model_path`` names and the one the runtime would load (the ONNX export under ``auto`` when
+    onnxruntime is there) must both be present and match their checksums. ``note`` (how a relative path
+    was resolved) is added to a "not found".
+    """
+    if detector is None or detector.runtime == "truth":
+        return []
     try:
-        cfg = load_config(path)
+        detector_mod = importlib.import_module("companion.perception.detector")
+    except ModuleNotFoundError as exc:
+        return [f"detector.model_path: the detector is not in this build ({exc.name})"]
+    named = Path(detector.model_path)
+    _, loaded = detector_mod.choose_runtime(detector)
+    problems = []
+    for path in dict.fromkeys([named, loaded]):
+        try:
+            detector_mod.verify_model_file(path, detector.model_sha256 if path == named else "")
+        except ModelError as exc:
+            missing = not path.exists()
+            problems.append(f"detector.model_path: {exc}{note if missing else ''}")
+    return problems
+
+
+def check_config_file(path: Path) -> tuple[Config | None, CheckResult]:
+    """The config check: the same problems as ``companion check-config``, the model files' included."""
+    try:
+        verdict = verify_config(path)
     except CompanionError as exc:
         return None, CheckResult("config", False, " / ".join(str(exc).splitlines()))
+    cfg = verdict.check.config
+    if verdict.problems:
+        return cfg, CheckResult("config", False, " / ".join(verdict.lines()))
+    assert cfg is not None  # noqa: S101 (no problem: the config is there)
     return cfg, CheckResult("config", True, f"{path} valid (vehicle {cfg.vehicle_id})")
 
 
 def check_model(cfg: Config) -> CheckResult:
-    """The detector's weights match their checksum and one inference on a blank frame runs."""
+    """The model file the service will load matches its checksum, and one inference on a blank frame runs."""
     if cfg.detector.runtime == "truth":
         return CheckResult(
             "model", True, "not used: ground-truth boxes (detector.runtime = truth, tests only)"
         )
-    try:
-        detector_mod = importlib.import_module("companion.perception.detector")
-    except ModuleNotFoundError as exc:
-        return CheckResult("model", False, f"detector not available ({exc.name})")
+    problems = model_problems(cfg.detector)
+    if problems:
+        return CheckResult("model", False, " / ".join(problems))
+    detector_mod = importlib.import_module("companion.perception.detector")
+    runtime, loaded = detector_mod.choose_runtime(cfg.detector)
     try:
         t0 = time.monotonic()
         detector = detector_mod.load_detector(cfg.detector)
@@ -89,11 +155,11 @@ def check_model(cfg: Config) -> CheckResult:
     except CompanionError as exc:
         return CheckResult("model", False, str(exc))
     except Exception as exc:  # a broken model file can fail in many ways inside torch/onnxruntime
-        return CheckResult("model", False, f"test inference failed: {type(exc).__name__}: {exc}")
+        return CheckResult("model", False, f"{loaded}: test inference failed: {type(exc).__name__}: {exc}")
     return CheckResult(
         "model",
         True,
-        f"{cfg.detector.model_path} checksum ok, loaded in {(t1 - t0) * 1e3:.0f} ms, "
+        f"{loaded} ({runtime}, the file the service loads) checksum ok, loaded in {(t1 - t0) * 1e3:.0f} ms, "
         f"test inference {(t2 - t1) * 1e3:.0f} ms ({len(result.detections)} detections on a blank frame)",
     )
 
@@ -170,7 +236,7 @@ def run_health(
     timeout_s: float = 5.0,
 ) -> HealthReport:
     """All checks for ``config_path``; the running service answers for the devices it owns."""
-    cfg, config_result = check_config(config_path)
+    cfg, config_result = check_config_file(config_path)
     checks = [config_result]
     if cfg is None:
         return HealthReport(checks, service_running=False)

@@ -48,6 +48,9 @@ _LOG_LEVEL = {
 }
 #: A command that has not finished after this many command timeouts is reported as failed.
 COMMAND_GRACE_FACTOR = 3.0
+#: An operator's start, land or hold is answered after the next control tick; a loop that has not
+#: stepped by then gets the request withdrawn, s (under the CLI's 3 s wait for the status socket).
+ANSWER_TIMEOUT_S = 2.0
 
 
 class MissionRunner:
@@ -90,6 +93,8 @@ class MissionRunner:
         self._last_setpoint: Setpoint | None = None
         self._setpoint_failures = 0
         self._operator: OperatorCommand | None = None
+        #: Operators waiting for the answer to a start, land or hold: (name, future of the answer).
+        self._waiting: list[tuple[str, asyncio.Future[str]]] = []
         self.last_transition: Transition | None = None
 
     # ------------------------------------------------------------------ inputs
@@ -109,10 +114,11 @@ class MissionRunner:
         self._neighbours[neighbour.name] = neighbour
 
     def request_start(self, *, takeover: bool = True) -> None:
-        """Start the mission.
+        """Start the mission, without waiting for an answer (``service.auto_start``, the harnesses).
 
-        ``takeover``: an operator's start, which may also take a vehicle already in the air;
-        ``service.auto_start`` passes False (it arms and takes off from the ground only).
+        Delivered on the next tick; the machine keeps it until it can act (from the ground: once preflight
+        passes) or drops it where a start means nothing. ``takeover``: an operator's start, which may also
+        take a vehicle already in the air; ``service.auto_start`` passes False (from the ground only).
         """
         self._start = True
         self._takeover = self._takeover or takeover
@@ -121,11 +127,28 @@ class MissionRunner:
         """Ask for the configured safe action; :meth:`run` returns once it is under way."""
         self._shutdown = True
 
-    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        """An operator command: ``land``, ``hold`` or ``set_offset``; returns what was done, in words.
+    async def operator_start(self, timeout_s: float = ANSWER_TIMEOUT_S) -> str:
+        """An operator's start: what the mission did with it, or why it refused, in one line.
 
-        Land and hold take effect on the next tick (their transition is then reported like any other);
-        a new offset applies at once if it is a safe slot.
+        From the ground it arms (once preflight passes); in the air, after a hold or a mode change by a pilot
+        or a failsafe, it takes the vehicle back and acquires the leader again.
+        """
+        why = self.machine.start_refusal(self.link.snapshot())
+        if why is not None:
+            return f"start refused: {why}"
+        self.request_start()
+        return await self._answer("start", timeout_s)
+
+    async def request_command(
+        self,
+        name: str,
+        offset_cam_m: tuple[float, float, float] | None = None,
+        timeout_s: float = ANSWER_TIMEOUT_S,
+    ) -> str:
+        """An operator command: ``land``, ``hold`` or ``set_offset``; what was done or why not, in one line.
+
+        A new offset applies at once if it is a safe slot. Land and hold are answered after the control
+        tick that took them, with the transition they caused (or why none happened).
         """
         if name == "set_offset":
             if offset_cam_m is None:
@@ -143,7 +166,39 @@ class MissionRunner:
         if why is not None:
             return f"{cmd.value} refused: {why}"
         self._operator = cmd
-        return f"{cmd.value} requested"
+        return await self._answer(cmd.value, timeout_s)
+
+    async def _answer(self, name: str, timeout_s: float) -> str:
+        """The outcome of the request just made, once the next tick has taken it."""
+        answer: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        self._waiting.append((name, answer))
+        try:
+            async with compat.timeout(timeout_s):
+                return await answer
+        except TimeoutError:
+            # Withdrawn, so that it cannot act later behind the operator's back.
+            self._waiting = [(n, f) for n, f in self._waiting if f is not answer]
+            self._start = self._takeover = False
+            self._operator = None
+            self.machine.withdraw_start()
+            return f"{name} refused: the mission loop did not step within {timeout_s:g} s (nothing done)"
+
+    def _settle(self, waiting: list[tuple[str, asyncio.Future[str]]], out: StepOutput) -> None:
+        """Answer the requests this tick took: the transitions they caused, or that nothing happened."""
+        for name, answer in waiting:
+            if answer.done():
+                continue
+            if out.transitions:
+                moves = "; ".join(
+                    f"{t.from_state.value} -> {t.to_state.value} ({t.reason.value}"
+                    + (f": {t.detail})" if t.detail else ")")
+                    for t in out.transitions
+                )
+                answer.set_result(f"{name}: {moves}")
+                continue
+            if name == "start":
+                self.machine.withdraw_start()  # never kept to act later
+            answer.set_result(f"{name} refused: nothing to do in state {out.state.value}")
 
     @property
     def state(self) -> MissionState:
@@ -177,20 +232,23 @@ class MissionRunner:
         now_s = self.clock.now_s()
         results, self._results = tuple(self._results), []
         operator, self._operator = self._operator, None
+        waiting, self._waiting = self._waiting, []
+        start, takeover, self._start, self._takeover = self._start, self._takeover, False, False
         inputs = MissionInputs(
             vehicle=self.link.snapshot(),
             leader=self._leader,
             leader_shared=self._shared,
             obstacle=self._obstacle,
             neighbours=tuple(self._neighbours.values()),
-            start_requested=self._start,
-            takeover_requested=self._takeover,
+            start_requested=start,
+            takeover_requested=takeover,
             shutdown_requested=self._shutdown,
             command_results=results,
             operator=operator,
         )
         out = self.machine.step(inputs, now_s)
         self.last_output = out
+        self._settle(waiting, out)
         for tr in out.transitions:
             self._report(tr)
         if out.setpoint is not None:

@@ -103,10 +103,17 @@ class MissionPort(Protocol):
         ...
 
     def request_start(self, *, takeover: bool = True) -> None:
-        """Start the mission (arm, take off, acquire, follow) once preflight passes.
+        """Start the mission (arm, take off, acquire, follow) once preflight passes, without an answer.
 
         ``takeover``: an operator's start, which also takes a vehicle found already flying; the service's
         ``auto_start`` passes False (it arms and takes off from the ground only).
+        """
+        ...
+
+    async def operator_start(self) -> str:
+        """An operator's start: from the ground, arm and take off; in the air, take the vehicle back.
+
+        Returns what the mission did or why it refused, in one line (a refusal contains `` refused: ``).
         """
         ...
 
@@ -114,10 +121,10 @@ class MissionPort(Protocol):
         """Perform the configured safe action (``mission.shutdown_action``), then let :meth:`run` return."""
         ...
 
-    def request_command(self, name: str, offset_cam_m: Vec3T | None = None) -> str:
+    async def request_command(self, name: str, offset_cam_m: Vec3T | None = None) -> str:
         """An operator command (``land``, ``hold``, ``set_offset``) through the mission machine's checks.
 
-        Returns what was done or why it was refused, in one line.
+        Returns what was done or why it was refused, in one line (a refusal contains `` refused: ``).
         """
         ...
 

@@ -1,21 +1,23 @@
 """The local status endpoint: a Unix socket (mode 0660) that answers one JSON line per request.
 
 Protocol: the client sends one request and a newline (``status``, ``health``, ``start``, or ``command`` with
-its words, e.g. ``command set_offset 0 0 6``); the server answers
-with one JSON object and a newline, then closes. The socket's mode and its directory's group decide who
-may ask (the unit makes ``/run/wingman`` owned by the service's group).
+its words, e.g. ``command set_offset 0 0 6``); the server answers with one JSON object and a newline, then
+closes. ``start`` and ``command`` are answered once the mission has acted on them (``{"ok", "detail"}``).
+The socket's mode and its directory's group decide who may ask (the unit makes ``/run/wingman`` owned by
+the service's group).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import inspect
 import json
 import logging
 import os
 import socket
 import stat
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -30,15 +32,21 @@ SOCKET_MODE = 0o660
 _MAX_REQUEST_BYTES = 256
 _REQUEST_TIMEOUT_S = 2.0
 
-Handler = Callable[[], Mapping[str, Any]]
+#: A request's answer, or (an operator's request) a coroutine that answers once the mission has acted.
+Reply = Mapping[str, Any] | Awaitable[Mapping[str, Any]]
+Handler = Callable[[], Reply]
 #: A request with words after its name (``command set_offset 0 0 6``): gets those words.
-CommandHandler = Callable[[list[str]], Mapping[str, Any]]
+CommandHandler = Callable[[list[str]], Reply]
+
+
+#: Exit code of a client command (``status``, ``start``, ``command``) that found no service to answer it.
+EXIT_NOT_RUNNING = 5
 
 
 class ServiceNotRunningError(CompanionError):
-    """Nothing answers on the status socket."""
+    """No service answers on the status socket: not running, not answering, or not ours to open."""
 
-    exit_code = 1
+    exit_code = EXIT_NOT_RUNNING
 
 
 class StatusSocketError(CompanionError):
@@ -95,7 +103,7 @@ class StatusServer:
             request, args = words[0], words[1:]
             handler = self._handlers.get(request) if not args else None
             command = self._commands.get(request)
-            reply: Mapping[str, Any]
+            reply: Reply
             if handler is not None:
                 reply = handler()
             elif command is not None:
@@ -105,6 +113,8 @@ class StatusServer:
                     "error": f"unknown request {' '.join(words)!r}",
                     "known": sorted([*self._handlers, *self._commands]),
                 }
+            if inspect.isawaitable(reply):
+                reply = await reply
             writer.write(json.dumps(reply, default=_json_default).encode() + b"\n")
             async with compat.timeout(_REQUEST_TIMEOUT_S):
                 await writer.drain()
@@ -163,7 +173,10 @@ def query_status(path: Path, request: str = "status", timeout_s: float = 3.0) ->
         try:
             sock.connect(str(path))
         except (FileNotFoundError, ConnectionRefusedError):
-            raise ServiceNotRunningError(f"service not running (nothing listens on {path})") from None
+            raise ServiceNotRunningError(
+                f"service not running: nothing listens on {path} (start it with `companion run`; "
+                "a service with another config: --config PATH)"
+            ) from None
         except PermissionError:
             raise ServiceNotRunningError(
                 f"no permission to open {path} (run as the service's user or a member of its group)"

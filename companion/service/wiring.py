@@ -16,6 +16,7 @@ import math
 import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from companion.config import Config, resolve_state_dir
@@ -189,9 +190,15 @@ class FlightAdapter:
     def request_shutdown(self) -> None:
         self.core.request_shutdown()
 
-    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        """Land, hold or set_offset through the mission machine's checks; the one-line reply."""
-        reply = self.core.request_command(name, offset_cam_m)
+    async def operator_start(self) -> str:
+        """An operator's start through the mission machine's checks; what it did, in one line."""
+        reply = await self.core.operator_start()
+        (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
+        return reply
+
+    async def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
+        """Land, hold or set_offset through the mission machine's checks; what it did, in one line."""
+        reply = await self.core.request_command(name, offset_cam_m)
         (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
         return reply
 
@@ -334,6 +341,9 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             MavsdkVehicleLink(link_cfg, clock, leader_system_id=cfg.leader.mavlink_system_id)
         )
         flight = FlightAdapter(cfg, link, clock, stage)
+        recorder = open_recorder(cfg, flight.core, clock, ctx, stack)
+        if recorder is not None:
+            extra_status["viz"] = recorder.counters
 
         def process(frame: RgbdFrame, result: DetectorResult) -> Any:
             t0_s = time.perf_counter()
@@ -361,6 +371,52 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
         )
 
     return open_parts
+
+
+def open_recorder(
+    cfg: Config, core: FlightCore, clock: Clock, ctx: PartsContext, stack: contextlib.AsyncExitStack
+) -> Any:
+    """The live view and the flight log (``[viz]``) observing ``core``, entered on ``stack``; None when off.
+
+    The log goes to ``viz.log_dir`` (default ``flights/`` in the state folder), one file set per start, its
+    times on the wall clock.
+    """
+    if not (cfg.viz.live or cfg.viz.log):
+        return None
+    from companion.viz.recorder import wall_offset_s  # noqa: PLC0415 (the Foxglove SDK: only when on)
+    from companion.viz.setup import LogPlace, build_recorder  # noqa: PLC0415
+    from companion.viz.sinks import flight_stem  # noqa: PLC0415
+
+    place = None
+    if cfg.viz.log:
+        folder = (
+            Path(cfg.viz.log_dir) if cfg.viz.log_dir else resolve_state_dir(cfg.service.state_dir, os.environ)
+        )
+        if not cfg.viz.log_dir:
+            folder = folder / "flights"
+        place = LogPlace(folder, flight_stem(cfg.vehicle_id), {"vehicle_id": cfg.vehicle_id})
+    health = ctx.health
+
+    def flags() -> dict[str, Any]:
+        parts = health.snapshot()
+        return {
+            "healthy": all(c.ok for c in parts if c.critical),
+            "components": {c.name: {"ok": c.ok, "alive": c.alive, "detail": c.detail} for c in parts},
+        }
+
+    recorder = build_recorder(
+        cfg.viz,
+        core.pipeline.camera,
+        clock,
+        log_place=place,
+        server_name=f"wingman {cfg.vehicle_id}",
+        time_offset_s=wall_offset_s(clock),
+        health=flags,
+    )
+    if recorder is not None:
+        stack.enter_context(recorder)
+        core.observers.append(recorder)
+    return recorder
 
 
 async def open_signing_relay(cfg: Config, stack: contextlib.AsyncExitStack) -> Any:

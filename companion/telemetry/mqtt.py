@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import inspect
 import json
 import logging
 import random
@@ -143,7 +144,8 @@ class MqttReporter:
         wall_time_s: wall-clock time for ``time_unix_s`` and command freshness.
         credentials: password, TLS context and command key.
         rng: jitter for the reconnect backoff.
-        on_command: called with each verified command; returns the text reported on ``events``.
+        on_command: called with each verified command; returns (or, a coroutine, answers once the mission
+            has acted) the text reported on ``events``.
         on_leader_position: called with each valid leader position from ``cfg.leader_topic``.
         on_neighbour_pose: called with (vehicle id, pose) for each pose the ``neighbour_ids`` publish.
         neighbour_ids: the other followers of a formation plan.
@@ -160,7 +162,7 @@ class MqttReporter:
         *,
         credentials: MqttCredentials | None = None,
         rng: random.Random | None = None,
-        on_command: Callable[[Command], str] | None = None,
+        on_command: Callable[[Command], str | Awaitable[str]] | None = None,
         on_leader_position: Callable[[LeaderPositionMsg], None] | None = None,
         on_neighbour_pose: Callable[[str, PoseMsg], None] | None = None,
         neighbour_ids: Sequence[str] = (),
@@ -568,7 +570,8 @@ class MqttReporter:
             )
             return
         self.commands_accepted += 1
-        result = self._on_command(cmd)
+        answer = self._on_command(cmd)
+        result = await answer if inspect.isawaitable(answer) else answer  # once the mission has acted
         refused = " refused: " in result
         (log.warning if refused else log.info)(
             "MQTT: command %s from %s: %s", cmd.name.value, cmd.key_id, result

@@ -15,6 +15,13 @@ autopilot that speaks MAVLink 2 signing on UDP or serial (PX4, the project's sim
   Everything else is dropped and counted by reason. A frame that claims the follower's system id
   (``link.system_id``) without a valid signature is an impostor: a second vehicle with our id, or
   someone spoofing it; it is reported (rate-limited) and never reaches MAVSDK.
+- **An autopilot behind**: PX4 keeps the timestamp SETUP_SIGNING gave it and starts from it at every boot;
+  it moves on only by one unit per frame it sends and up to the newest signed frame it receives. Booted
+  long after it was keyed, its frames are signed with our key but older than our clock (or than its own
+  last ones, seen before a reboot). They are dropped like any old frame (they could be replayed), and
+  not reported as an impostor: its address gets our frames, and once it has one it signs with a current
+  timestamp and passes again. Without that, a relay that listens (``udpin``) would never send it
+  anything and never hear it again.
 - **Provisioning**: an autopilot that does not sign yet sends unsigned heartbeats. With
   ``link.signing_provision`` the relay sends it the key (SETUP_SIGNING) while those heartbeats say
   disarmed and come from one address only; PX4 refuses it while armed. Until the autopilot signs, MAVSDK
@@ -53,6 +60,7 @@ from companion.vehicle.mavlink_signing import (
     heartbeat_armed,
     parse_header,
     setup_signing_frame,
+    signature_matches,
     split_frames,
     take_stream_frames,
 )
@@ -118,6 +126,8 @@ class SigningRelay:
         #: True once a frame signed by our autopilot checked out: from then on, unsigned is an impostor.
         self.autopilot_signs = False
         self._unsigned_autopilot: dict[Addr, tuple[float, bool]] = {}
+        #: Where frames signed with our key but with old timestamps come from (an autopilot behind).
+        self._behind: dict[Addr, float] = {}
         self._last_provision_s = -1e9
         self.provision_attempts = 0
         self.impostors: Counter[str] = Counter()
@@ -215,6 +225,9 @@ class SigningRelay:
         for addr, (seen, _) in self._unsigned_autopilot.items():
             if now - seen < HEARTBEAT_FRESH_S and addr not in dests:
                 dests.append(addr)
+        for addr, seen in self._behind.items():
+            if now - seen < HEARTBEAT_FRESH_S and addr not in dests:
+                dests.append(addr)
         self._autopilot.send(data, dests)
 
     # ------------------------------------------------------------------ autopilot -> MAVSDK
@@ -252,6 +265,12 @@ class SigningRelay:
                     "signing relay: autopilot system %d signs with our key; its frames pass", self.target
                 )
             return True
+        if (
+            ours
+            and verdict in (Verdict.REPLAYED, Verdict.STALE_STREAM)
+            and signature_matches(self._key, frame)
+        ):
+            return self._autopilot_behind(verdict, addr)
         if ours and not self.autopilot_signs:
             return self._before_signing(verdict, info, addr)
         if verdict is not Verdict.UNSIGNED:
@@ -287,6 +306,26 @@ class SigningRelay:
             where = addr if addr is not None else _SERIAL
             self._unsigned_autopilot[where] = (time.monotonic(), heartbeat_armed(info))
             self._say_not_signing()
+        return False
+
+    def _autopilot_behind(self, verdict: Verdict, addr: Addr | None) -> bool:
+        """Our system's frame, signed with our key, older than its stream's last or than our clock: dropped.
+
+        PX4 after a boot, with the timestamp it was keyed with: our frames go to where it sends from, so
+        it catches up (see the module's docstring). A replayed frame of ours is dropped the same way.
+        """
+        self.counters["in_behind"] += 1
+        where = addr if addr is not None else _SERIAL
+        if where not in self._behind and len(self._behind) >= MAX_PEERS:
+            del self._behind[min(self._behind, key=self._behind.__getitem__)]
+        self._behind[where] = time.monotonic()
+        source = "the serial link" if addr is None else f"{addr[0]}:{addr[1]}"
+        self._report(
+            "behind",
+            f"system {self.target} signs with our key but an old timestamp ({verdict.value}, from {source}): "
+            "dropped until it catches up from our frames (PX4 starts from the timestamp it was keyed with "
+            "at every boot)",
+        )
         return False
 
     def _impostor(self, why: str, info: FrameInfo, addr: Addr | None) -> None:

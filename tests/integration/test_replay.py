@@ -2,11 +2,15 @@ from __future__ import annotations
 
 import csv
 import json
+import socket
+import threading
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from companion.cli import main
+from companion.kernel.camera_wire import encode_frame
 from companion.perception.record import FolderRecorder
 from tests.synthetic import sequence_frames
 
@@ -108,3 +112,86 @@ def test_record_reports_the_frames_its_source_skipped(
     again = tmp_path / "again"
     assert main(["record", "--config", cfg, "--source", f"file:{copy}", "--out", str(again)]) == 0
     assert capsys.readouterr().err.strip().splitlines()[-1] == said(again)
+
+
+def _strict_json(text: str) -> object:
+    def no_constant(name: str) -> object:
+        raise AssertionError(f"{name} is not JSON")
+
+    return json.loads(text, parse_constant=no_constant)
+
+
+def test_truth_without_the_leader_in_view_is_counted_as_truth(
+    tmp_path: Path, repo_root: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Truth records whose box is null (the leader out of view): truth all the same, and JSON with nulls."""
+    rec = tmp_path / "away"
+    with FolderRecorder(rec) as r:
+        for frame in sequence_frames(12):
+            assert frame.truth is not None
+            r.write(replace(frame, truth=replace(frame.truth, box_xyxy_px=None, visible_fraction=0.0)))
+    js = tmp_path / "sum.json"
+    cfg = str(repo_root / "config/wingman.toml")
+    rc = main(
+        ["replay", "--config", cfg, "--source", f"file:{rec}", "--detector", "truth", "--json", str(js)]
+    )
+    out = capsys.readouterr().out.splitlines()
+    assert rc == 0
+    assert out[0] == (
+        "frames 12, tracked 0 (confirmed or coasting), with ground truth 12 (the leader in view in 0), "
+        "tracked with the leader in view 0"
+    )
+    assert out[1] == "the ground truth has the leader in view in no frame: no errors to compute"
+    summary = _strict_json(js.read_text())
+    assert isinstance(summary, dict)
+    assert summary["frames_with_truth"] == 12
+    assert summary["frames_leader_in_view"] == 0
+    assert summary["coverage"] is None
+    assert summary["rmse_m"] is None
+
+
+def test_replay_of_a_live_source_stops_after_frames(
+    tmp_path: Path, repo_root: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--source sim`` against a camera socket that never ends: ``--frames`` ends the replay."""
+    sock_path = tmp_path / "cam.sock"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    server.bind(str(sock_path))
+    server.listen(1)
+    done = threading.Event()
+
+    def serve() -> None:  # the simulator's camera server as the wire sees it: frames, and never an end
+        conn, _ = server.accept()
+        with conn:
+            try:
+                for frame in sequence_frames(40):
+                    for part in encode_frame(frame):
+                        conn.sendall(part)
+            except OSError:
+                pass  # the reader went away
+            done.wait(30)
+
+    thread = threading.Thread(target=serve, name="test-camera-server", daemon=True)
+    thread.start()
+    monkeypatch.setenv("WINGMAN_CAMERA__PATH", str(sock_path))
+    monkeypatch.setenv("WINGMAN_LEADER__BOX_CENTRE_BELOW_M", "0.0")
+    try:
+        cfg = str(repo_root / "config/wingman.toml")
+        rc = main(["replay", "--config", cfg, "--source", "sim", "--frames", "12", "--detector", "truth"])
+    finally:
+        done.set()
+        thread.join(5)
+        server.close()
+    assert rc == 0
+    assert capsys.readouterr().out.splitlines()[0].startswith("frames 12, ")
+
+
+def test_replay_help_names_every_source() -> None:
+    from companion.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    text = sub.choices["replay"].format_help()  # type: ignore[attr-defined]
+    assert "file:PATH" in text
+    assert "sim" in text
+    assert "realsense" in text
+    assert "--frames" in text

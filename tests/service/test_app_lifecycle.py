@@ -111,14 +111,20 @@ class ScriptedMission:
                 return  # like flight's runner: PX4 lands by itself from here
             await asyncio.sleep(0.05)
 
-    def request_start(self) -> None:
+    def request_start(self, *, takeover: bool = True) -> None:
         self.started = True
+
+    async def operator_start(self) -> str:
+        self.started = True
+        await asyncio.sleep(0.05)  # answered after the next step, as the real runner does
+        return f"start: {self.state} -> {self.state} (scripted)"
 
     def request_shutdown(self) -> None:
         self.shutdown = True
 
-    def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
+    async def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
         self.commands.append(name)
+        await asyncio.sleep(0.05)
         return f"{name} done"
 
 
@@ -196,7 +202,7 @@ async def test_stop_request_lands_then_exits_zero(
         await wait_until(lambda: mission.state == "follow" and exists(sock))
         await asyncio.sleep(0.5)
         started = await asyncio.to_thread(query_status, sock, "start")
-        assert started == {"ok": True, "detail": "start requested"}
+        assert started == {"ok": True, "detail": "start: follow -> follow (scripted)"}
         assert mission.started
         snap = await asyncio.to_thread(query_status, sock, "status")
         health = await asyncio.to_thread(query_status, sock, "health")

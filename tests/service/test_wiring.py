@@ -84,6 +84,10 @@ class LandingAutopilot(FakeAutopilot):
         return super().state(now_s)
 
 
+#: Over the status socket, in order: hold, hold again, start (follow again), start again.
+ASK_HOLD_THEN_START = ("command hold", "command hold", "start", "start")
+
+
 async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -> None:
     clock = MonotonicClock()
     cfg = Config.model_validate(
@@ -96,6 +100,7 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
     ap = LandingAutopilot()
     link = RecordingLink(ap, clock)
     flight = FlightAdapter(cfg, link, clock)  # type: ignore[arg-type]
+    sock = Path(cfg.status.socket_path)
 
     async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
         return Parts(mission=flight, gcs=LinkGcs(link))
@@ -115,14 +120,30 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
                     break
                 await asyncio.sleep(0.05)
             snap: dict[str, Any] = await asyncio.to_thread(query_status, Path(cfg.status.socket_path))
-            assert flight.request_command("set_offset", (0.0, 0.0, 1.0)).startswith("set_offset refused")
-            assert flight.request_command("set_offset", (0.5, 0.0, 6.0)).startswith(
+            assert (await flight.request_command("set_offset", (0.0, 0.0, 1.0))).startswith(
+                "set_offset refused"
+            )
+            assert (await flight.request_command("set_offset", (0.5, 0.0, 6.0))).startswith(
                 "slot set to (0.5, 0.0, 6.0)"
             )
+            # An operator's hold, then start: each answered over the socket with what the mission did.
+            answers = [await asyncio.to_thread(query_status, sock, r) for r in ASK_HOLD_THEN_START]
+            after = flight.snapshot().state
             svc.request_stop("SIGTERM")
             code = await task
             feeder.cancel()
     assert code == 0
+    assert answers == [
+        {"ok": True, "detail": "hold: follow -> px4_hold (operator asked to hold)"},
+        {"ok": False, "detail": "hold refused: already holding (PX4 Hold); companion start follows again"},
+        {
+            "ok": True,
+            "detail": "start: px4_hold -> acquire (operator asked to follow again: from px4_hold); "
+            "acquire -> follow (leader acquired)",
+        },
+        {"ok": False, "detail": "start refused: the mission is already under way (state follow)"},
+    ]
+    assert after == "follow"
     assert snap["mission"]["state"] == "follow"
     assert snap["link"]["armed"] is True
     assert snap["mission"]["transitions"] >= 5

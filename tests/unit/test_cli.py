@@ -67,9 +67,12 @@ def test_check_config_refuses_a_missing_or_corrupt_model(tmp_path: Path, repo_ro
     (tmp_path / "leader_detector.pt").unlink()
     r = run("-m", "companion", "check-config", str(cfg), cwd=repo_root)
     assert r.returncode == 2
-    assert r.stderr.strip().endswith(
-        f"detector.model_path: model file not found: {tmp_path}/leader_detector.pt"
+    lines = r.stderr.strip().splitlines()  # both files, in one pass
+    assert (
+        lines[0]
+        == f"companion: {cfg}: detector.model_path: model file not found: {tmp_path}/leader_detector.pt"
     )
+    assert "leader_detector.onnx does not match its checksum" in lines[1]
 
 
 def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> None:
@@ -80,7 +83,7 @@ def test_check_config_errors_one_line_each(tmp_path: Path, repo_root: Path) -> N
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 2
     assert "link.connect_timeout_s" in lines[0]
-    assert lines[1] == f"companion: {p}: mqtt.portt: unknown key"
+    assert lines[1] == f"companion: {p}: mqtt.portt: unknown key (did you mean mqtt.port?)"
 
 
 @pytest.mark.lab

@@ -5,14 +5,73 @@ from pathlib import Path
 import pytest
 
 from companion.config import Config, load_config
-from companion.kernel.config import env_overrides
+from companion.kernel.config import env_overrides, read_toml
 from companion.kernel.errors import ConfigError
 from sitl.config import load_sitl_config
 
 
 def test_documented_default_matches_code_defaults(repo_root: Path) -> None:
-    # The shipped file documents the defaults: it must load and equal the code's defaults exactly.
-    assert load_config(repo_root / "config/wingman.toml", environ={}) == Config()
+    # The shipped file documents the defaults: it must validate and equal the code's defaults exactly.
+    assert Config.model_validate(read_toml(repo_root / "config/wingman.toml")) == Config()
+
+
+def test_the_shipped_config_finds_the_shipped_model_from_any_folder(
+    repo_root: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # no models/ here, nor beside config/wingman.toml: the shipped files
+    cfg = load_config(repo_root / "config/wingman.toml", environ={})
+    assert cfg.detector.model_path == str(repo_root / "models/leader_detector.pt")
+
+
+def test_relative_paths_are_taken_from_the_config_files_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "deploy" / "weights").mkdir(parents=True)
+    (tmp_path / "deploy" / "weights" / "m.pt").write_bytes(b"x")
+    (tmp_path / "elsewhere").mkdir()
+    p = tmp_path / "deploy" / "c.toml"
+    p.write_text('[detector]\nmodel_path = "weights/m.pt"\n[status]\nsocket_path = "run/s.sock"\n')
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    cfg = load_config(p, environ={})
+    assert cfg.detector.model_path == str(tmp_path / "deploy" / "weights" / "m.pt")
+    assert cfg.status.socket_path == str(tmp_path / "deploy" / "run" / "s.sock")  # not there yet: same rule
+    # A variable's path is the shell's: relative to the working folder.
+    cfg = load_config(p, environ={"WINGMAN_STATUS__SOCKET_PATH": "here.sock"})
+    assert cfg.status.socket_path == str(tmp_path / "elsewhere" / "here.sock")
+
+
+def test_a_plan_that_is_not_there_names_the_path_tried(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text('[formation]\nplan = "plans/zz.toml"\n')
+    with pytest.raises(ConfigError) as exc:
+        load_config(p, environ={})
+    (line,) = exc.value.problems
+    assert line.startswith(f"formation.plan: file not found: {tmp_path}/plans/zz.toml ('plans/zz.toml' taken")
+    assert f"relative to the config file's folder {tmp_path}" in line
+
+
+def test_every_problem_in_one_pass_with_its_source(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text('[link]\nurl = "udpin://0.0.0.0:99999"\n[detecter]\nx = 1\n[formation]\nkp_xyz = 1.0\n')
+    with pytest.raises(ConfigError) as exc:
+        load_config(p, environ={"WINGMAN_SAFETY__MIN_SEPARATION_M": "-1"})
+    lines = sorted(str(exc.value).splitlines())
+    assert lines == sorted(
+        [
+            f"{p}: link.url: udpin:// needs HOST:PORT with a port in 1-65535 (got '0.0.0.0:99999')",
+            f"{p}: formation.kp_xyz: unknown key (did you mean formation.kp_xy?)",
+            f"{p}: detecter: unknown key (did you mean detector?)",
+            "$WINGMAN_SAFETY__MIN_SEPARATION_M: "
+            "safety.min_separation_m: Input should be greater than 0 (got -1)",
+        ]
+    )
+
+
+def test_a_bad_value_from_the_environment_names_the_variable(repo_root: Path) -> None:
+    with pytest.raises(ConfigError) as exc:
+        load_config(repo_root / "config/wingman.toml", environ={"WINGMAN_LINK__URL": "foo"})
+    assert exc.value.sources == ["$WINGMAN_LINK__URL"]
+    assert str(exc.value).startswith("$WINGMAN_LINK__URL: link.url: expected one of udpin://")
 
 
 def test_sitl_default_loads(repo_root: Path) -> None:
@@ -35,7 +94,7 @@ def test_unknown_key_is_an_error(tmp_path: Path) -> None:
     p.write_text("[formation]\nkp_xyz = 1.0\n")
     with pytest.raises(ConfigError) as exc:
         load_config(p, environ={})
-    assert exc.value.problems == ["formation.kp_xyz: unknown key"]
+    assert exc.value.problems == ["formation.kp_xyz: unknown key (did you mean formation.kp_xy?)"]
 
 
 def test_env_override_parses_toml_values(tmp_path: Path) -> None:

@@ -27,7 +27,8 @@ def _fly(
     rng = np.random.default_rng(3)
     v = np.zeros(2)
     w = np.asarray(wind)
-    truth, seen = [], []
+    truth: list[np.ndarray] = []
+    seen: list[np.ndarray | None] = []
     for i in range(int(seconds / DT_S)):
         t = i * DT_S
         a_want = np.array([0.6 * math.sin(0.25 * t), 0.4 * math.cos(0.17 * t)])
@@ -62,17 +63,14 @@ def test_the_fit_finds_drag_wind_and_heading_error() -> None:
     assert math.degrees(m.heading_error_rad) == pytest.approx(7.0, abs=1.5)
 
 
-def test_without_gps_the_model_holds_the_velocity_in_the_attitude_frame() -> None:
+def test_without_gps_the_model_holds_the_velocity() -> None:
     err = math.radians(7.0)
     obs = EgoVelocityObserver()
     _fly(obs, drag=0.9, wind=(1.0, -0.5), err=err, seconds=60.0, gps=True)
     # Then without GPS (from rest): the observer sees the attitude only.
     truth2, seen = _fly(obs, drag=0.9, wind=(1.0, -0.5), err=err, seconds=10.0, gps=False)
-    c, s = math.cos(err), math.sin(err)
     errors = [
-        math.hypot(o[0] - (c * v[0] - s * v[1]), o[1] - (s * v[0] + c * v[1]))
-        for v, o in zip(truth2, seen, strict=True)
-        if o is not None
+        math.hypot(o[0] - v[0], o[1] - v[1]) for v, o in zip(truth2, seen, strict=True) if o is not None
     ]
     assert len(errors) == len(truth2)
     assert max(errors) < 0.3  # where dead-reckoning on the accelerometers ran off by 1-2 m/s
@@ -85,8 +83,6 @@ def test_no_model_from_a_hover_and_none_offered() -> None:
         obs.learn(i * DT_S, np.array([0.01, 0.0, 0.0]), R)
     assert obs.model() is None
     assert obs.step(30.0, R, np.zeros(3)) is None
-    v = np.array([1.0, 2.0, 0.5])
-    assert obs.to_attitude_frame(v) is v
 
 
 def test_non_finite_samples_are_ignored() -> None:
@@ -94,3 +90,16 @@ def test_non_finite_samples_are_ignored() -> None:
     obs.learn(0.0, np.array([math.nan, 0.0, 0.0]), np.eye(3))
     obs.learn(0.3, np.array([0.0, math.inf, 0.0]), np.eye(3))
     assert obs.model() is None
+
+
+def test_a_tilted_flight_trusts_its_heading_fit_and_a_nearly_level_one_does_not() -> None:
+    tilted = EgoVelocityObserver()
+    _fly(tilted, drag=0.9, wind=(1.0, -0.5), err=math.radians(7.0), seconds=60.0, gps=True)
+    m = tilted.model()
+    assert m is not None
+    assert m.heading_trusted
+    assert math.degrees(m.heading_sigma_rad) < 1.0
+    level = EgoVelocityObserver()
+    _fly(level, drag=0.02, wind=(0.0, 0.0), err=math.radians(7.0), seconds=20.0, gps=True)
+    m2 = level.model()
+    assert m2 is None or not m2.heading_trusted

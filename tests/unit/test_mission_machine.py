@@ -936,6 +936,63 @@ def test_operator_hold_needs_gps_and_flight() -> None:
     assert h.last_transition().reason == R.OPERATOR_HOLD
 
 
+def _operator_start(h: Harness) -> None:
+    """A fresh start pulse, as the runner delivers one (the machine reacts to its rising edge)."""
+    h.start = h.takeover = False
+    h.step()
+    h.start = h.takeover = True
+
+
+def test_a_start_after_an_operators_hold_follows_again() -> None:
+    h = Harness()
+    h.to_follow()
+    h.operator = OperatorCommand.HOLD
+    h.step()
+    assert h.state == S.PX4_HOLD
+    h.run(3.0)
+    assert h.state == S.PX4_HOLD  # the start that began the flight is spent: nothing resumes by itself
+    assert h.machine.operator_refusal(OperatorCommand.HOLD) == (
+        "already holding (PX4 Hold); companion start follows again"
+    )
+    veh = h.ap.state(h.now_s)
+    assert h.machine.start_refusal(veh) is None
+    _operator_start(h)
+    out = h.step()  # the leader is in view: acquired in the same step
+    assert [(t.to_state, t.reason, t.detail) for t in out.transitions] == [
+        (S.ACQUIRE, R.OPERATOR_START, "from px4_hold"),
+        (S.FOLLOW, R.LEADER_ACQUIRED, ""),
+    ]
+    h.run(1.0)
+    assert h.state == S.FOLLOW
+    assert h.ap.mode == FlightMode.OFFBOARD
+    assert CommandKind.ARM not in all_commands(h.outputs[-40:])
+
+
+def test_a_start_says_why_it_would_do_nothing() -> None:
+    h = Harness()
+    h.to_follow()
+    veh = h.ap.state(h.now_s)
+    assert h.machine.start_refusal(veh) == "the mission is already under way (state follow)"
+    _operator_start(h)  # a start while following is dropped, never kept for later
+    h.run(1.0)
+    assert h.state == S.FOLLOW
+    assert not h.machine._start_latched
+    assert not h.machine._takeover_latched
+    h.operator = OperatorCommand.LAND
+    h.step()
+    veh = h.ap.state(h.now_s)
+    assert (
+        h.machine.start_refusal(veh) == "PX4 is landing the vehicle: companion command hold first, then start"
+    )
+    h.operator = OperatorCommand.HOLD  # hold from PX4 Land, then start: following again
+    h.step()
+    assert h.state == S.PX4_HOLD
+    h.lose_gps()  # PX4 cannot hold without a position: the companion lands it, and a start is refused
+    h.run_until(S.CONTROLLED_LANDING, timeout_s=5)
+    veh = h.ap.state(h.now_s)
+    assert h.machine.start_refusal(veh) == "the companion is landing the vehicle (no GPS)"
+
+
 def test_slot_change_is_validated_then_flown() -> None:
     h = Harness()
     assert h.machine.set_slot((0.0, 0.0, -5.0)) is not None  # behind the camera

@@ -173,17 +173,39 @@ async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
         await feeder
 
 
-def test_request_command_replies() -> None:
+async def test_request_command_replies() -> None:
     clock = MonotonicClock()
     runner = MissionRunner(RecordingLink(FakeAutopilot(), clock), MissionMachine(Config()), clock)
     # On the ground the companion flies nothing: land and hold are the autopilot's, not ours.
-    assert runner.request_command("land") == (
+    assert await runner.request_command("land") == (
         "land refused: the companion is not flying the vehicle (state wait_link)"
     )
+    assert await runner.operator_start() == "start refused: no link to the autopilot (state wait_link)"
     runner.machine.state = MissionState.FOLLOW
-    assert runner.request_command("land") == "land requested"
-    assert runner.request_command("hold").startswith("hold refused: hold needs GPS")
-    assert runner.request_command("dance") == "dance refused: unknown command"
-    assert runner.request_command("set_offset", (0.0, 0.0, 6.0)) == "slot set to (0.0, 0.0, 6.0)"
-    assert runner.request_command("set_offset", (0.0, 0.0, 1.0)).startswith("set_offset refused: slot 1.0 m")
-    assert runner.request_command("set_offset").startswith("set_offset refused:")
+    # No control loop is stepping: the request is withdrawn, never left to act later.
+    assert await runner.request_command("land", timeout_s=0.1) == (
+        "land refused: the mission loop did not step within 0.1 s (nothing done)"
+    )
+    assert runner._operator is None
+    assert (await runner.request_command("hold")).startswith("hold refused: hold needs GPS")
+    assert await runner.request_command("dance") == "dance refused: unknown command"
+    assert await runner.request_command("set_offset", (0.0, 0.0, 6.0)) == "slot set to (0.0, 0.0, 6.0)"
+    assert (await runner.request_command("set_offset", (0.0, 0.0, 1.0))).startswith(
+        "set_offset refused: slot 1.0 m"
+    )
+    assert (await runner.request_command("set_offset")).startswith("set_offset refused:")
+
+
+async def test_an_operator_start_is_answered_with_what_the_mission_did() -> None:
+    clock = MonotonicClock()
+    cfg = Config(mission=MissionConfig(gps_restore_s=0.1))
+    runner = MissionRunner(RecordingLink(FakeAutopilot(), clock), MissionMachine(cfg), clock, rate_hz=50.0)
+    for _ in range(20):  # link up, GPS good: preflight
+        await runner.tick()
+        await asyncio.sleep(0.01)
+    assert runner.state == MissionState.PREFLIGHT
+    answer = asyncio.ensure_future(runner.operator_start())
+    await asyncio.sleep(0)
+    await runner.tick()
+    assert await answer == "start: preflight -> arming (preflight checks passed)"
+    assert await runner.operator_start() == "start refused: the mission is already under way (state arming)"

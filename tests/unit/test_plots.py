@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -61,3 +62,108 @@ def test_the_mission_states_are_drawn_as_labelled_bands() -> None:
     _state_bands(ax, _log())
     labels = [p.get_label() for p in ax.patches]
     assert labels == ["takeoff", "follow", "follow_vision"]
+
+
+def _legend_texts(ax: Any) -> list[str]:
+    legend = ax.get_legend()
+    return [t.get_text() for t in legend.get_texts()] if legend is not None else []
+
+
+def test_the_top_view_fits_a_straight_path_and_keeps_a_circle_round() -> None:
+    from matplotlib.figure import Figure
+
+    from companion.lab.evaluation.plots import MAX_STRETCH, _top_view_limits
+
+    fig = Figure(figsize=(6, 5))
+    ax = fig.subplots()
+    north = np.linspace(0.0, 150.0, 300)
+    east = 0.3 * np.sin(north / 10.0)  # a straight path with a metre of wander
+    note = _top_view_limits(fig, ax, east, north)
+    assert note.startswith("not to scale: east stretched x")
+    lo, hi = ax.get_xlim()
+    assert hi - lo < 150.0 / 2  # not the +-75 m of equal axes around a line
+    assert lo < east.min()
+    assert east.max() < hi
+    assert float(note.rsplit("x", 1)[1]) <= MAX_STRETCH
+    fig = Figure(figsize=(6, 5))
+    ax = fig.subplots()
+    a = np.linspace(0.0, 2 * np.pi, 200)
+    assert _top_view_limits(fig, ax, 15.0 * np.cos(a), 15.0 * np.sin(a)) == ""
+    assert ax.get_aspect() == 1.0
+
+
+def test_the_trajectories_key_every_mark(tmp_path: Path) -> None:
+    from companion.lab.evaluation.plots import plot_trajectories
+
+    fig = plot_trajectories(_log(), [0.0, 0.0, 5.0], tmp_path / "t.png", "straight")
+    top, dev = fig.axes[0], fig.axes[1]
+    labels = _legend_texts(top)
+    assert labels[:3] == [
+        "leader",
+        "follower's slot, in formation (under its line where it holds it)",
+        "follower",
+    ]
+    assert "follower, its GPS lost" in labels
+    assert "GPS lost (t = 12 s)" in labels
+    assert "start (t = 0 s)" in labels
+    assert "end (t = 20 s); arrows: direction" in labels
+    assert _legend_texts(dev) == ["one tick, GPS good", "one tick, follower's GPS lost"]
+    # The leader's band is drawn under the follower's line, never hidden by it.
+    lines = {ln.get_label(): ln for ln in top.get_lines()}
+    assert lines["leader"].get_zorder() < lines["follower"].get_zorder()
+    assert lines["leader"].get_linewidth() > 2 * lines["follower"].get_linewidth()
+    assert (tmp_path / "t.png").stat().st_size > 10_000
+
+
+def test_the_camera_strip_has_a_key_and_a_zoom(tmp_path: Path) -> None:
+    from companion.lab.evaluation.plots import Snapshot, plot_camera_strip
+
+    rgb = np.full((480, 640, 3), 120, np.uint8)
+    snaps = [
+        Snapshot(24.5, rgb, (300.0, 220.0, 330.0, 240.0), (301.0, 221.0, 331.0, 241.0), 0.85),
+        Snapshot(25.5, rgb, None, (301.0, 221.0, 331.0, 241.0)),
+        Snapshot(26.5, rgb, None, None),
+    ]
+    fig = plot_camera_strip(snaps, tmp_path / "c.png", "straight: follower camera")
+    key = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert key == [
+        "detection (the number: its score)",
+        "true box of the leader (simulator)",
+        "inset: zoom on the leader",
+    ]
+    frames = fig.axes[:3]
+    assert [ax.get_title() for ax in frames] == [
+        "t = 24.5 s",
+        "t = 25.5 s (no detection)",
+        "t = 26.5 s (leader not in view, no detection)",
+    ]
+    assert [t.get_text() for t in frames[0].texts] == ["0.85"]
+    assert [len(ax.child_axes) for ax in frames] == [1, 1, 0]  # a zoom wherever there is a leader
+
+
+def test_the_formation_plot_has_start_end_and_timed_snapshots_and_the_report_links_it(tmp_path: Path) -> None:
+    from companion.lab.formation.report import draw_formation, report_markdown
+
+    t = np.arange(0.0, 40.0, 0.5)
+    lead = np.stack([2.0 * t, np.zeros_like(t), np.full_like(t, -5.0)], axis=1)
+    tracks = {"leader": lead, "follower1": lead - [4.0, 3.0, 0.0], "follower2": lead - [4.0, -3.0, 0.0]}
+    dev = {"follower1": np.stack([t, np.full_like(t, 0.1)], axis=1), "follower2": np.empty((0, 2))}
+    fig = draw_formation(t, tracks, dev, plan_name="v", path=tmp_path / "plots" / "formation.png", title="v")
+    top = fig.axes[0]
+    labels = _legend_texts(top)
+    assert labels == [
+        "leader",
+        "follower1",
+        "follower2",
+        "start (t = 0 s)",
+        "end (t = 40 s)",
+        "the formation every 10 s",
+    ]
+    assert [a.get_text() for a in top.texts if a.get_text()] == ["0 s", "10 s", "20 s", "30 s"]  # timed
+    assert len([a for a in top.texts if not a.get_text() and a.arrow_patch is not None]) == 4  # direction
+    plot = str(tmp_path / "plots/formation.png")
+    report = {
+        "scenario": "formation-v", "seed": 1, "outcome": "completed", "plan": "v", "sim_duration_s": 40.0,
+        "wall_s": 60.0, "wall_s_per_sim_s": 1.5, "followers": [], "plots": [plot],
+    }  # fmt: skip
+    assert report_markdown(report).rstrip().endswith("## Plots\n\n![formation](plots/formation.png)")

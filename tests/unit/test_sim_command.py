@@ -156,3 +156,40 @@ def test_all_flies_the_real_path_alone_then_the_lockstep_runs_side_by_side(
     assert all(others == {name} for name, others in seen if name in ("straight", "circle"))
     lockstep_together = [others for name, others in seen if name not in ("straight", "circle")]
     assert max(len(o) for o in lockstep_together) == 2  # then two lockstep runs side by side
+
+
+def test_a_runs_folder_keeps_its_seed_and_flies_it_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--seed 2`` is the seed in the run's scenario.toml, and that file alone flies seed 2 again."""
+    from companion.cli import main
+    from companion.lab.evaluation import setup
+    from sitl.scenario import load_scenario
+
+    class WrittenError(Exception):
+        pass
+
+    def stop_after_the_scenario_file(*_args: object, **_kw: object) -> None:
+        raise WrittenError  # the run's folder has its scenario.toml: nothing more is needed here
+
+    with monkeypatch.context() as m:
+        m.setattr(setup, "service_config", stop_after_the_scenario_file)
+        with pytest.raises(WrittenError):
+            campaign.run_one(RunSpec("formation-v", 2, tmp_path / "run", harness="lockstep"))
+    run_file = tmp_path / "run" / "scenario.toml"
+    assert load_scenario(run_file).seed == 2
+    assert load_scenario(scenario_path("formation-v")).seed == 1  # the shipped file's own
+
+    flown: list[RunSpec] = []
+
+    def fake_run_one(spec: RunSpec, progress: object = None) -> dict[str, Any]:
+        flown.append(spec)
+        return {"scenario": "formation-v", "outcome": "completed", "relative_position_rmse_m": None,
+                "formation_max_deviation_m": None}  # fmt: skip
+
+    monkeypatch.setattr(campaign, "run_one", fake_run_one)
+    argv = ["sim", "--scenario", str(run_file), "--harness", "lockstep", "--out", str(tmp_path / "again")]
+    assert main(argv) == 0
+    assert [s.seed for s in flown] == [2]  # no --seed: the file's
+    assert main([*argv, "--seed", "5"]) == 0
+    assert [s.seed for s in flown] == [2, 5]

@@ -86,6 +86,7 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     """Fly one scenario and write ``report.json``, ``report.md`` and the plots; returns the report."""
     from companion.lab.evaluation.lockstep import LockstepOptions  # noqa: PLC0415 (numpy, the cores)
     from companion.lab.evaluation.realpath import RealOptions, run_real  # noqa: PLC0415
+    from companion.lab.evaluation.runlog import RUN_LOG  # noqa: PLC0415
     from companion.lab.evaluation.setup import (  # noqa: PLC0415
         load_detect,
         run_lockstep,
@@ -96,7 +97,8 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     from companion.lab.evaluation.tomlw import dumps  # noqa: PLC0415
 
     path = scenario_path(spec.scenario)
-    scenario = effective_scenario(path, spec.duration_s)
+    # The run's own seed in its scenario.toml: the folder alone reproduces the run.
+    scenario = effective_scenario(path, spec.duration_s).model_copy(update={"seed": spec.seed})
     spec.out_dir.mkdir(parents=True, exist_ok=True)
     run_file = spec.out_dir / "scenario.toml"
     run_file.write_text(dumps(scenario.model_dump(mode="json")))
@@ -113,7 +115,8 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
     if spec.harness == "lockstep":
         stage = load_detect(cfg, spec.detector)
         description = stage.description
-        result = run_lockstep(run_file, spec.seed, cfg, stage, LockstepOptions(progress=progress))
+        options = LockstepOptions(progress=progress, mcap_path=spec.out_dir / RUN_LOG)
+        result = run_lockstep(run_file, spec.seed, cfg, stage, options)
     else:
         description = "ground-truth boxes (NOT the network)" if spec.detector == "truth" else _describe(cfg)
         result = asyncio.run(
@@ -123,7 +126,12 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
                 spec.seed,
                 cfg,
                 spec.out_dir / "logs",
-                RealOptions(speed=spec.speed, progress=progress, autopilot=spec.autopilot),
+                RealOptions(
+                    speed=spec.speed,
+                    progress=progress,
+                    autopilot=spec.autopilot,
+                    mcap_path=spec.out_dir / RUN_LOG,
+                ),
             )
         )
     wall_s = time.perf_counter() - wall0

@@ -37,6 +37,7 @@ from companion.kernel.clock import ManualClock
 from companion.lab.evaluation.autolabel_check import AutoLabelCheck
 from companion.lab.evaluation.log import FlightLog
 from companion.lab.evaluation.plots import Snapshot
+from companion.lab.evaluation.runlog import attach_run_log
 from companion.lab.evaluation.scoring import RunScorer
 from companion.lab.evaluation.trace import RunObserver
 from companion.mission.types import MissionInputs, StepOutput, Transition
@@ -70,6 +71,8 @@ class LockstepOptions:
     auto_label_sequence: str = "0"
     #: Also write every frame with the renderer's own box here (an evaluation set).
     truth_label_dir: Path | None = None
+    #: The run's MCAP log (the service's channels, :mod:`companion.lab.evaluation.runlog`); None: none.
+    mcap_path: Path | None = None
 
 
 @dataclass(slots=True)
@@ -127,6 +130,12 @@ class LockstepRun:
         self._in_flight: deque[_InFlight] = deque()
         self._compute_ms: list[float] = []
         self.observer = RunObserver(self.clock, [])
+        self.recorder = None
+        if options.mcap_path is not None:
+            meta = {"scenario": str(sc.name), "harness": "lockstep"}
+            self.recorder = attach_run_log(
+                cfg, self.core, self.clock, options.mcap_path, synchronous=True, metadata=meta
+            )
         self.autolabel: AutoLabelCheck | None = None
         if options.auto_label:
             self.autolabel = AutoLabelCheck(
@@ -163,6 +172,8 @@ class LockstepRun:
         wall0 = time.perf_counter()
         self.core.request_start()
         with ExitStack() as stack:
+            if self.recorder is not None:
+                stack.enter_context(self.recorder)
             if self.autolabel is not None:
                 stack.enter_context(self.autolabel)
             await self._loop(end_s, frame_period_s, truth_period_s)

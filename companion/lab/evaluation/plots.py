@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from matplotlib.patches import Circle, Rectangle
+from matplotlib.lines import Line2D
+from matplotlib.patches import Circle, Patch, Rectangle
 from numpy.typing import NDArray
 
 from companion.lab.evaluation.log import F64, FlightLog
@@ -52,7 +53,7 @@ STATE_COLOURS = {
     "takeoff": "#d9d9d9",
     "acquire": "#c6dbef",
     "follow": "#e5f5e0",
-    "follow_vision": "#fdd0a2",
+    "follow_vision": "#d4b9da",  # not orange: the formation error is drawn in the follower's orange
     "reacquire": "#fcbba1",
     "hover": "#dadaeb",
     "controlled_landing": "#fa9fb5",
@@ -94,46 +95,128 @@ def slot_error_body(log: FlightLog, offset_cam_m: Sequence[float]) -> F64:
     return np.stack([forward, right], axis=1)
 
 
-def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path, title: str) -> None:
+#: Colours of the two vehicles, the same in every plot.
+LEADER_COLOUR = "tab:blue"
+FOLLOWER_COLOUR = "tab:orange"
+GPS_LOST_COLOUR = "tab:red"
+#: The top view keeps equal axes while that leaves at least this share of the panel to the data.
+EQUAL_ASPECT_MIN_FILL = 0.5
+#: ...else it stretches the narrow axis, at most this much (more makes metre-scale wander look wild).
+MAX_STRETCH = 20.0
+
+
+def _top_view_limits(fig: Figure, ax: Axes, east_m: F64, north_m: F64) -> str:
+    """Fit the top view to the data: equal axes when they fill the panel, else each axis to its data.
+
+    A straight 150 m path drawn at equal aspect is a line in an empty panel; stretched across, its
+    metre-scale wander shows. Returns the words for the east axis label ("" at equal aspect).
+    """
+    e = east_m[np.isfinite(east_m)]
+    n = north_m[np.isfinite(north_m)]
+    if e.size == 0 or n.size == 0:
+        return ""
+    (e_lo, e_hi), (n_lo, n_hi) = (float(e.min()), float(e.max())), (float(n.min()), float(n.max()))
+    span_e, span_n = max(e_hi - e_lo, 2.0), max(n_hi - n_lo, 2.0)
+    box = ax.get_position()
+    panel_w, panel_h = box.width * fig.get_figwidth(), box.height * fig.get_figheight()
+    fill = (span_e / span_n) / (panel_w / panel_h)
+    if EQUAL_ASPECT_MIN_FILL <= fill <= 1.0 / EQUAL_ASPECT_MIN_FILL:
+        ax.set_aspect("equal", adjustable="datalim")
+        return ""
+    stretch = min(MAX_STRETCH, 1.0 / fill if fill < 1.0 else fill)
+    if fill < 1.0:  # tall data: widen the east span to what the stretch allows
+        span_e = max(span_e, span_n * (panel_w / panel_h) / stretch)
+    else:
+        span_n = max(span_n, span_e * (panel_h / panel_w) / stretch)
+    mid_e, mid_n, pad = 0.5 * (e_lo + e_hi), 0.5 * (n_lo + n_hi), 0.56
+    ax.set_xlim(mid_e - pad * span_e, mid_e + pad * span_e)
+    ax.set_ylim(mid_n - pad * span_n, mid_n + pad * span_n)
+    return f"not to scale: {'east' if fill < 1.0 else 'north'} stretched x{stretch:.0f}"
+
+
+def direction_arrows(ax: Axes, east_m: F64, north_m: F64, colour: str, n: int = 4) -> None:
+    """Arrowheads along a track, at equal shares of its length, pointing the way it was flown."""
+    d = np.hypot(np.diff(east_m), np.diff(north_m))
+    d[~np.isfinite(d)] = 0.0
+    s = np.concatenate([[0.0], np.cumsum(d)])
+    if s[-1] < 1.0:
+        return
+    for frac in (np.arange(n) + 0.5) / n:  # mid-shares: apart from the ends and from each other on a loop
+        i = int(np.searchsorted(s, frac * s[-1]))
+        j = min(i + max(1, len(s) // 200), len(s) - 1)
+        if i >= j:
+            continue
+        ax.annotate(
+            "",
+            xy=(east_m[j], north_m[j]),
+            xytext=(east_m[i], north_m[i]),
+            arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 0.0, "mutation_scale": 16},
+            zorder=6,
+        )
+
+
+def _gps_lost_runs(log: FlightLog) -> list[tuple[int, int]]:
+    """(first, last index) of each stretch with the follower's GPS lost."""
+    return [(a, b) for a, b, v in _runs(["lost" if not ok else "ok" for ok in log.gps_ok]) if v == "lost"]
+
+
+def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path, title: str) -> Figure:
     """Left: both vehicles from above (east right, north up). Right: the follower's offset from its slot.
 
-    Over a 150 m path a 0.3 m deviation is invisible at equal aspect, so the right panel draws the error
-    itself, in the follower's heading frame (forward up, right to the right), coloured by time.
+    The left panel keeps equal axes only while they fill it (a straight path is stretched across, and
+    says so); the leader is the wide pale band, the follower the line on it, red where its GPS was lost.
+    Over a 150 m path a 0.3 m deviation is invisible, so the right panel draws the error itself, in the
+    follower's heading frame (forward up, right to the right), one dot per control tick coloured by time.
     """
-    fig = Figure(figsize=(12, 5.5), dpi=110)
-    ax, dev = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.25, 1.0]})
+    fig = Figure(figsize=(13, 6.6), dpi=110)
+    ax, dev = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.15, 1.0]})
+    fig.subplots_adjust(left=0.06, right=0.95, bottom=0.22, top=0.9, wspace=0.25)
     slot = desired_follower_ned(log, offset_cam_m)
     sel = log.formation
-    ax.plot(log.p_ned_leader_m[:, 1], log.p_ned_leader_m[:, 0], color="tab:blue", lw=1.6, label="leader")
-    ax.plot(
-        log.p_ned_follower_m[:, 1], log.p_ned_follower_m[:, 0], color="tab:orange", lw=1.4, label="follower"
-    )
-    ax.plot(slot[sel, 1], slot[sel, 0], color="k", lw=0.8, ls="--", label="desired slot (in formation)")
+    lead, fol = log.p_ned_leader_m, log.p_ned_follower_m
+    ax.plot(lead[:, 1], lead[:, 0], color=LEADER_COLOUR, lw=6, alpha=0.3, solid_capstyle="round",
+            label="leader", zorder=2)  # fmt: skip
+    slot_e, slot_n = np.where(sel, slot[:, 1], np.nan), np.where(sel, slot[:, 0], np.nan)
+    ax.plot(slot_e, slot_n, color="k", lw=0.9, ls=(0, (4, 3)), zorder=3,
+            label="follower's slot, in formation (under its line where it holds it)")  # fmt: skip
+    ax.plot(fol[:, 1], fol[:, 0], color=FOLLOWER_COLOUR, lw=1.4, label="follower", zorder=4)
+    for k, (a, b) in enumerate(_gps_lost_runs(log)):
+        ax.plot(fol[a : b + 1, 1], fol[a : b + 1, 0], color=GPS_LOST_COLOUR, lw=1.6, zorder=5,
+                label="follower, its GPS lost" if k == 0 else None)  # fmt: skip
     if log.gps_loss_t_s is not None:
         i = int(np.searchsorted(log.t_s, log.gps_loss_t_s))
         if i < log.t_s.size:
-            ax.plot(
-                log.p_ned_follower_m[i, 1], log.p_ned_follower_m[i, 0], "rx", ms=10, mew=2, label="GPS lost"
-            )
-    ax.plot(log.p_ned_follower_m[0, 1], log.p_ned_follower_m[0, 0], "o", color="tab:orange", ms=5)
-    ax.plot(log.p_ned_leader_m[0, 1], log.p_ned_leader_m[0, 0], "o", color="tab:blue", ms=5)
-    ax.set_xlabel("east (m)")
-    ax.set_ylabel("north (m)")
-    ax.set_aspect("equal", adjustable="datalim")
+            ax.plot(fol[i, 1], fol[i, 0], "x", color=GPS_LOST_COLOUR, ms=11, mew=2.5, zorder=7,
+                    label=f"GPS lost (t = {log.t_s[i]:.0f} s)")  # fmt: skip
+    direction_arrows(ax, lead[:, 1], lead[:, 0], LEADER_COLOUR)
+    for track, colour in ((lead, LEADER_COLOUR), (fol, FOLLOWER_COLOUR)):
+        ax.plot(track[0, 1], track[0, 0], "o", mfc=colour, mec="k", ms=8, zorder=8)
+        ax.plot(track[-1, 1], track[-1, 0], "s", mfc=colour, mec="k", ms=7, zorder=8)
+    ax.plot([], [], "o", mfc="w", mec="k", ms=8, label=f"start (t = {log.t_s[0]:.0f} s)")
+    ax.plot([], [], "s", mfc="w", mec="k", ms=7, label=f"end (t = {log.t_s[-1]:.0f} s); arrows: direction")
+    note = _top_view_limits(
+        fig,
+        ax,
+        np.concatenate([lead[:, 1], fol[:, 1], slot_e]),
+        np.concatenate([lead[:, 0], fol[:, 0], slot_n]),
+    )
+    ax.set_xlabel("east (m)" + (f", {note}" if "east" in note else ""))
+    ax.set_ylabel("north (m)" + (f", {note}" if "north" in note else ""))
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title, fontsize=10)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.11), ncol=2, fontsize=8, frameon=False)
+    ax.set_title(f"{title}: both vehicles from above", fontsize=10)
 
     err = slot_error_body(log, offset_cam_m)[sel]
     t = log.t_s[sel]
     if err.size:
         lost = ~log.gps_ok[sel]
         lo, hi = float(t.min()), float(t.max())
-        pts = dev.scatter(err[~lost, 1], err[~lost, 0], c=t[~lost], s=4, cmap="viridis", vmin=lo, vmax=hi,
-                          lw=0, label="GPS good")  # fmt: skip
+        # GPS good on top: the larger GPS-lost triangles would hide the dots of the same place.
+        pts = dev.scatter(err[~lost, 1], err[~lost, 0], c=t[~lost], s=12, cmap="viridis", vmin=lo, vmax=hi,
+                          lw=0, zorder=4)  # fmt: skip
         if lost.any():
-            dev.scatter(err[lost, 1], err[lost, 0], c=t[lost], s=9, cmap="viridis", vmin=lo, vmax=hi,
-                        marker="^", lw=0, label="follower GPS lost")  # fmt: skip
+            dev.scatter(err[lost, 1], err[lost, 0], c=t[lost], s=34, cmap="viridis", vmin=lo, vmax=hi,
+                        marker="^", edgecolors=GPS_LOST_COLOUR, linewidths=0.5, zorder=3)  # fmt: skip
         fig.colorbar(pts, ax=dev, label="sim time (s)", fraction=0.046, pad=0.04)
         reach = float(np.max(np.hypot(err[:, 0], err[:, 1])))
         lim = max(0.3, 1.15 * reach)
@@ -142,17 +225,22 @@ def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path,
         circle = Circle((0.0, 0.0), reach, fill=False, ec="tab:gray", ls=":", lw=1.0)
         dev.add_patch(circle)
         dev.text(0.0, reach, f" max {reach:.2f} m", fontsize=8, color="tab:gray", va="bottom")
+        good = Line2D([], [], ls="", marker="o", mfc="tab:gray", mec="none", ms=5, label="one tick, GPS good")
+        bad = Line2D([], [], ls="", marker="^", mfc="tab:gray", mec=GPS_LOST_COLOUR, mew=1.2, ms=9,
+                     label="one tick, follower's GPS lost")  # fmt: skip
+        handles = [good, bad] if lost.any() else [good]
+        dev.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.11), ncol=2, fontsize=8,
+                   frameon=False)  # fmt: skip
     dev.axhline(0.0, color="k", lw=0.6)
     dev.axvline(0.0, color="k", lw=0.6)
     dev.set_aspect("equal")
     dev.set_xlabel("right of the slot (m)")
     dev.set_ylabel("ahead of the slot (m)")
     dev.grid(alpha=0.3)
-    if (~log.gps_ok[sel]).any():
-        dev.legend(loc="lower right", fontsize=8)
-    dev.set_title("follower minus slot, in formation (heading frame)", fontsize=10)
-    fig.tight_layout()
+    dev.set_title("follower minus its slot in formation, follower's heading frame\n"
+                  "(0, 0): on the slot; colour: sim time", fontsize=10)  # fmt: skip
     fig.savefig(path)
+    return fig
 
 
 def plot_errors(log: FlightLog, offset_cam_m: Sequence[float], path: Path, title: str) -> None:
@@ -219,36 +307,77 @@ def plot_estimate_vs_truth(log: FlightLog, path: Path, title: str) -> None:
     fig.savefig(path)
 
 
-def plot_camera_strip(snapshots: Sequence[Snapshot], path: Path, title: str) -> None:
-    """A strip of follower-camera frames with the detection (green) and the true box (white, dashed)."""
+#: The true box on the camera frames: dashed magenta shows on sky, grass and buildings alike.
+TRUTH_BOX_COLOUR = "magenta"
+DETECTION_COLOUR = "lime"
+
+
+#: The zoomed inset shows this many times the leader's box (at least :data:`ZOOM_MIN_PX` wide).
+ZOOM_BOX_MULTIPLE = 3.0
+ZOOM_MIN_PX = 48.0
+
+
+def _boxes(ax: Axes, snap: Snapshot, dx: float = 0.0, dy: float = 0.0, *, label: bool = True) -> None:
+    """The detection (solid) and the true box (dashed, on top so that both show), shifted by (dx, dy)."""
+    if snap.box_xyxy_px is not None:
+        x0, y0, x1, y1 = snap.box_xyxy_px
+        ax.add_patch(Rectangle((x0 - dx, y0 - dy), x1 - x0, y1 - y0, fill=False, ec=DETECTION_COLOUR, lw=1.5))
+        if label and snap.score is not None:
+            tag = {"facecolor": DETECTION_COLOUR, "edgecolor": "none", "pad": 1.2, "alpha": 0.9}
+            ax.text(x0 - dx, y0 - dy - 6, f"{snap.score:.2f}", color="black", fontsize=8, fontweight="bold",
+                    bbox=tag)  # fmt: skip
+    if snap.truth_xyxy_px is not None:
+        x0, y0, x1, y1 = snap.truth_xyxy_px
+        ax.add_patch(Rectangle((x0 - dx, y0 - dy), x1 - x0, y1 - y0, fill=False, ec=TRUTH_BOX_COLOUR, lw=1.1,
+                               ls=(0, (3, 2))))  # fmt: skip
+
+
+def plot_camera_strip(snapshots: Sequence[Snapshot], path: Path, title: str) -> Figure:
+    """A strip of follower-camera frames with the detection and its score, and the simulator's true box.
+
+    At formation range the leader is a few dozen pixels wide, so each frame has an inset that zooms on it.
+    The key sits under the strip; a frame without a detection or without the leader in view says so.
+    """
     n = max(1, len(snapshots))
-    fig = Figure(figsize=(3.2 * n, 2.9), dpi=110)
+    fig = Figure(figsize=(3.4 * n, 3.4), dpi=110)
     axes = fig.subplots(1, n, squeeze=False)
     for ax, snap in zip(axes[0], snapshots, strict=False):
         ax.imshow(snap.rgb)
-        if snap.truth_xyxy_px is not None:
-            x0, y0, x1, y1 = snap.truth_xyxy_px
-            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="white", lw=1, ls="--"))
-        if snap.box_xyxy_px is not None:
-            x0, y0, x1, y1 = snap.box_xyxy_px
-            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="lime", lw=1.5))
-            if snap.score is not None:
-                ax.text(
-                    x0,
-                    y0 - 6,
-                    f"{snap.score:.2f}",
-                    color="black",
-                    fontsize=9,
-                    fontweight="bold",
-                    bbox={"facecolor": "lime", "edgecolor": "none", "pad": 1.5, "alpha": 0.9},
-                )
-        ax.set_title(f"t = {snap.t_s:.1f} s", fontsize=8)
+        _boxes(ax, snap)
+        notes = [] if snap.truth_xyxy_px is not None else ["leader not in view"]
+        if snap.box_xyxy_px is None:
+            notes.append("no detection")
+        focus = snap.truth_xyxy_px or snap.box_xyxy_px
+        if focus is not None:
+            h_px, w_px = snap.rgb.shape[:2]
+            cx, cy = 0.5 * (focus[0] + focus[2]), 0.5 * (focus[1] + focus[3])
+            half = 0.5 * max(ZOOM_MIN_PX, ZOOM_BOX_MULTIPLE * max(focus[2] - focus[0], focus[3] - focus[1]))
+            x0, y0 = int(max(0.0, cx - half)), int(max(0.0, cy - 0.75 * half))
+            x1, y1 = int(min(w_px, cx + half)), int(min(h_px, cy + 0.75 * half))
+            inset = ax.inset_axes((0.56, 0.56, 0.42, 0.42))
+            inset.imshow(snap.rgb[y0:y1, x0:x1])
+            _boxes(inset, snap, x0, y0, label=False)
+            inset.set_xlim(-0.5, x1 - x0 - 0.5)
+            inset.set_ylim(y1 - y0 - 0.5, -0.5)
+            inset.set_xticks([])
+            inset.set_yticks([])
+            for side in inset.spines.values():
+                side.set_edgecolor("white")
+            ax.indicate_inset((x0, y0, x1 - x0, y1 - y0), inset, edgecolor="white", alpha=0.8)
+        ax.set_title(f"t = {snap.t_s:.1f} s" + (f" ({', '.join(notes)})" if notes else ""), fontsize=8)
         ax.axis("off")
     for ax in axes[0][len(snapshots) :]:
         ax.axis("off")
+    key = [
+        Patch(fill=False, ec=DETECTION_COLOUR, lw=1.5, label="detection (the number: its score)"),
+        Patch(fill=False, ec=TRUTH_BOX_COLOUR, lw=1.1, ls="--", label="true box of the leader (simulator)"),
+        Patch(fill=False, ec="white", lw=1.0, label="inset: zoom on the leader"),
+    ]
+    fig.legend(handles=key, loc="lower center", ncol=3, fontsize=8, frameon=True, facecolor="0.85")
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.08, 1.0, 1.0))
     fig.savefig(path)
+    return fig
 
 
 def write_plots(
@@ -260,7 +389,7 @@ def write_plots(
 ) -> list[str]:
     """All report plots into ``plots_dir``; returns their paths relative to its parent."""
     plots_dir.mkdir(parents=True, exist_ok=True)
-    plot_trajectories(log, offset_cam_m, plots_dir / "trajectories.png", f"{scenario}: top-down trajectories")
+    plot_trajectories(log, offset_cam_m, plots_dir / "trajectories.png", scenario)
     plot_errors(log, offset_cam_m, plots_dir / "errors.png", f"{scenario}: errors over time")
     plot_estimate_vs_truth(log, plots_dir / "estimate_vs_truth.png", f"{scenario}: relative position")
     names = ["trajectories.png", "errors.png", "estimate_vs_truth.png"]

@@ -41,6 +41,7 @@ from companion.config import Config
 from companion.lab.evaluation.lockstep import RunResult
 from companion.lab.evaluation.procs import REPO, Child, SimRunError
 from companion.lab.evaluation.procs import SitlPorts as Ports
+from companion.lab.evaluation.runlog import attach_run_log
 from companion.lab.evaluation.scoring import RunScorer, snapshot_times
 from companion.lab.evaluation.simclock import SimClock
 from companion.lab.evaluation.sitl_components import RUN_ENV
@@ -110,6 +111,8 @@ class RealOptions:
     autopilot: str = "builtin"
     #: Called now and then with the sim time (a progress line).
     progress: Callable[[float], None] | None = None
+    #: The run's MCAP log, written by the service's recorder (:mod:`companion.lab.evaluation.runlog`).
+    mcap_path: Path | None = None
 
 
 async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
@@ -184,7 +187,13 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     service: Any = None
     try:
         sim.start()
-        sim_clock = await _wait_for_sim(sim, clock_path, Path(settings["camera_socket"]), options.speed)
+        sim_clock = await _wait_for_sim(
+            sim,
+            clock_path,
+            Path(settings["camera_socket"]),
+            options.speed,
+            independent=options.autopilot == "px4",
+        )
         observer = RunObserver(sim_clock, snapshot_times(window, options.snapshots))
         factory = make_parts_factory(service_cfg, sim_clock, on_frame=observer.on_frame)
 
@@ -199,6 +208,22 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
                 observer.on_step(inputs, out)
 
             flight.runner.on_step = on_step
+            if options.mcap_path is not None:
+                recorder = attach_run_log(
+                    service_cfg,
+                    flight.core,
+                    sim_clock,
+                    options.mcap_path,
+                    synchronous=False,
+                    metadata={
+                        "scenario": str(scenario.name),
+                        "harness": "real",
+                        "autopilot": options.autopilot,
+                    },
+                    health=lambda: {"components": [c.to_json() for c in ctx.health.snapshot()]},
+                )
+                if recorder is not None:
+                    stack.enter_context(recorder)
             return parts
 
         with SystemdNotifier(NotifyConfig()) as notifier:
@@ -305,8 +330,20 @@ def _sim_ready(clock_path: Path, camera_socket: Path) -> bool:
     return clock_path.exists() and clock_path.stat().st_size > 0 and camera_socket.exists()
 
 
-async def _wait_for_sim(sim: Child, clock_path: Path, camera_socket: Path, speed: float) -> SimClock:
-    """Until the simulator runs, publishes its clock and serves the camera (its render worker is up)."""
+#: How far the service's clock may run past the last published time of an autopilot in its own process, s.
+INDEPENDENT_CLOCK_LEAD_S = 0.5
+
+
+async def _wait_for_sim(
+    sim: Child, clock_path: Path, camera_socket: Path, speed: float, *, independent: bool = False
+) -> SimClock:
+    """Until the simulator runs, publishes its clock and serves the camera (its render worker is up).
+
+    ``independent``: the autopilots keep their own time in their own processes (PX4), so the service's
+    clock may run on past a late publication for longer: when a busy host held the publisher back, a
+    clock stopped 50 ms after it fell behind PX4's, and the service stamped PX4's attitude a quarter of
+    a second early (the frames then found no attitude and were dropped).
+    """
     deadline = time.monotonic() + START_TIMEOUT_S
     while not _sim_ready(clock_path, camera_socket):
         if not sim.running:
@@ -316,7 +353,7 @@ async def _wait_for_sim(sim: Child, clock_path: Path, camera_socket: Path, speed
                 f"sitl serve did not start within {START_TIMEOUT_S:.0f} s; its log:\n{sim.tail()}"
             )
         await asyncio.sleep(0.1)
-    return SimClock(clock_path, speed)
+    return SimClock(clock_path, speed, max_lead_s=INDEPENDENT_CLOCK_LEAD_S if independent else 0.05)
 
 
 async def _fly(

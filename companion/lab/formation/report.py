@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.config import Config, FormationPlan
 from companion.lab.evaluation.log import save_log
@@ -121,7 +122,7 @@ def build_formation_report(
 
 
 def report_markdown(report: Mapping[str, Any]) -> str:
-    """``report.md``: the per-follower table."""
+    """``report.md``: the per-follower table, then the plot (``plots`` in the report, relative links)."""
     lines = [
         f"# {report['scenario']} (seed {report['seed']}): {report['outcome']}",
         "",
@@ -139,6 +140,10 @@ def report_markdown(report: Mapping[str, Any]) -> str:
             f"{e['min_separation_m']} ({e['min_separation_to']}) | {e['leader_identity_swaps']} "
             f"({e['identity_swaps_detected']}) | {e['detection_recall']} |"
         )
+    plots = report.get("plots") or []
+    if plots:
+        lines += ["", "## Plots", ""]
+        lines += [f"![{Path(p).stem}](plots/{Path(p).name})" for p in plots]
     return "\n".join(lines) + "\n"
 
 
@@ -150,43 +155,95 @@ def write_formation_report(out_dir: Path, report: Mapping[str, Any]) -> None:
 
 
 def plot_from_above(result: FormationResult, plan: FormationPlan, path: Path, title: str) -> None:
-    """Every vehicle's track seen from above, with the formation drawn every 10 s, and slot deviations."""
-    import matplotlib as mpl  # noqa: PLC0415 (plots only)
+    """Every vehicle's track seen from above with the formation's shape in time, and slot deviations."""
+    draw_formation(
+        np.asarray(result.t_s),
+        {n: np.asarray(p) for n, p in result.p_ned_m.items()},
+        {f.name: np.asarray(f.score.deviation_trace) for f in result.followers},
+        plan_name=plan.name,
+        path=path,
+        title=title,
+    )
 
-    mpl.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+#: The formation's shape is drawn this often, s, each labelled with its time.
+SNAPSHOT_PERIOD_S = 10.0
+
+
+def draw_formation(
+    t_s: NDArray[np.float64],
+    tracks_ned_m: Mapping[str, NDArray[np.float64]],
+    deviations: Mapping[str, NDArray[np.float64]],
+    *,
+    plan_name: str,
+    path: Path,
+    title: str,
+) -> Any:
+    """The formation plot: tracks from above with the formation's shape in time, and slot deviations.
+
+    Left: the tracks (``leader`` first in ``tracks_ned_m``; N x 3 NED, m) with start, end and direction,
+    and the formation every :data:`SNAPSHOT_PERIOD_S` labelled with its sim time. Right: each follower's
+    distance from its plan slot over time (``deviations``: K x 2 of time s, distance m). Returns the figure.
+    """
+    from matplotlib.figure import Figure  # noqa: PLC0415 (plots only)
+    from matplotlib.lines import Line2D  # noqa: PLC0415
+
+    from companion.lab.evaluation.plots import direction_arrows  # noqa: PLC0415 (matplotlib)
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    t = np.asarray(result.t_s)
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1.2, 1]})
-    names = list(result.p_ned_m)
+    fig = Figure(figsize=(14, 7), dpi=110)
+    ax, ax2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.25, 1.0]})
+    names = list(tracks_ned_m)
     colour = {n: f"C{i}" for i, n in enumerate(names)}
     for n in names:
-        p = np.asarray(result.p_ned_m[n])
-        ax.plot(p[:, 1], p[:, 0], lw=2.0 if n == "leader" else 1.0, label=n, color=colour[n])
-    step = max(1, round(10.0 / max(float(np.median(np.diff(t))) if t.size > 1 else 1.0, 1e-3)))
-    for k in range(0, t.size, step):
-        pts = np.array([result.p_ned_m[n][k] for n in names])
-        if np.all(-pts[:, 2] > 1.0):
-            ax.plot(pts[:, 1], pts[:, 0], "k.", ms=3)
-            for j in range(1, len(names)):
-                ax.plot([pts[0, 1], pts[j, 1]], [pts[0, 0], pts[j, 0]], color="0.7", lw=0.5)
+        p = tracks_ned_m[n]
+        leader = n == "leader"
+        ax.plot(
+            p[:, 1], p[:, 0], lw=2.2 if leader else 1.1, label=n, color=colour[n], zorder=3 if leader else 2
+        )
+        ax.plot(p[0, 1], p[0, 0], "o", mfc=colour[n], mec="k", ms=7, zorder=5)
+        ax.plot(p[-1, 1], p[-1, 0], "s", mfc=colour[n], mec="k", ms=6, zorder=5)
+    lead = tracks_ned_m[names[0]]
+    direction_arrows(ax, lead[:, 1], lead[:, 0], colour[names[0]])
+    step = max(
+        1, round(SNAPSHOT_PERIOD_S / max(float(np.median(np.diff(t_s))) if t_s.size > 1 else 1.0, 1e-3))
+    )
+    drawn = 0
+    for k in range(0, t_s.size, step):
+        pts = np.array([tracks_ned_m[n][k] for n in names])
+        if not np.all(-pts[:, 2] > 1.0):
+            continue  # on the ground or climbing: no formation yet
+        for j in range(1, len(names)):
+            ax.plot([pts[0, 1], pts[j, 1]], [pts[0, 0], pts[j, 0]], color="0.55", lw=0.7, zorder=1)
+        ax.plot(pts[:, 1], pts[:, 0], "k.", ms=3, zorder=4)
+        ax.annotate(f"{t_s[k]:.0f} s", (pts[0, 1], pts[0, 0]), xytext=(4, 4), textcoords="offset points",
+                    fontsize=7, color="0.25", zorder=6)  # fmt: skip
+        drawn += 1
+    ax.plot([], [], "o", mfc="w", mec="k", ms=7, label=f"start (t = {t_s[0]:.0f} s)")
+    ax.plot([], [], "s", mfc="w", mec="k", ms=6, label=f"end (t = {t_s[-1]:.0f} s)")
+    ax.add_line(Line2D([], [], color="0.55", lw=0.7, label=f"the formation every {SNAPSHOT_PERIOD_S:.0f} s"))
     ax.set_xlabel("east, m")
     ax.set_ylabel("north, m")
     ax.set_aspect("equal", "datalim")
-    ax.legend(fontsize=8)
-    ax.set_title(f"{title}: from above (grey: the formation every 10 s)")
-    for f in result.followers:
-        tr = np.asarray(f.score.deviation_trace)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best", framealpha=0.9)
+    ax.set_title(
+        f"{title}: from above (arrows: the leader's direction; grey: formation, sim time)", fontsize=10
+    )
+    for n, tr in deviations.items():
         if tr.size:
-            ax2.plot(tr[:, 0], tr[:, 1], lw=1.0, label=f.name, color=colour[f.name])
+            ax2.plot(tr[:, 0], tr[:, 1], lw=1.0, label=n, color=colour.get(n, "k"))
     ax2.set_xlabel("sim time, s")
     ax2.set_ylabel("distance from the plan slot, m")
-    ax2.legend(fontsize=8)
-    ax2.set_title(f"plan {plan.name}: deviation in formation flight")
+    ax2.grid(alpha=0.3)
+    if ax2.lines:
+        ax2.legend(fontsize=8)
+    ax2.set_title(
+        f"plan {plan_name}: each follower's distance from its slot in formation flight", fontsize=10
+    )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    fig.savefig(path)
+    return fig
 
 
 def save_logs(result: FormationResult, out_dir: Path) -> None:

@@ -86,6 +86,13 @@ class LandingStates(MachineBase):
             # PX4 would fall to Descend in these modes; land under our own control instead.
             self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, f"in {st.value}")
             return
+        if st in (MissionState.PX4_HOLD, MissionState.PX4_IN_CONTROL) and self._takeover_latched:
+            # An operator's start: take the vehicle back and find the leader again (GPS is good here).
+            self._start_latched = False
+            self._takeover_latched = False
+            if veh.armed and veh.in_air and self.gps.ok and not self._shutting_down:
+                self._go(MissionState.ACQUIRE, Reason.OPERATOR_START, f"from {st.value}")
+                return
         kind = {MissionState.PX4_HOLD: CommandKind.HOLD, MissionState.PX4_RTL: CommandKind.RTL}.get(st)
         failed = self._failed(kind) if kind is not None else None
         if failed is not None:

@@ -1,7 +1,8 @@
 """Frame sources behind the :class:`~companion.perception.types.FrameSource` protocol.
 
-``open_source(cfg.camera)`` picks one from the config: ``file`` (a folder recording, or a RealSense
-``.bag`` or ``.db3``), ``realsense`` (live) or ``sim`` (the simulator's rendered camera, owned by ``sitl``).
+``open_source(cfg.camera)`` picks one from the config: ``file`` (a folder recording, a RealSense
+``.bag`` or ``.db3``, or an ``.mcap`` flight log), ``realsense`` (live) or ``sim`` (the simulator's
+rendered camera, owned by ``sitl``).
 Nothing is opened until ``async with``; modules with heavy imports load only when chosen.
 """
 
@@ -30,6 +31,10 @@ def open_source(camera: CameraConfig, *, clock: Clock | None = None) -> FrameSou
     """The frame source the camera config names (not yet entered)."""
     if camera.source == "file":
         path = Path(camera.path)
+        if path.suffix.lower() == ".mcap":
+            from companion.perception.sources.mcap_file import McapSource  # noqa: PLC0415
+
+            return McapSource(path, realtime=camera.realtime, loop=camera.loop, clock=clock)
         if path.suffix.lower() in (".bag", ".db3"):
             from companion.perception.sources.bag import BagSource  # noqa: PLC0415
 

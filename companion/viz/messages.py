@@ -1,0 +1,581 @@
+"""From what the flight core saw to encoded messages of :mod:`companion.viz.channels` (on the worker thread).
+
+Every builder returns ``(topic, log_time_ns, bytes)`` records. Times are the service clock's seconds plus a
+fixed offset (``time_offset_s``: the wall clock's epoch in the service, 0 in the simulator, whose logs start
+at 1970-01-01 00:00:00 + sim time), in nanoseconds; a message's own timestamp is the same instant, so images,
+their annotations and the frame's transforms line up.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from foxglove import messages as fm
+from numpy.typing import NDArray
+
+from companion.kernel.camera import DepthImage, Intrinsics, RgbdFrame, RgbImage
+from companion.kernel.flight import (
+    NEVER_S,
+    AttitudeSetpoint,
+    Setpoint,
+    Severity,
+    VehicleState,
+    VelocityBodySetpoint,
+    VelocityNedSetpoint,
+)
+from companion.kernel.frames import R_from_euler, quat_from_R
+from companion.mission.types import MissionInputs, StepOutput, Transition
+from companion.perception.transform import CameraGeometry
+from companion.perception.types import DetectorResult
+from companion.viz import channels as ch
+from companion.viz.frames import CAMERA, FOLLOWER, LEADER, R_FLU_FRD, WORLD, R_world_follower, enu
+
+Record = tuple[str, int, bytes]
+
+_LOG_LEVEL = {
+    Severity.EMERGENCY: fm.LogLevel.Fatal,
+    Severity.ALERT: fm.LogLevel.Fatal,
+    Severity.CRITICAL: fm.LogLevel.Error,
+    Severity.ERROR: fm.LogLevel.Error,
+    Severity.WARNING: fm.LogLevel.Warning,
+    Severity.NOTICE: fm.LogLevel.Info,
+    Severity.INFO: fm.LogLevel.Info,
+    Severity.DEBUG: fm.LogLevel.Debug,
+}
+_GREEN = fm.Color(r=0.1, g=0.9, b=0.2, a=1.0)
+_ORANGE = fm.Color(r=1.0, g=0.6, b=0.1, a=1.0)
+_WHITE = fm.Color(r=1.0, g=1.0, b=1.0, a=1.0)
+_SHADE = fm.Color(r=0.0, g=0.0, b=0.0, a=0.6)
+_TRACK_COLOUR = {
+    "confirmed": fm.Color(r=0.1, g=0.9, b=0.2, a=0.35),
+    "coasting": fm.Color(r=1.0, g=0.85, b=0.1, a=0.35),
+}
+_TENTATIVE = fm.Color(r=0.6, g=0.6, b=0.6, a=0.35)
+#: The camera frustum is drawn out to this range, m (about the stereo range).
+FRUSTUM_RANGE_M = 10.0
+
+
+def _ts(ns: int) -> fm.Timestamp:
+    return fm.Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+
+
+def _v3(x: float, y: float, z: float) -> fm.Vector3:
+    return fm.Vector3(x=x, y=y, z=z)
+
+
+def _q(R: Any) -> fm.Quaternion:
+    w, x, y, z = (float(c) for c in quat_from_R(R))
+    return fm.Quaternion(x=x, y=y, z=z, w=w)
+
+
+def _pose(p: tuple[float, float, float], R: Any = None) -> fm.Pose:
+    q = fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0) if R is None else _q(R)
+    return fm.Pose(position=_v3(*p), orientation=q)
+
+
+def _json(topic: str, ns: int, payload: dict[str, Any]) -> Record:
+    try:
+        text = json.dumps(payload, allow_nan=False, separators=(",", ":"))
+    except ValueError:  # a NaN or infinity somewhere: JSON has none, so null
+        text = json.dumps(_no_nan(payload), separators=(",", ":"))
+    return topic, ns, text.encode()
+
+
+def _no_nan(x: Any) -> Any:
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _no_nan(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_no_nan(v) for v in x]
+    return x
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def _r(v: Any, nd: int = 4) -> list[float]:
+    return [round(float(c), nd) for c in v]
+
+
+def encode_colour(rgb: RgbImage, fmt: str, jpeg_quality: int) -> bytes:
+    """RGB pixels as JPEG or PNG bytes."""
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    ok, buf = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", bgr, params)
+    if not ok:
+        raise ValueError(f"{fmt} encoding failed")
+    return buf.tobytes()
+
+
+def depth_mm(depth_m: DepthImage, step: int = 1) -> NDArray[np.uint16]:
+    """Depth in millimetres as uint16 (0: no depth), every ``step``-th pixel."""
+    d = depth_m[::step, ::step] if step > 1 else depth_m
+    mm: NDArray[np.uint16] = np.clip(np.nan_to_num(d, nan=0.0) * 1000.0 + 0.5, 0.0, 65535.0).astype(np.uint16)
+    return mm
+
+
+@dataclass(frozen=True, slots=True)
+class Namespace:
+    """Where one follower's channels and frames live: ``""`` alone, its vehicle id in a formation.
+
+    ``origin_ned_m`` places the follower's local NED origin in the shared ``world`` (formations), m.
+    """
+
+    prefix: str = ""
+    origin_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def topic(self, name: str) -> str:
+        return f"/{self.prefix}{name}" if self.prefix else name
+
+    def frame(self, name: str) -> str:
+        return f"{self.prefix}/{name}" if self.prefix else name
+
+
+class MessageBuilder:
+    """Builds the records of one follower (the recorder's worker calls it; nothing here blocks on I/O)."""
+
+    def __init__(self, geometry: CameraGeometry, ns: Namespace, time_offset_s: float) -> None:
+        self.geometry = geometry
+        self.ns = ns
+        self.time_offset_s = time_offset_s
+        self._intrinsics: Intrinsics | None = None
+        self._calibration: bytes = b""
+        self._frustum: Any = None
+        # The camera's mount in the follower's FLU body frame (fixed).
+        self._R_flu_cam = R_FLU_FRD @ geometry.R_body_cam
+        self._t_flu_cam = tuple(float(c) for c in R_FLU_FRD @ geometry.t_body_cam_m)
+
+    def ns_of(self, stamp_s: float) -> int:
+        """A service-clock stamp as the logs' time, ns."""
+        return round((stamp_s + self.time_offset_s) * 1e9)
+
+    # ---------------------------------------------------------------- per frame
+    def frame_records(self, frame: RgbdFrame, result: DetectorResult, track: Any) -> list[Record]:
+        """The frame's detections and track (JSON), its annotations and its calibration."""
+        ns = self.ns_of(frame.stamp_s)
+        ns_ = self.ns
+        meas = None if track is None else track.measurement
+        est = None if track is None else track.estimate
+        payload: dict[str, Any] = {
+            "seq": frame.seq,
+            "stamp_s": frame.stamp_s,
+            "detections": [
+                {"box_xyxy_px": list(d.box_xyxy_px), "score": d.score, "scale": d.scale}
+                for d in result.detections
+            ],
+            "track_status": "none" if track is None else track.status.value,
+            "track_id": 0 if track is None else track.track_id,
+            "tracked_box_xyxy_px": None if meas is None else list(meas.box_xyxy_px),
+            "leader_cam_m": None if est is None else _r(est.p_cam_leader_m),
+            "range_m": None if est is None else round(float(est.range_m), 3),
+            "q_ned_body_wxyz": None if est is None else [float(c) for c in quat_from_R(est.R_ned_body)],
+        }
+        records = [
+            _json(ns_.topic(ch.PERCEPTION), ns, payload),
+            (ns_.topic(ch.ANNOTATIONS), ns, self._annotations(ns, result, track)),
+        ]
+        if self._intrinsics != frame.intrinsics:
+            self._intrinsics = frame.intrinsics
+            self._calibration = b""
+            self._frustum = None
+        return records
+
+    def calibration(self, frame: RgbdFrame) -> Record:
+        """The camera's intrinsics (sent with every image, so a viewer that joins late has them)."""
+        ns = self.ns_of(frame.stamp_s)
+        i = frame.intrinsics
+        msg = fm.CameraCalibration(
+            timestamp=_ts(ns),
+            frame_id=self.ns.frame(CAMERA),
+            width=i.width_px,
+            height=i.height_px,
+            distortion_model="plumb_bob",
+            D=[0.0] * 5,
+            K=[i.fx_px, 0.0, i.cx_px, 0.0, i.fy_px, i.cy_px, 0.0, 0.0, 1.0],
+            R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            P=[i.fx_px, 0.0, i.cx_px, 0.0, 0.0, i.fy_px, i.cy_px, 0.0, 0.0, 0.0, 1.0, 0.0],
+        )
+        return self.ns.topic(ch.CALIBRATION), ns, msg.encode()
+
+    def image(self, frame: RgbdFrame, data: bytes, fmt: str) -> Record:
+        ns = self.ns_of(frame.stamp_s)
+        msg = fm.CompressedImage(timestamp=_ts(ns), frame_id=self.ns.frame(CAMERA), data=data, format=fmt)
+        return self.ns.topic(ch.IMAGE), ns, msg.encode()
+
+    def depth(self, frame: RgbdFrame, step: int = 1) -> Record:
+        """Depth as a 16UC1 image in millimetres (``step`` > 1: every step-th pixel, for the live view)."""
+        ns = self.ns_of(frame.stamp_s)
+        mm = depth_mm(frame.depth_m, step)
+        h, w = mm.shape
+        msg = fm.RawImage(
+            timestamp=_ts(ns),
+            frame_id=self.ns.frame(CAMERA),
+            width=w,
+            height=h,
+            encoding="16UC1",
+            step=2 * w,
+            data=mm.tobytes(),
+        )
+        return self.ns.topic(ch.DEPTH), ns, msg.encode()
+
+    def _annotations(self, ns: int, result: DetectorResult, track: Any) -> bytes:
+        ts = _ts(ns)
+        meas = None if track is None else track.measurement
+        points, texts = [], []
+        for d in result.detections:
+            tracked = meas is not None and tuple(meas.box_xyxy_px) == tuple(d.box_xyxy_px)
+            x0, y0, x1, y1 = (float(c) for c in d.box_xyxy_px)
+            points.append(
+                fm.PointsAnnotation(
+                    timestamp=ts,
+                    type=fm.PointsAnnotationType.LineLoop,
+                    points=[
+                        fm.Point2(x=x0, y=y0),
+                        fm.Point2(x=x1, y=y0),
+                        fm.Point2(x=x1, y=y1),
+                        fm.Point2(x=x0, y=y1),
+                    ],
+                    outline_color=_GREEN if tracked else _ORANGE,
+                    thickness=3.0 if tracked else 1.5,
+                )
+            )
+            label = f"{d.score:.2f}"
+            if tracked and track is not None and track.estimate is not None:
+                label = f"leader {d.score:.2f} {track.status.value} {float(track.estimate.range_m):.1f} m"
+            texts.append(
+                fm.TextAnnotation(
+                    timestamp=ts,
+                    position=fm.Point2(x=x0, y=max(0.0, y0 - 4.0)),
+                    text=label,
+                    font_size=14.0,
+                    text_color=_WHITE,
+                    background_color=_SHADE,
+                )
+            )
+        if meas is None and track is not None and track.estimate is not None:
+            texts.append(
+                fm.TextAnnotation(
+                    timestamp=ts,
+                    position=fm.Point2(x=8.0, y=20.0),
+                    text=f"leader {track.status.value}, no detection this frame",
+                    font_size=14.0,
+                    text_color=_WHITE,
+                    background_color=_SHADE,
+                )
+            )
+        return fm.ImageAnnotations(timestamp=ts, points=points, texts=texts).encode()
+
+    # ---------------------------------------------------------------- per control step
+    def step_records(self, now_s: float, inputs: MissionInputs, out: StepOutput) -> list[Record]:
+        """Transforms, the 3D scene, the formation's time series, the state and the vehicle's flags."""
+        ns = self.ns_of(now_s)
+        v = inputs.vehicle
+        est = inputs.leader
+        records = [
+            (self.ns.topic(ch.TF), ns, self._transforms(ns, v, est)),
+            (self.ns.topic(ch.SCENE), ns, self._scene(ns, inputs, out)),
+            _json(
+                self.ns.topic(ch.MISSION_STATE),
+                ns,
+                {
+                    "stamp_s": now_s,
+                    "state": out.state.value,
+                    "vision_mode": None if out.vision_mode is None else str(out.vision_mode.value),
+                },
+            ),
+            _json(self.ns.topic(ch.FORMATION), ns, self._formation(now_s, inputs, out)),
+            _json(self.ns.topic(ch.VEHICLE), ns, _vehicle(now_s, v)),
+        ]
+        return records
+
+    def _follower_enu(self, v: VehicleState) -> tuple[float, float, float]:
+        o = self.ns.origin_ned_m
+        return enu((v.p_ned_m[0] + o[0], v.p_ned_m[1] + o[1], v.p_ned_m[2] + o[2]))
+
+    def _transforms(self, ns: int, v: VehicleState, est: Any) -> bytes:
+        ts = _ts(ns)
+        R = R_world_follower(R_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad))
+        p = self._follower_enu(v)
+        tfs = [
+            fm.FrameTransform(
+                timestamp=ts,
+                parent_frame_id=WORLD,
+                child_frame_id=self.ns.frame(FOLLOWER),
+                translation=_v3(*p),
+                rotation=_q(R),
+            ),
+            fm.FrameTransform(
+                timestamp=ts,
+                parent_frame_id=self.ns.frame(FOLLOWER),
+                child_frame_id=self.ns.frame(CAMERA),
+                translation=_v3(*self._t_flu_cam),
+                rotation=_q(self._R_flu_cam),
+            ),
+        ]
+        if est is not None:
+            rel = enu(est.p_ned_rel_m)
+            tfs.append(
+                fm.FrameTransform(
+                    timestamp=ts,
+                    parent_frame_id=WORLD,
+                    child_frame_id=self.ns.frame(LEADER),
+                    translation=_v3(p[0] + rel[0], p[1] + rel[1], p[2] + rel[2]),
+                    rotation=fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+                )
+            )
+        return fm.FrameTransforms(transforms=tfs).encode()
+
+    def _scene(self, ns: int, inputs: MissionInputs, out: StepOutput) -> bytes:
+        ts = _ts(ns)
+        v = inputs.vehicle
+        p = self._follower_enu(v)
+        pre = self.ns.prefix or "follower"
+        entities = [
+            fm.SceneEntity(
+                timestamp=ts,
+                frame_id=self.ns.frame(FOLLOWER),
+                id=f"{pre}/body",
+                frame_locked=True,
+                cubes=[
+                    fm.CubePrimitive(
+                        pose=_pose((0.0, 0.0, 0.0)),
+                        size=_v3(0.45, 0.45, 0.12),
+                        color=fm.Color(r=0.2, g=0.5, b=1.0, a=0.9),
+                    )
+                ],
+                arrows=[
+                    fm.ArrowPrimitive(
+                        pose=_pose((0.0, 0.0, 0.0)),
+                        shaft_length=0.5,
+                        shaft_diameter=0.04,
+                        head_length=0.15,
+                        head_diameter=0.1,
+                        color=fm.Color(r=0.2, g=0.5, b=1.0, a=1.0),
+                    )
+                ],
+                texts=[
+                    fm.TextPrimitive(
+                        pose=_pose((0.0, 0.0, 0.4)),
+                        billboard=True,
+                        font_size=14.0,
+                        scale_invariant=True,
+                        color=_WHITE,
+                        text=self.ns.prefix or "follower",
+                    )
+                ],
+            )
+        ]
+        frustum = self._frustum_entity(ts, pre)
+        if frustum is not None:
+            entities.append(frustum)
+        est = inputs.leader
+        deletions = []
+        if est is not None:
+            rel = enu(est.p_ned_rel_m)
+            c = (p[0] + rel[0], p[1] + rel[1], p[2] + rel[2])
+            sd = enu(tuple(math.sqrt(max(0.0, x)) for x in est.var_ned_rel_m2))  # type: ignore[arg-type]
+            colour = _TRACK_COLOUR.get(est.status.value, _TENTATIVE)
+            entities.append(
+                fm.SceneEntity(
+                    timestamp=ts,
+                    frame_id=WORLD,
+                    id=f"{pre}/leader",
+                    spheres=[
+                        # The 2-sigma ellipsoid of the estimate (axes of the NED covariance diagonal).
+                        fm.SpherePrimitive(
+                            pose=_pose(c), size=_v3(*(max(0.05, 4.0 * abs(s)) for s in sd)), color=colour
+                        ),
+                        fm.SpherePrimitive(
+                            pose=_pose(c),
+                            size=_v3(0.15, 0.15, 0.15),
+                            color=fm.Color(r=1.0, g=0.2, b=0.2, a=1.0),
+                        ),
+                    ],
+                    texts=[
+                        fm.TextPrimitive(
+                            pose=_pose((c[0], c[1], c[2] + 0.5)),
+                            billboard=True,
+                            font_size=14.0,
+                            scale_invariant=True,
+                            color=_WHITE,
+                            text=f"leader ({est.status.value}, 2-sigma)",
+                        )
+                    ],
+                )
+            )
+        else:
+            deletions.append(fm.SceneEntityDeletion(timestamp=ts, id=f"{pre}/leader"))
+        err = out.formation_error_ned_m
+        if err is not None:
+            e = enu(err)
+            entities.append(
+                fm.SceneEntity(
+                    timestamp=ts,
+                    frame_id=WORLD,
+                    id=f"{pre}/slot",
+                    cubes=[
+                        fm.CubePrimitive(
+                            # Where the follower should be: its position plus the formation error.
+                            pose=_pose((p[0] + e[0], p[1] + e[1], p[2] + e[2])),
+                            size=_v3(0.45, 0.45, 0.12),
+                            color=fm.Color(r=0.3, g=0.9, b=1.0, a=0.3),
+                        )
+                    ],
+                )
+            )
+        else:
+            deletions.append(fm.SceneEntityDeletion(timestamp=ts, id=f"{pre}/slot"))
+        if inputs.neighbours:
+            o = self.ns.origin_ned_m
+            spheres, texts = [], []
+            for n in inputs.neighbours:
+                q = enu((n.p_ned_m[0] + o[0], n.p_ned_m[1] + o[1], n.p_ned_m[2] + o[2]))
+                spheres.append(
+                    fm.SpherePrimitive(
+                        pose=_pose(q), size=_v3(0.5, 0.5, 0.5), color=fm.Color(r=0.8, g=0.4, b=1.0, a=0.6)
+                    )
+                )
+                texts.append(
+                    fm.TextPrimitive(
+                        pose=_pose((q[0], q[1], q[2] + 0.5)),
+                        billboard=True,
+                        font_size=12.0,
+                        scale_invariant=True,
+                        color=_WHITE,
+                        text=f"{n.name} (shared)",
+                    )
+                )
+            entities.append(
+                fm.SceneEntity(
+                    timestamp=ts, frame_id=WORLD, id=f"{pre}/neighbours", spheres=spheres, texts=texts
+                )
+            )
+        return fm.SceneUpdate(deletions=deletions, entities=entities).encode()
+
+    def _frustum_entity(self, ts: fm.Timestamp, pre: str) -> fm.SceneEntity | None:
+        i = self._intrinsics
+        if i is None:
+            return None
+        if self._frustum is None:
+            d = FRUSTUM_RANGE_M
+            corners = [
+                fm.Point3(x=(u - i.cx_px) / i.fx_px * d, y=(v - i.cy_px) / i.fy_px * d, z=d)
+                for u, v in ((0.0, 0.0), (i.width_px, 0.0), (i.width_px, i.height_px), (0.0, i.height_px))
+            ]
+            apex = fm.Point3(x=0.0, y=0.0, z=0.0)
+            pts = []
+            for k in range(4):
+                pts += [apex, corners[k], corners[k], corners[(k + 1) % 4]]
+            self._frustum = pts
+        return fm.SceneEntity(
+            timestamp=ts,
+            frame_id=self.ns.frame(CAMERA),
+            id=f"{pre}/frustum",
+            frame_locked=True,
+            lines=[
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineList,
+                    pose=_pose((0.0, 0.0, 0.0)),
+                    thickness=1.5,
+                    scale_invariant=True,
+                    points=self._frustum,
+                    color=fm.Color(r=1.0, g=1.0, b=1.0, a=0.5),
+                )
+            ],
+        )
+
+    def _formation(self, now_s: float, inputs: MissionInputs, out: StepOutput) -> dict[str, Any]:
+        est = inputs.leader
+        err = out.formation_error_ned_m
+        payload: dict[str, Any] = {
+            "stamp_s": now_s,
+            "formation_error_ned_m": None if err is None else _r(err),
+            "formation_error_m": None if err is None else round(math.sqrt(sum(c * c for c in err)), 4),
+            "leader_rel_ned_m": None if est is None else _r(est.p_ned_rel_m),
+            "leader_rel_sd_ned_m": None
+            if est is None
+            else _r(math.sqrt(max(0.0, x)) for x in est.var_ned_rel_m2),
+            "leader_status": "none" if est is None else est.status.value,
+        }
+        payload.update(_setpoint(out.setpoint))
+        return payload
+
+    # ---------------------------------------------------------------- per transition
+    def transition_records(self, tr: Transition) -> list[Record]:
+        """The transition as a log line and as the state's new value."""
+        ns = self.ns_of(tr.stamp_s)
+        detail = f" ({tr.detail})" if tr.detail else ""
+        text = f"{tr.from_state.value} -> {tr.to_state.value}: {tr.reason.value}{detail}"
+        log = fm.Log(
+            timestamp=_ts(ns),
+            level=_LOG_LEVEL.get(tr.severity, fm.LogLevel.Info),
+            message=text,
+            name=self.ns.prefix or "mission",
+        )
+        return [
+            (self.ns.topic(ch.MISSION_LOG), ns, log.encode()),
+            _json(
+                self.ns.topic(ch.MISSION_STATE),
+                ns,
+                {
+                    "stamp_s": tr.stamp_s,
+                    "state": tr.to_state.value,
+                    "reason": tr.reason.name,
+                    "detail": tr.detail,
+                },
+            ),
+        ]
+
+    def health_record(self, now_s: float, payload: dict[str, Any]) -> Record:
+        return _json(self.ns.topic(ch.HEALTH), self.ns_of(now_s), {"stamp_s": now_s, **payload})
+
+
+def _vehicle(now_s: float, v: VehicleState) -> dict[str, Any]:
+    return {
+        "stamp_s": now_s,
+        "link_ok": v.connected,
+        "heartbeat_age_s": None
+        if v.heartbeat_stamp_s == NEVER_S
+        else round(max(0.0, now_s - v.heartbeat_stamp_s), 3),
+        "armed": v.armed,
+        "in_air": v.in_air,
+        "flight_mode": v.flight_mode.value,
+        "gps_fix_type": v.gps_fix_type,
+        "gps_satellites": v.gps_satellites,
+        "gps_ok": v.global_position_ok,
+        "position_valid": v.position_valid,
+        "p_ned_m": _r(v.p_ned_m),
+        "v_ned_m_s": _r(v.v_ned_m_s),
+        "battery_remaining_frac": _finite(v.battery_remaining_frac),
+    }
+
+
+def _setpoint(sp: Setpoint | None) -> dict[str, Any]:
+    if isinstance(sp, VelocityNedSetpoint):
+        return {
+            "setpoint_kind": "velocity_ned",
+            "setpoint_v_m_s": _r(sp.v_ned_m_s),
+            "setpoint_yaw_rad": sp.yaw_rad,
+        }
+    if isinstance(sp, VelocityBodySetpoint):
+        return {
+            "setpoint_kind": "velocity_body",
+            "setpoint_v_m_s": _r(sp.v_body_m_s),
+            "setpoint_yaw_rate_rad_s": sp.yaw_rate_rad_s,
+        }
+    if isinstance(sp, AttitudeSetpoint):
+        return {
+            "setpoint_kind": "attitude",
+            "setpoint_roll_rad": sp.roll_rad,
+            "setpoint_pitch_rad": sp.pitch_rad,
+            "setpoint_yaw_rad": sp.yaw_rad,
+            "setpoint_thrust_norm": sp.thrust_norm,
+        }
+    return {"setpoint_kind": "none"}
