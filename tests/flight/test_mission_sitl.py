@@ -236,3 +236,29 @@ async def test_stale_estimates_never_reach_the_vehicle(tmp_path: Path) -> None:
     assert figures["stall_to_hover_s"] <= stale_s + 2 * tick_s + 0.05
     assert figures["last_setpoint_after_abort_s"] <= 0.3  # the stream stops with the abort
     assert figures["speed_after_3s_hover_m_s"] <= 0.3
+
+
+async def test_an_operators_hold_then_start_follows_again(tmp_path: Path) -> None:
+    """Through real MAVSDK: hold hands the follower to PX4's Hold, and start takes it back into offboard."""
+    cfg = mission_cfg(shutdown_action="land")
+    answers: list[str] = []
+
+    async def body(f: Flight) -> None:
+        await f.reach(S.FOLLOW, timeout_s=60)
+        await asyncio.sleep(2.0)
+        answers.append(await f.runner.request_command("hold"))
+        await asyncio.sleep(3.0)
+        assert f.link.snapshot().flight_mode == FlightMode.HOLD
+        assert f.runner.state == S.PX4_HOLD  # nothing resumes by itself
+        answers.append(await f.runner.operator_start())
+        await asyncio.sleep(3.0)
+        assert f.runner.state == S.FOLLOW, f.rec.reasons()
+        assert f.link.snapshot().flight_mode == FlightMode.OFFBOARD
+        answers.append(await f.runner.operator_start())
+        f.runner.request_shutdown()
+        await f.reach(S.PX4_LAND, timeout_s=3.0)
+
+    await fly(tmp_path, cfg, HOVER_SCENARIO, body)
+    assert answers[0] == "hold: follow -> px4_hold (operator asked to hold)"
+    assert answers[1].startswith("start: px4_hold -> acquire (operator asked to follow again: from px4_hold)")
+    assert answers[2] == "start refused: the mission is already under way (state follow)"

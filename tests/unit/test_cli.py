@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -14,9 +15,16 @@ from sitl.cli import build_parser as build_sitl_parser
 from sitl.cli import main as sitl_main
 
 
-def run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+def run(*args: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    full_env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2]), **(env or {})}
     return subprocess.run(
-        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=60, check=False
+        [sys.executable, *args],
+        cwd=cwd,
+        env=full_env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
     )
 
 
@@ -173,3 +181,22 @@ def test_every_command_and_option_says_what_it_does(build: Callable[[], argparse
             if not action.help:
                 silent.append(f"{name} {'/'.join(action.option_strings) or action.dest}: no help")
     assert silent == []
+
+
+def test_check_config_lists_every_problem_in_one_pass(tmp_path: Path, repo_root: Path) -> None:
+    """A bad URL, an unknown key and a missing model: all three, each with where it came from."""
+    p = tmp_path / "bad.toml"
+    p.write_text('[link]\nurl = "foo"\n[detector]\nthreshhold = 3\nmodel_path = "nope/x.pt"\n')
+    r = run("-m", "companion", "check-config", str(p), cwd=tmp_path)  # from the config's own folder
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"companion: {p}: link.url: expected one of udpin://, udpout://, tcpin://, tcpout://, serial://... "
+        "(got 'foo')",
+        f"companion: {p}: detector.threshhold: unknown key (did you mean detector.conf_threshold?)",
+        f"companion: {p}: detector.model_path: model file not found: {tmp_path}/nope/x.pt ('nope/x.pt' taken "
+        f"relative to the config file's folder {tmp_path}; not in the shipped files {repo_root} either)",
+    ]
+    r = run(
+        "-m", "companion", "check-config", str(p), cwd=repo_root, env={"WINGMAN_LINK__URL": "udpin://h:1"}
+    )
+    assert "link.url" not in r.stderr  # the variable's value replaced the file's
