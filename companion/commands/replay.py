@@ -26,8 +26,9 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--source",
         required=True,
-        help="file:PATH (a folder recording, a RealSense .bag or .db3), sim (the simulator's camera socket, "
-        "camera.path) or realsense (live); a live source runs until Ctrl-C or --frames",
+        help="file:PATH (a folder recording, a RealSense .bag or .db3, an .mcap flight log), sim (the "
+        "simulator's camera socket, camera.path) or realsense (live); a live source runs until Ctrl-C or "
+        "--frames",
     )
     p.add_argument("--frames", type=int, default=0, help="stop after N frames (0: the whole recording)")
     p.add_argument("--out", default=None, help="CSV of per-frame estimates and errors")
@@ -49,8 +50,8 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--source",
         required=True,
-        help="file:PATH (a folder recording, a RealSense .bag or .db3), sim (the simulator's camera socket, "
-        "camera.path) or realsense (live)",
+        help="file:PATH (a folder recording, a RealSense .bag or .db3, an .mcap flight log), sim (the "
+        "simulator's camera socket, camera.path) or realsense (live)",
     )
     r.add_argument("--out", required=True, help="output folder, or a RealSense file ending in .bag")
     r.add_argument("--frames", type=int, default=0, help="stop after N frames (0: until Ctrl-C/end)")

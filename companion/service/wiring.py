@@ -384,7 +384,7 @@ def open_recorder(
     if not (cfg.viz.live or cfg.viz.log):
         return None
     from companion.viz.recorder import wall_offset_s  # noqa: PLC0415 (the Foxglove SDK: only when on)
-    from companion.viz.setup import LogPlace, build_recorder  # noqa: PLC0415
+    from companion.viz.setup import LogPlace, build_recorder, health_flags  # noqa: PLC0415
     from companion.viz.sinks import flight_stem  # noqa: PLC0415
 
     place = None
@@ -395,15 +395,6 @@ def open_recorder(
         if not cfg.viz.log_dir:
             folder = folder / "flights"
         place = LogPlace(folder, flight_stem(cfg.vehicle_id), {"vehicle_id": cfg.vehicle_id})
-    health = ctx.health
-
-    def flags() -> dict[str, Any]:
-        parts = health.snapshot()
-        return {
-            "healthy": all(c.ok for c in parts if c.critical),
-            "components": {c.name: {"ok": c.ok, "alive": c.alive, "detail": c.detail} for c in parts},
-        }
-
     recorder = build_recorder(
         cfg.viz,
         core.pipeline.camera,
@@ -411,7 +402,7 @@ def open_recorder(
         log_place=place,
         server_name=f"wingman {cfg.vehicle_id}",
         time_offset_s=wall_offset_s(clock),
-        health=flags,
+        health=health_flags(ctx.health),
     )
     if recorder is not None:
         stack.enter_context(recorder)

@@ -31,6 +31,19 @@ class LogPlace:
     metadata: dict[str, str] | None = None
 
 
+def health_flags(board: Any) -> Callable[[], dict[str, Any]]:
+    """The service's health board (``companion.service.health.HealthBoard``) as the health channel has it."""
+
+    def flags() -> dict[str, Any]:
+        parts = board.snapshot()
+        return {
+            "healthy": all(c.ok for c in parts if c.critical),
+            "components": {c.name: {"ok": c.ok, "alive": c.alive, "detail": c.detail} for c in parts},
+        }
+
+    return flags
+
+
 def build_recorder(
     cfg: VizConfig,
     geometry: CameraGeometry,

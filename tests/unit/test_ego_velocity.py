@@ -103,3 +103,12 @@ def test_a_tilted_flight_trusts_its_heading_fit_and_a_nearly_level_one_does_not(
     _fly(level, drag=0.02, wind=(0.0, 0.0), err=math.radians(7.0), seconds=20.0, gps=True)
     m2 = level.model()
     assert m2 is None or not m2.heading_trusted
+
+
+def test_a_heading_error_within_its_noise_is_not_trusted() -> None:
+    obs = EgoVelocityObserver()
+    _fly(obs, drag=0.9, wind=(1.0, -0.5), err=0.0, seconds=60.0, gps=True)
+    m = obs.model()
+    assert m is not None
+    assert abs(math.degrees(m.heading_error_rad)) < 1.0
+    assert not m.heading_trusted

@@ -153,6 +153,7 @@ def _run_formation(
     progress: Callable[[float], None] | None,
 ) -> dict[str, Any]:
     """A formation scenario: one leader, a follower per plan slot, lockstep only."""
+    from companion.lab.evaluation.runlog import RUN_LOG  # noqa: PLC0415
     from companion.lab.formation.flight import run_formation  # noqa: PLC0415
     from companion.lab.formation.report import (  # noqa: PLC0415
         build_formation_report,
@@ -167,7 +168,7 @@ def _run_formation(
             spec.scenario, ["formation scenarios fly in the lockstep harness only (--harness lockstep)"]
         )
     runtime = "truth" if spec.detector == "truth" else cfg.detector.runtime
-    options = FormationOptions(progress=progress)
+    options = FormationOptions(progress=progress, mcap_path=spec.out_dir / RUN_LOG)
     result, plan, configs = run_formation(run_file, spec.seed, cfg, runtime, options)
     extra: dict[str, Any] = {"scenario_file": str(path), "formation_window_s": _window(scenario)}
     extra["detector"] = "ground-truth boxes (NOT the network)" if spec.detector == "truth" else _describe(cfg)

@@ -49,6 +49,7 @@ from companion.lab.evaluation.tomlw import toml_value
 from companion.lab.evaluation.trace import RunObserver, TraceFrame
 from companion.lab.evaluation.truthlog import TruthTrack, follower_of, leader_of
 from companion.mission.types import MissionInputs, StepOutput
+from companion.viz.setup import health_flags
 
 log = logging.getLogger(__name__)
 
@@ -220,7 +221,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
                         "harness": "real",
                         "autopilot": options.autopilot,
                     },
-                    health=lambda: {"components": [c.to_json() for c in ctx.health.snapshot()]},
+                    health=health_flags(ctx.health),
                 )
                 if recorder is not None:
                     stack.enter_context(recorder)

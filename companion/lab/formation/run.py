@@ -10,10 +10,12 @@ position to the others, while each one's GPS is good. Truth reaches only the sco
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,6 +25,7 @@ from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import ManualClock
 from companion.kernel.flight import Vec3T
 from companion.lab.evaluation.lockstep import TRUTH_RATE_HZ
+from companion.lab.evaluation.runlog import recorder_for, run_sink
 from companion.lab.evaluation.scoring import RunScorer
 from companion.lab.formation.score import FollowerScore
 from companion.lab.formation.shares import Share, ShareBus
@@ -37,6 +40,8 @@ from companion.mission.types import (
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
 from companion.vehicle.message_link import MessageVehicleLink
+from companion.viz.messages import Namespace
+from companion.viz.recorder import FlightRecorder
 
 #: Slot deviation is sampled this often, per sim second.
 SLOT_RATE_HZ = 10.0
@@ -51,6 +56,8 @@ class FormationOptions:
     share_rate_hz: float = 10.0
     share_latency_s: float = 0.1
     progress: Callable[[float], None] | None = None
+    #: The run's MCAP log, every follower under its vehicle id (:mod:`companion.lab.evaluation.runlog`).
+    mcap_path: Path | None = None
 
 
 @dataclass(slots=True)
@@ -113,6 +120,24 @@ class FormationRun:
             self.followers.append(self._follower(name, cfg, stage, renderer))
         self.names = [v.name for v in world.vehicles]
         self._yaw_log: list[float] = []
+        self.recorders = [] if options.mcap_path is None else self._recorders(options.mcap_path)
+
+    def _recorders(self, path: Path) -> list[FlightRecorder]:
+        """One recorder per follower, all writing one file, each placed in the shared world by its origin."""
+        recorders = []
+        for f in self.followers:
+            o = self.world.origin_offset_ned_m(f.name)
+            ns = Namespace(f.name, (float(o[0]), float(o[1]), float(o[2])))
+            recorders.append(recorder_for(f.cfg, f.core, self.clock, synchronous=True, namespace=ns))
+        meta = {"scenario": str(self.scenario.name), "harness": "lockstep", "followers": ",".join(self.names)}
+        sink = run_sink(path, [t for r in recorders for t in r.topics], meta)
+        if sink is None:
+            for f, r in zip(self.followers, recorders, strict=True):
+                f.core.observers.remove(r)
+            return []
+        for r in recorders:
+            r.add_log(sink)
+        return recorders
 
     def _follower(self, name: str, cfg: Config, stage: DetectStage, renderer: Any) -> FollowerRun:
         veh = self.world.vehicle(name)
@@ -142,12 +167,19 @@ class FormationRun:
         return FollowerRun(name, cfg, link, core, stage, renderer, scorer, score)
 
     async def run(self) -> FormationResult:
-        sc = self.scenario
         wall0 = time.perf_counter()
         for f in self.followers:
             f.core.request_start()
         t_log: list[float] = []
         p_log: dict[str, list[Vec3T]] = {n: [] for n in self.names}
+        with contextlib.ExitStack() as stack:
+            for r in self.recorders:
+                stack.enter_context(r)
+            await self._fly(t_log, p_log)
+        return FormationResult(self.followers, t_log, p_log, self._yaw_log, time.perf_counter() - wall0)
+
+    async def _fly(self, t_log: list[float], p_log: dict[str, list[Vec3T]]) -> None:
+        sc = self.scenario
         frame_period_s = 1.0 / sc.run.camera_rate_hz
         truth_period_s = 1.0 / TRUTH_RATE_HZ
         slot_period_s = 1.0 / SLOT_RATE_HZ
@@ -186,7 +218,6 @@ class FormationRun:
                 await asyncio.sleep(0)
             for m in missions:
                 m.cancel()
-        return FormationResult(self.followers, t_log, p_log, self._yaw_log, time.perf_counter() - wall0)
 
     # ------------------------------------------------------------------ shares
     def _share(self, t_s: float) -> None:
