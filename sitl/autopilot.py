@@ -28,8 +28,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from companion.kernel.frames import R_from_euler
 from sitl import telemetry
 from sitl.autopilot_mavlink import AutopilotMavlink
+from sitl.dynamics import GRAVITY_M_S2
 from sitl.modes import NavState
 
 
@@ -82,7 +84,7 @@ class Autopilot(AutopilotMavlink):
         rates = self._rates_sp
         if rates is None:
             return self.inner.update(
-                d.roll_rad, d.pitch_rad, d.yaw_rad, d.p_rad_s, d.q_rad_s, d.r_rad_s,
+                d.roll_rad, d.pitch_rad, self.yaw_est_rad(), d.p_rad_s, d.q_rad_s, d.r_rad_s,
                 self.q_sp, self.yawspeed_ff_rad_s, self.thrust_sp, dt_s, self._integrate,
             )  # fmt: skip
         rp, rq, rr = rates
@@ -90,10 +92,27 @@ class Autopilot(AutopilotMavlink):
             rp, rq, rr, self.thrust_sp, d.p_rad_s, d.q_rad_s, d.r_rad_s, dt_s, self._integrate
         )
 
+    def _imu_accel_ned(self) -> tuple[float, float, float]:
+        """The acceleration an IMU-only estimate integrates, NED m/s^2.
+
+        Specific force turned with the estimated attitude, plus gravity: aerodynamic drag is not in it
+        (EKF2 fuses no drag by default).
+        """
+        d = self.dyn
+        fx, fy, fz = d.specific_force_body()
+        R = R_from_euler(d.roll_rad, d.pitch_rad, self.yaw_est_rad())
+        return (
+            float(R[0, 0] * fx + R[0, 1] * fy + R[0, 2] * fz),
+            float(R[1, 0] * fx + R[1, 1] * fy + R[1, 2] * fz),
+            float(R[2, 0] * fx + R[2, 1] * fy + R[2, 2] * fz) + GRAVITY_M_S2,
+        )
+
     # ------------------------------------------------------------------ 50 Hz loop
     def outer_update(self, t_s: float, dt_s: float) -> None:
         """Sensors, estimator, commander, navigator and position control at sim time ``t_s``."""
         self.t_s = t_s
+        if self.heading_error is not None:
+            self.heading_error.update(dt_s)
         if self._params_version != self.params.version:
             self._apply_params()
         n, e, d, vn, ve, vd = self.dyn.kinematics()
@@ -108,6 +127,7 @@ class Autopilot(AutopilotMavlink):
             v_true_m_s=(vn, ve, vd),
             gps=gps,
             vision=vision,
+            a_imu_ned_m_s2=self._imu_accel_ned() if self.est.dead_reckoning else None,
         )
         for severity, text in events.texts:
             self.statustext(severity, text)
@@ -141,5 +161,5 @@ class Autopilot(AutopilotMavlink):
             home_set=self.home is not None,
             p_ned_m=self.position_ned(),
             v_ned_m_s=self.velocity_ned(),
-            yaw_rad=self.dyn.yaw_rad,
+            yaw_rad=self.yaw_est_rad(),
         )

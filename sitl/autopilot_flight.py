@@ -116,7 +116,7 @@ class AutopilotFlight(AutopilotState):
     def _enter(self, nav: NavState) -> None:
         self.nav_state = nav
         pos, vel = self.position_ned(), self.velocity_ned()
-        yaw = self.dyn.yaw_rad
+        yaw = self.yaw_est_rad()
         self._yaw_hold_rad = yaw
         hold_target, self._hold_target = self._hold_target, None
         if nav.is_auto:
@@ -293,4 +293,4 @@ class AutopilotFlight(AutopilotState):
         self.pos_ctrl.reset()
         self.inner.reset_integrators()
         self._integrate = False
-        self._yaw_hold_rad = self.dyn.yaw_rad
+        self._yaw_hold_rad = self.yaw_est_rad()

@@ -277,7 +277,7 @@ class AutopilotMavlink(AutopilotFlight):
     ) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
             return
-        parsed = parse_local_ned(msg, self.t_s, self.dyn.yaw_rad, self.attitude_q())
+        parsed = parse_local_ned(msg, self.t_s, self.yaw_est_rad(), self.attitude_q())
         self._accept_setpoint(parsed)
 
     def _on_set_position_target_global_int(

@@ -17,11 +17,11 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import telemetry
-from sitl.attitude import Quat, quat_from_euler
+from sitl.attitude import Quat, quat_from_euler, wrap_pi
 from sitl.commander import Action, DisarmTimer, Flags, ValidityChecks, mode_can_run
 from sitl.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
 from sitl.dynamics import QUAD, QuadDynamics, QuadModel
-from sitl.estimator import Estimator, GpsSample, GpsSensor, VisionSample
+from sitl.estimator import Estimator, GpsSample, GpsSensor, HeadingError, VisionSample
 from sitl.geo import LocalProjection
 from sitl.inner_loop import AttitudeGains, InnerLoop
 from sitl.modes import NavState
@@ -132,8 +132,11 @@ class AutopilotState:
         epoch_unix_s: float = 1_767_225_600.0,
         params: dict[str, float] | None = None,
         model: QuadModel = QUAD,
+        heading_error: HeadingError | None = None,
     ) -> None:
         self.name = name
+        #: PX4's heading-estimate error (None: the true heading, a perfect estimate).
+        self.heading_error = heading_error
         self.sysid = sysid
         self.dyn = dyn
         self.gps = gps
@@ -188,6 +191,16 @@ class AutopilotState:
         #: The last STATUSTEXTs sent, (sim time s, MAV_SEVERITY, text): what a harness records of the run.
         self.texts_sent: deque[tuple[float, int, str]] = deque(maxlen=2000)
         self._apply_params()
+
+    def yaw_est_rad(self) -> float:
+        """The heading PX4 estimates, rad: the true one plus :attr:`heading_error`'s error.
+
+        Everything the autopilot does with its heading reads this: the attitude loop holds it, body-frame
+        setpoints turn with it, and telemetry reports it. Roll and pitch are the true ones.
+        """
+        err = self.heading_error
+        yaw = self.dyn.yaw_rad
+        return yaw if err is None else wrap_pi(yaw + err.rad)
 
     # ------------------------------------------------------------------ time
     def time_boot_ms(self) -> int:
@@ -256,7 +269,7 @@ class AutopilotState:
 
     def attitude_q(self) -> Quat:
         d = self.dyn
-        return quat_from_euler(d.roll_rad, d.pitch_rad, d.yaw_rad)
+        return quat_from_euler(d.roll_rad, d.pitch_rad, self.yaw_est_rad())
 
     # ------------------------------------------------------------------ commander state
     def armable(self) -> bool:

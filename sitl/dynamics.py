@@ -35,7 +35,7 @@ MODEL_ROOT = Path(str(importlib.resources.files("sitl") / "models"))
 MODEL_NAME = "wingman_quad"
 
 _FT = 0.3048
-_GRAVITY_M_S2 = 9.80665
+GRAVITY_M_S2 = 9.80665
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,7 +58,7 @@ class QuadModel:
     @property
     def hover_thrust(self) -> float:
         """Normalised collective thrust (0..1) that balances gravity."""
-        return self.mass_kg * _GRAVITY_M_S2 / (4.0 * self.max_thrust_per_motor_n)
+        return self.mass_kg * GRAVITY_M_S2 / (4.0 * self.max_thrust_per_motor_n)
 
 
 QUAD = QuadModel()

@@ -18,6 +18,12 @@ from sitl.attitude import wrap_pi
 from sitl.control import NAN, TrajectorySetpoint
 from sitl.modes import NavState
 
+#: PX4 SITL (SIH quadrotor, MPC_TKO_SPEED 1.5 m/s, take-off to 5 m) left the ground 3.0-3.5 s after the
+#: take-off command (spool-up, then MPC_TKO_RAMP_T's ramp) and climbed at 1.0-1.1 m/s at most: the ramp and
+#: PX4's jerk-limited altitude approach keep it below MPC_TKO_SPEED all the way.
+TAKEOFF_SPOOLUP_S = 3.0
+TAKEOFF_CLIMB_FRAC = 0.72
+
 
 @dataclass(frozen=True, slots=True)
 class NavLimits:
@@ -197,7 +203,11 @@ class Navigator:
         sp = self.sp
         self.is_landing = False
         if mode is NavState.AUTO_TAKEOFF:
-            self._slew(dt_s, cruise, lim.takeoff_speed_m_s, lim.down_m_s)
+            if t_s - self._phase_since_s < TAKEOFF_SPOOLUP_S:
+                # Motors spooling up and PX4's take-off ramp: the setpoint stays on the ground.
+                self._sp_vd = 0.0
+            else:
+                self._slew(dt_s, cruise, lim.takeoff_speed_m_s * TAKEOFF_CLIMB_FRAC, lim.down_m_s)
             if (
                 abs(self._sp_d - self._target[2]) < 1e-3
                 and abs(pos[2] - self._target[2]) < lim.alt_acceptance_m

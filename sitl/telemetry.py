@@ -138,7 +138,7 @@ def attitude(ap: AutopilotState) -> mavlink.MAVLink_message:
     """ATTITUDE: Euler angles and body rates."""
     d = ap.dyn
     return mavlink.MAVLink_attitude_message(
-        ap.time_boot_ms(), d.roll_rad, d.pitch_rad, d.yaw_rad, d.p_rad_s, d.q_rad_s, d.r_rad_s
+        ap.time_boot_ms(), d.roll_rad, d.pitch_rad, ap.yaw_est_rad(), d.p_rad_s, d.q_rad_s, d.r_rad_s
     )
 
 
@@ -166,7 +166,7 @@ def global_position_int(ap: AutopilotState) -> mavlink.MAVLink_message | None:
         return None  # PX4 publishes no global position before the EKF has an origin
     lat, lon, alt = ap.origin.to_geodetic(e.n_m, e.e_m, e.d_m)
     home_alt = ap.home.alt_m if ap.home is not None else ap.origin.alt0_m
-    hdg = math.degrees(ap.dyn.yaw_rad) % 360.0
+    hdg = math.degrees(ap.yaw_est_rad()) % 360.0
     return mavlink.MAVLink_global_position_int_message(
         ap.time_boot_ms(),
         _clip_i(lat * 1e7, -900_000_000, 900_000_000),
@@ -257,7 +257,7 @@ def highres_imu(ap: AutopilotState) -> mavlink.MAVLink_message:
     """HIGHRES_IMU: specific force, gyro, a synthetic magnetometer and baro."""
     d = ap.dyn
     fx, fy, fz = d.specific_force_body()
-    yaw = d.yaw_rad
+    yaw = d.yaw_rad  # the magnetometer senses the true heading
     # A level-ish magnetometer reading pointing at magnetic north (Zurich: ~0.21 G horizontal, 0.43 G down).
     mx, my = 0.21 * math.cos(-yaw), 0.21 * math.sin(-yaw)
     alt = ap.origin.alt0_m - ap.est.d_m
@@ -282,7 +282,7 @@ def vfr_hud(ap: AutopilotState) -> mavlink.MAVLink_message:
     """VFR_HUD: ground speed, heading, throttle, altitude and climb rate."""
     e = ap.est
     gs = math.hypot(e.vn_m_s, e.ve_m_s)
-    hdg = int(math.degrees(ap.dyn.yaw_rad) % 360.0)
+    hdg = int(math.degrees(ap.yaw_est_rad()) % 360.0)
     return mavlink.MAVLink_vfr_hud_message(
         gs, gs, hdg, _clip_i(ap.thrust_sp * 100.0, 0, 100), ap.origin.alt0_m - e.d_m, -e.vd_m_s
     )

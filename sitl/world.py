@@ -35,7 +35,7 @@ from sitl.autopilot import Autopilot
 from sitl.autopilot_state import LINK_API, LINK_GCS
 from sitl.config import SitlConfig
 from sitl.dynamics import QuadDynamics, VehicleTruth
-from sitl.estimator import GpsSensor
+from sitl.estimator import GpsSensor, HeadingError, HeadingErrorModel
 from sitl.geo import LocalProjection
 from sitl.links import LinkFaults, MessageLink
 from sitl.pilot import TrajectoryPilot
@@ -60,6 +60,16 @@ class SimVehicle:
     autopilot: Autopilot
     links: tuple[MessageLink, MessageLink]
     spawn_ned_m: tuple[float, float, float]
+
+
+def heading_error(cfg: SitlConfig, rng: np.random.Generator) -> HeadingError | None:
+    """The heading-estimate error the config asks for (None: a perfect estimate)."""
+    w = cfg.world
+    if w.heading_bias_deg == 0.0 and w.heading_wander_deg == 0.0:
+        return None
+    return HeadingError(
+        rng, HeadingErrorModel(w.heading_bias_deg, w.heading_wander_deg, w.heading_wander_tau_s)
+    )
 
 
 class World:
@@ -120,6 +130,7 @@ class World:
                 speed_factor=speed_factor,
                 epoch_unix_s=epoch_unix_s,
                 params=dict(vc.params),
+                heading_error=heading_error(cfg, np.random.default_rng(s[4])),
             )
             link_spec = faults.link if faults is not None else LinkSpec()
             links = tuple(

@@ -62,10 +62,11 @@ def test_gps_loss_in_offboard_velocity_follows_px4_timeline() -> None:
     assert no_fix
     assert no_fix[0] - t0 <= 1.2
     assert all(m.eph == 65535 for _, m in c.log if m.get_type() == "GPS_RAW_INT" and m.fix_type == 0)
-    # Descend (reported as AUTO.LAND, system_status CRITICAL) at EKF2_NOAID_TOUT = 5 s.
+    # Descend (reported as AUTO.LAND, system_status CRITICAL) at EKF2_NOAID_TOUT = 5 s after the last GPS
+    # fusion, which can be one GPS period (0.1 s) before the injection; seen on the next 1 Hz HEARTBEAT.
     land = [t for t, mode in c.heartbeat_modes() if mode is NavState.AUTO_LAND]
     assert land
-    assert 5.0 <= land[0] - t0 <= 6.1
+    assert 4.9 <= land[0] - t0 <= 6.1
     assert c.ap.nav_state is NavState.DESCEND
     crit = [m.system_status for t, m in c.log if m.get_type() == "HEARTBEAT" and t > t0 + 6.5]
     assert crit
