@@ -102,7 +102,7 @@ PARAM_SPECS: Final[tuple[ParamSpec, ...]] = (
     _i("SYS_FAILURE_EN", 1, 0, 1),
     # Estimator (ekf2).
     _i("EKF2_NOAID_TOUT", 5_000_000, 500_000, 10_000_000),
-    _i("EKF2_EV_CTRL", 15, 0, 15),
+    _i("EKF2_EV_CTRL", 0, 0, 15),  # PX4's default: no external-vision aiding until asked
     _i("EKF2_GPS_CTRL", 7, 0, 15),
     _i("EKF2_HGT_REF", 1, 0, 3),
     _f("EKF2_REQ_EPH", 3.0, 2.0, 100.0),

@@ -326,7 +326,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             source = ServiceClockSource(source, ctx.clock)
         source = await stack.enter_async_context(source)
 
-        from companion.vehicle.mavsdk_link import MavsdkVehicleLink  # noqa: PLC0415 (mavsdk: heavy)
+        from companion.vehicle.mavsdk_link import MavsdkVehicleLink, ev_position_bits_for  # noqa: PLC0415 (mavsdk: heavy)
 
         background: dict[str, Callable[[], Any]] = {}
         extra_status: dict[str, Callable[[], Any]] = {}
@@ -338,7 +338,12 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             background["companion.signing"] = relay.run
             extra_status["mavlink_signing"] = relay.stats
         link = await stack.enter_async_context(
-            MavsdkVehicleLink(link_cfg, clock, leader_system_id=cfg.leader.mavlink_system_id)
+            MavsdkVehicleLink(
+                link_cfg,
+                clock,
+                leader_system_id=cfg.leader.mavlink_system_id,
+                ev_position_bits=ev_position_bits_for(cfg.mission.gps_loss_policy),
+            )
         )
         flight = FlightAdapter(cfg, link, clock, stage)
         recorder = open_recorder(cfg, flight.core, clock, ctx, stack)

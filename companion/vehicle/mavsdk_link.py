@@ -116,6 +116,18 @@ def _result_name(exc: MavsdkError) -> str:
     return getattr(result, "name", None) or str(exc)
 
 
+#: PX4's external-vision aiding bitmask (EKF2; 0, off, by default).
+EV_CTRL_PARAM = "EKF2_EV_CTRL"
+
+
+def ev_position_bits_for(gps_loss_policy: str) -> int:
+    """The EKF2_EV_CTRL bits a GPS-loss policy needs PX4 to have.
+
+    Horizontal position (bit 0) for the external-position policy, none for the others.
+    """
+    return 1 if gps_loss_policy == "vision_external_position" else 0
+
+
 #: Wall time PX4 is given to apply a new MIS_TAKEOFF_ALT before the takeoff command, s.
 TAKEOFF_PARAM_SETTLE_S = 0.3
 
@@ -123,9 +135,18 @@ TAKEOFF_PARAM_SETTLE_S = 0.3
 class MavsdkVehicleLink:
     """The autopilot over MAVSDK 4. See the module docstring for the lifecycle and the quirks handled."""
 
-    def __init__(self, cfg: LinkConfig, clock: Clock, *, leader_system_id: int | None = None) -> None:
+    def __init__(
+        self,
+        cfg: LinkConfig,
+        clock: Clock,
+        *,
+        leader_system_id: int | None = None,
+        ev_position_bits: int = 0,
+    ) -> None:
         self.cfg = cfg
         self.clock = clock
+        #: EKF2_EV_CTRL bits the mission needs set (1: fuse external-vision horizontal position), 0: none.
+        self.ev_position_bits = ev_position_bits
         #: Never flown, whatever ``cfg.system_id`` says (the config refuses that too).
         self.leader_system_id = leader_system_id
         #: The autopilot's system id once found.
@@ -232,6 +253,8 @@ class MavsdkVehicleLink:
             tg.create_task(self._setpoint_guard(), name="companion.vehicle.setpoint_guard")
             tg.create_task(self._read_hover_thrust(), name="companion.vehicle.hover_thrust")
             tg.create_task(self._configure_failsafe(), name="companion.vehicle.failsafe")
+            if self.ev_position_bits:
+                tg.create_task(self._configure_external_vision(), name="companion.vehicle.external_vision")
 
     async def wait_ready(self) -> None:
         """Until the autopilot has been found (use with a timeout)."""
@@ -318,6 +341,26 @@ class MavsdkVehicleLink:
         self.telemetry.update(offboard_loss_param=value)
         ok, line = failsafe.applied(self.cfg.offboard_loss_action, value)
         (log.info if ok else log.warning)("vehicle link: %s", line)
+
+    async def _configure_external_vision(self) -> None:
+        """Have PX4's EKF2 fuse the fixes the mission sends after a GPS loss (EKF2_EV_CTRL, off by default).
+
+        Only bits are added, never taken away; written only when missing. A refusal is one warning line: the
+        mission then finds its fixes not taken and flies on attitude.
+        """
+        bits = self.ev_position_bits
+        try:
+            async with compat.timeout(self.cfg.command_timeout_s * 2):
+                value = int(await self._param.get_param_int(EV_CTRL_PARAM))
+                if value & bits != bits:
+                    await self._param.set_param_int(EV_CTRL_PARAM, value | bits)
+                    value = int(await self._param.get_param_int(EV_CTRL_PARAM))
+        except (MavsdkError, TimeoutError) as exc:
+            log.warning(
+                "vehicle link: %s not set (%s); PX4 will not fuse external positions", EV_CTRL_PARAM, exc
+            )
+            return
+        (log.info if value & bits == bits else log.warning)("vehicle link: %s %d", EV_CTRL_PARAM, value)
 
     def snapshot(self) -> VehicleState:
         """The latest telemetry; ``connected`` also requires a heartbeat within the telemetry timeout."""

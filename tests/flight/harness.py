@@ -35,7 +35,7 @@ from companion.mission.geometry import Slot
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, MissionState, SharedLeaderPosition, StepOutput, Transition
 from companion.service.mission_runner import MissionRunner
-from companion.vehicle.mavsdk_link import MavsdkVehicleLink
+from companion.vehicle.mavsdk_link import MavsdkVehicleLink, ev_position_bits_for
 
 from .wiretap import WireTap, open_wiretap
 
@@ -353,7 +353,11 @@ async def fly(
     link_cfg = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{ports.client}"})
     flight: Flight | None = None
     try:
-        async with SimProcess(tmp_path, ports, scenario_toml), MavsdkVehicleLink(link_cfg, clock) as link:
+        ev_bits = ev_position_bits_for(cfg.mission.gps_loss_policy)
+        async with (
+            SimProcess(tmp_path, ports, scenario_toml),
+            MavsdkVehicleLink(link_cfg, clock, ev_position_bits=ev_bits) as link,
+        ):
             rec = Recorder(feed, Slot.from_offset_cam(cfg.formation.offset_cam_m))
             runner = MissionRunner(
                 link,
