@@ -35,9 +35,7 @@ from sitl.geo import LocalProjection
 # EKF2 timeline constants (s), from ekf2/EKF/common.h.
 NO_AID_DEADRECKON_S = 1.0  # no_aid_timeout_max
 RESET_TIMEOUT_S = 7.0  # reset_timeout_max
-#: GPS checks passed at boot: PX4 SITL (SIH) at the shipped commit set home 4.2-4.3 s after boot, with its
-#: simulated receiver reporting a fix from the start (EKF2's min_gps_health_time counts from there).
-GPS_CHECK_PASS_S = 3.5
+GPS_CHECK_PASS_S = 3.5  # PX4 SITL (SIH) passed its GPS checks and set home 4.2-4.3 s after boot
 GPS_REGAIN_PASS_S = 1.0  # checks already passed once: short wait
 GPS_RATE_HZ = 10.0
 GPS_GATE_SIGMA = 5.0  # EKF2_GPS_P_GATE / EKF2_GPS_V_GATE
@@ -338,16 +336,9 @@ class Estimator:
         vision: VisionSample | None,
         a_imu_ned_m_s2: tuple[float, float, float] | None = None,
     ) -> EstimatorEvents:
-        """One step at ``t_s``.
-
-        ``a_imu_ned_m_s2``: what the IMU says the acceleration is (specific force turned with the estimated
-        attitude, plus gravity), given while dead-reckoning: then the estimate integrates it instead of the
-        true velocity change, as EKF2 does, and a multicopter's drag (which an accelerometer cannot feel)
-        and the heading error make the velocity run off within seconds, as PX4 SITL's did (1-2 m/s within
-        2-4 s of losing GPS at 2 m/s).
-        """
         self.t_s = t_s
-        # Prediction: integrate the IMU's velocity change plus the uncorrected bias error.
+        # Prediction: the true velocity change, or while dead-reckoning ``a_imu_ned_m_s2`` (specific force in
+        # NED plus g: what EKF2 integrates, blind to drag), plus the uncorrected accelerometer bias.
         if self._prev_v_true is None:
             dvn = dve = dvd = 0.0
             # Start at the truth (EKF2 aligns on the ground before anyone looks).
@@ -508,37 +499,3 @@ class Estimator:
         self.t_last_h_aid_s = v.t_s
         self.origin_valid = self.origin_valid or self.gps_checks_passed
         self._eph_at_aid_m = max(0.05, std)
-
-
-@dataclass(frozen=True, slots=True)
-class HeadingErrorModel:
-    """How far PX4's heading estimate is from the true heading: a bias per flight plus a slow wander.
-
-    Measured on PX4 SITL (SIH quadrotor with its magnetometer, hovering 60 s): estimate minus truth ranged
-    from 0 to -10 deg (mean -6 deg, wandering over tens of seconds); in formation flights 4-9 deg. Roll and
-    pitch stayed within about 1 deg of the truth. The defaults are ``[world] heading_*`` in config/sitl.toml.
-    """
-
-    bias_sigma_deg: float = 4.0
-    wander_sigma_deg: float = 3.0
-    wander_tau_s: float = 15.0
-
-
-class HeadingError:
-    """PX4's heading estimate minus the true heading, rad (seeded; :meth:`update` at the outer-loop rate)."""
-
-    def __init__(self, rng: np.random.Generator, model: HeadingErrorModel = HeadingErrorModel()) -> None:
-        self._rng = rng
-        self.model = model
-        self._bias_rad = math.radians(model.bias_sigma_deg) * float(rng.standard_normal())
-        self._wander_rad = math.radians(model.wander_sigma_deg) * float(rng.standard_normal())
-        self.rad = self._bias_rad + self._wander_rad
-
-    def update(self, dt_s: float) -> float:
-        """Advance by ``dt_s`` (first-order Gauss-Markov wander); the error now, rad."""
-        m = self.model
-        a = math.exp(-dt_s / m.wander_tau_s)
-        sigma = math.radians(m.wander_sigma_deg) * math.sqrt(1.0 - a * a)
-        self._wander_rad = a * self._wander_rad + sigma * float(self._rng.standard_normal())
-        self.rad = self._bias_rad + self._wander_rad
-        return self.rad

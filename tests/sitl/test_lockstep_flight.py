@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import struct
 
 import numpy as np
 import pytest
@@ -96,7 +97,11 @@ def test_gps_loss_in_offboard_velocity_follows_px4_timeline() -> None:
 def test_external_vision_keeps_position_valid_after_gps_loss(message: str) -> None:
     world = world_with(seed=4)
     c = Client(world)
+    # PX4 ships external-vision aiding off (EKF2_EV_CTRL 0): turn horizontal position on, as the service does.
+    one = struct.unpack("<f", struct.pack("<i", 1))[0]  # PX4 sends INT32 parameters bytewise
+    c.send(mavlink.MAVLink_param_set_message(1, 1, b"EKF2_EV_CTRL", one, mavlink.MAV_PARAM_TYPE_INT32))
     c.take_off(5.0)
+    assert c.ap.params["EKF2_EV_CTRL"] == 1
     off = world.origin_offset_ned_m("follower")
     rng = np.random.default_rng(0)
 
