@@ -14,7 +14,7 @@ class HeadingErrorModel:
 
     Measured on PX4 SITL (SIH quadrotor with its magnetometer, hovering 60 s): estimate minus truth ranged
     from 0 to -10 deg (mean -6 deg, wandering over tens of seconds); in formation flights 4-9 deg. Roll and
-    pitch stayed within about 1 deg of the truth. The defaults are ``[world] heading_*`` in config/sitl.toml.
+    pitch stayed within about 1 deg of the truth. ``[world] heading_*`` in config/sitl.toml turn it on.
     """
 
     bias_sigma_deg: float = 4.0
