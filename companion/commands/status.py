@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,8 @@ EXIT_CODES = (
     "exit codes: 0 done, 1 refused (the line says why), 2 usage or config error, "
     "5 no service answers on the status socket (not running)"
 )
+#: Seconds between rounds of ``companion health --wait``.
+HEALTH_RETRY_S = 2.0
 #: Operator commands and how many numbers each takes.
 COMMAND_ARGS = {"land": 0, "hold": 0, "set_offset": 3}
 
@@ -35,6 +38,14 @@ def register(sub: Any) -> None:
     add_config_arg(h)
     h.add_argument("--json", action="store_true", help="print the checks as JSON")
     h.add_argument("--timeout", type=float, default=5.0, help="seconds per probe (default 5)")
+    h.add_argument(
+        "--wait",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="check again every 2 s until healthy or SECONDS have passed (GPS and home take a while after "
+        "power-up); prints the last round only",
+    )
     h.set_defaults(handler=_health)
     s = sub.add_parser(
         "start",
@@ -115,7 +126,12 @@ def _health(args: argparse.Namespace) -> int:
     from companion.service.health_checks import run_health
     from companion.service.wiring import autopilot_probe
 
-    report = run_health(config_path(args), probe_autopilot=autopilot_probe, timeout_s=args.timeout)
+    deadline_s = time.monotonic() + max(0.0, args.wait)
+    while True:
+        report = run_health(config_path(args), probe_autopilot=autopilot_probe, timeout_s=args.timeout)
+        if report.healthy or time.monotonic() + HEALTH_RETRY_S > deadline_s:
+            break
+        time.sleep(HEALTH_RETRY_S)
     if args.json:
         print(json.dumps(report.to_json(), indent=2))
     else:

@@ -226,6 +226,16 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
             return "already landing (PX4 Land)"
         return None
 
+    def preflight_problems(self, veh: VehicleState) -> tuple[str, ...] | None:
+        """On the ground before a start (PREFLIGHT or DISARMED): what a start would be refused for now.
+
+        The same verdict as :meth:`start_refusal` there (debounced GPS, home, on the ground); None in
+        other states, where preflight does not apply.
+        """
+        if self.state not in (MissionState.PREFLIGHT, MissionState.DISARMED) or (veh.armed and veh.in_air):
+            return None
+        return tuple(self._preflight_problems(veh))
+
     def start_refusal(self, veh: VehicleState) -> str | None:
         """Why an operator's start would do nothing now (None: the next step acts on it).
 

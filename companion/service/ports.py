@@ -72,6 +72,9 @@ class FlightSnapshot:
     formation_error_ned_m: Vec3T | None = None
     #: True once a requested shutdown has reached a safe end (landed and disarmed, or held).
     shutdown_complete: bool = False
+    #: On the ground waiting for a start: what keeps the mission from arming now (empty: a start would
+    #: arm); None in every other state.
+    preflight_problems: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True, slots=True)

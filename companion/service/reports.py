@@ -133,9 +133,13 @@ def live_health_json(
     )
     check(
         "gps",
-        v.gps_fix_type >= 3,
+        v.gps_fix_type >= 3 and v.position_valid is not False,
         f"fix type {v.gps_fix_type}, {v.gps_satellites} satellites, position valid {v.position_valid}",
     )
+    if snap.preflight_problems is not None:
+        # What `companion start` would answer now: healthy on the ground means a start would arm.
+        problems = snap.preflight_problems
+        check("preflight", not problems, ", ".join(problems) if problems else "passed: a start would arm")
     for c in components:
         check(c.name, c.ok, c.detail)
     if broker is not None:

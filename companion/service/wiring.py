@@ -179,6 +179,7 @@ class FlightAdapter:
             vehicle=vehicle_summary(v, now_s, getattr(self.link, "system_id", None)),
             leader=leader,
             formation_error_ned_m=out.formation_error_ned_m if out is not None else None,
+            preflight_problems=self.machine.preflight_problems(v),
         )
 
     async def run(self) -> None:
@@ -477,7 +478,7 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
                     await link.wait_ready()
                     for _ in range(30):  # GPS_RAW_INT comes at 1-5 Hz: give it up to 3 s
                         s = link.snapshot()
-                        if s.gps_stamp_s > NEVER_S and s.offboard_loss_param is not None:
+                        if s.gps_stamp_s > NEVER_S and s.offboard_loss_param is not None and s.home_position_ok:
                             break
                         await asyncio.sleep(0.1)
             except TimeoutError:
@@ -507,7 +508,9 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
         ),
         CheckResult(
             "gps",
-            v.gps_fix_type >= 3,
-            f"fix type {v.gps_fix_type}, {v.gps_satellites} satellites",
+            v.gps_fix_type >= 3 and v.position_valid is not False and v.home_position_ok,
+            f"fix type {v.gps_fix_type}, {v.gps_satellites} satellites, "
+            + ("position invalid, " if v.position_valid is False else "")
+            + ("home set" if v.home_position_ok else "no home yet"),
         ),
     ]

@@ -243,7 +243,13 @@ async def test_the_service_flies_only_its_own_vehicle_only_when_started(tmp_path
                         e for e in collector.payloads("events") if e["kind"] in ("command", "command_refused")
                     ]
 
-                await until(lambda: len(events()) >= 2, 30, "the replies to both commands", logs)
+                # The land and start given over the status socket earlier are events too: wait for these two.
+                await until(
+                    lambda: {"set_offset", "hold"} <= {e["data"]["cmd"] for e in events()},
+                    30,
+                    "the replies to both MQTT commands",
+                    logs,
+                )
                 for t in tasks:
                     t.cancel()
         except BaseException:

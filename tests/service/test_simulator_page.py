@@ -56,7 +56,7 @@ def test_the_page_has_the_whole_recipe() -> None:
         "mosquitto_sub",
     ]
     foreground = [cmd for bg, cmds in blocks if not bg for cmd in cmds]
-    assert foreground[:2] == [".venv/bin/companion health", ".venv/bin/companion start"]
+    assert foreground[:2] == [".venv/bin/companion health --wait 60", ".venv/bin/companion start"]
 
 
 def _udp_free(port: int) -> bool:

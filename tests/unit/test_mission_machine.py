@@ -968,6 +968,27 @@ def test_a_start_after_an_operators_hold_follows_again() -> None:
     assert CommandKind.ARM not in all_commands(h.outputs[-40:])
 
 
+def test_preflight_problems_are_what_a_start_would_be_refused_for() -> None:
+    h = Harness()
+    h.ap.gps_fix = 1
+    h.ap.home_ok = False
+    h.run(1.0)
+    veh = h.ap.state(h.now_s)
+    assert h.machine.preflight_problems(veh) == ("no GPS", "no home")
+    assert h.machine.start_refusal(veh) == "preflight: no GPS, no home"
+    h.ap.gps_fix = 3
+    h.ap.home_ok = True
+    h.run(h.cfg.mission.gps_restore_s - 0.5)
+    veh = h.ap.state(h.now_s)
+    assert h.machine.preflight_problems(veh) == ("no GPS",)  # the fix has not been good for long enough
+    h.run(1.0)
+    veh = h.ap.state(h.now_s)
+    assert h.machine.preflight_problems(veh) == ()
+    assert h.machine.start_refusal(veh) is None
+    h.to_follow()
+    assert h.machine.preflight_problems(h.ap.state(h.now_s)) is None  # not on the ground before a start
+
+
 def test_a_start_says_why_it_would_do_nothing() -> None:
     h = Harness()
     h.to_follow()

@@ -76,3 +76,23 @@ def test_status_shows_refused_input_and_mavlink_signing() -> None:
     rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
     assert rows["mqtt"].endswith("refused 3 commands and 2 shares")
     assert rows["signing"] == "autopilot signs, 900 in, 400 out, 7 dropped, 2 IMPOSTOR frames"
+
+
+def test_health_on_the_ground_says_whether_a_start_would_arm() -> None:
+    from companion.service.ports import FlightSnapshot, VehicleSummary
+    from companion.service.reports import live_health_json
+
+    veh = VehicleSummary(connected=True, heartbeat_age_s=0.2, gps_fix_type=3, gps_satellites=10)
+    waiting = live_health_json(
+        FlightSnapshot("preflight", "link up", vehicle=veh, preflight_problems=("no GPS", "no home")), [], None
+    )
+    checks = {c["name"]: c for c in waiting["checks"]}
+    assert checks["gps"]["ok"]  # a fix, but the mission's debounce and home are not there yet
+    assert checks["preflight"] == {"name": "preflight", "ok": False, "detail": "no GPS, no home"}
+    ready = live_health_json(FlightSnapshot("preflight", "link up", vehicle=veh, preflight_problems=()), [], None)
+    assert all(c["ok"] for c in ready["checks"])
+    flying = live_health_json(FlightSnapshot("follow", "leader acquired", vehicle=veh), [], None)
+    assert "preflight" not in {c["name"] for c in flying["checks"]}
+    invalid = VehicleSummary(connected=True, heartbeat_age_s=0.2, gps_fix_type=3, position_valid=False)
+    lost = live_health_json(FlightSnapshot("follow", "leader acquired", vehicle=invalid), [], None)
+    assert not {c["name"]: c for c in lost["checks"]}["gps"]["ok"]  # PX4 says its position is invalid
