@@ -478,7 +478,11 @@ async def _probe(cfg: Config, timeout_s: float) -> list[CheckResult]:
                     await link.wait_ready()
                     for _ in range(30):  # GPS_RAW_INT comes at 1-5 Hz: give it up to 3 s
                         s = link.snapshot()
-                        if s.gps_stamp_s > NEVER_S and s.offboard_loss_param is not None and s.home_position_ok:
+                        if (
+                            s.gps_stamp_s > NEVER_S
+                            and s.offboard_loss_param is not None
+                            and s.home_position_ok
+                        ):
                             break
                         await asyncio.sleep(0.1)
             except TimeoutError:

@@ -84,12 +84,16 @@ def test_health_on_the_ground_says_whether_a_start_would_arm() -> None:
 
     veh = VehicleSummary(connected=True, heartbeat_age_s=0.2, gps_fix_type=3, gps_satellites=10)
     waiting = live_health_json(
-        FlightSnapshot("preflight", "link up", vehicle=veh, preflight_problems=("no GPS", "no home")), [], None
+        FlightSnapshot("preflight", "link up", vehicle=veh, preflight_problems=("no GPS", "no home")),
+        [],
+        None,
     )
     checks = {c["name"]: c for c in waiting["checks"]}
     assert checks["gps"]["ok"]  # a fix, but the mission's debounce and home are not there yet
     assert checks["preflight"] == {"name": "preflight", "ok": False, "detail": "no GPS, no home"}
-    ready = live_health_json(FlightSnapshot("preflight", "link up", vehicle=veh, preflight_problems=()), [], None)
+    ready = live_health_json(
+        FlightSnapshot("preflight", "link up", vehicle=veh, preflight_problems=()), [], None
+    )
     assert all(c["ok"] for c in ready["checks"])
     flying = live_health_json(FlightSnapshot("follow", "leader acquired", vehicle=veh), [], None)
     assert "preflight" not in {c["name"] for c in flying["checks"]}
