@@ -50,6 +50,21 @@ MOTORS_IDLE = (0.03, 0.03, 0.03, 0.03)
 _STATUSTEXT_REPEAT_S = 1.0
 
 
+@dataclass(frozen=True, slots=True)
+class GlobalEstimate:
+    """What a vehicle's autopilot believes its global position is (its GLOBAL_POSITION_INT).
+
+    Geodetic (deg, m above mean sea level), velocity NED (m/s), heading (deg): what a vehicle's companion
+    would share with others. An estimate, with the autopilot's errors, never the ground truth.
+    """
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    v_ned_m_s: tuple[float, float, float]
+    yaw_deg: float
+
+
 @dataclass(slots=True)
 class Home:
     """The home position: geodetic and in the vehicle's local NED frame."""
@@ -192,6 +207,16 @@ class AutopilotState:
         #: The last STATUSTEXTs sent, (sim time s, MAV_SEVERITY, text): what a harness records of the run.
         self.texts_sent: deque[tuple[float, int, str]] = deque(maxlen=2000)
         self._apply_params()
+
+    def global_estimate(self) -> GlobalEstimate | None:
+        """The global position this autopilot reports (GLOBAL_POSITION_INT); None before it has an origin."""
+        e = self.est
+        if not e.origin_valid:
+            return None
+        lat, lon, alt = self.origin.to_geodetic(e.n_m, e.e_m, e.d_m)
+        return GlobalEstimate(
+            lat, lon, alt, (e.vn_m_s, e.ve_m_s, e.vd_m_s), math.degrees(self.yaw_est_rad()) % 360.0
+        )
 
     def yaw_est_rad(self) -> float:
         """The heading PX4 estimates, rad: the true one plus :attr:`heading_error`'s error.

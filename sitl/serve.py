@@ -41,6 +41,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.kernel.errors import CompanionError, ConfigError
 from companion.kernel.logs import setup_logging
 from companion.kernel.shipped import project_root
+from sitl.autopilot_state import GlobalEstimate
 from sitl.config import SitlConfig, load_sitl_config
 from sitl.dynamics import VehicleTruth
 from sitl.links import MessageLink
@@ -91,6 +92,10 @@ class SimHandle:
 
     def truth(self, name: str) -> VehicleTruth:
         return self._world.truth(name)
+
+    def global_estimate(self, name: str) -> GlobalEstimate | None:
+        """The global position ``name``'s autopilot reports (its estimate, not the truth); None before one."""
+        return self._world.autopilot(name).global_estimate()
 
     def mode(self, name: str) -> tuple[str, bool]:
         """The autopilot's flight mode (PX4's UI name) and whether it is armed."""

@@ -161,22 +161,21 @@ def local_position_ned(ap: AutopilotState) -> mavlink.MAVLink_message:
 
 def global_position_int(ap: AutopilotState) -> mavlink.MAVLink_message | None:
     """GLOBAL_POSITION_INT: the estimate as lat/lon/alt (None before the EKF has an origin)."""
-    e = ap.est
-    if not e.origin_valid:
+    g = ap.global_estimate()
+    if g is None:
         return None  # PX4 publishes no global position before the EKF has an origin
-    lat, lon, alt = ap.origin.to_geodetic(e.n_m, e.e_m, e.d_m)
     home_alt = ap.home.alt_m if ap.home is not None else ap.origin.alt0_m
-    hdg = math.degrees(ap.yaw_est_rad()) % 360.0
+    vn, ve, vd = g.v_ned_m_s
     return mavlink.MAVLink_global_position_int_message(
         ap.time_boot_ms(),
-        _clip_i(lat * 1e7, -900_000_000, 900_000_000),
-        _clip_i(lon * 1e7, -1_800_000_000, 1_800_000_000),
-        _clip_i(alt * 1000.0, -(2**31), 2**31 - 1),
-        _clip_i((alt - home_alt) * 1000.0, -(2**31), 2**31 - 1),
-        _clip_i(e.vn_m_s * 100.0, -32768, 32767),
-        _clip_i(e.ve_m_s * 100.0, -32768, 32767),
-        _clip_i(e.vd_m_s * 100.0, -32768, 32767),
-        _clip_i(hdg * 100.0, 0, 35999),
+        _clip_i(g.lat_deg * 1e7, -900_000_000, 900_000_000),
+        _clip_i(g.lon_deg * 1e7, -1_800_000_000, 1_800_000_000),
+        _clip_i(g.alt_amsl_m * 1000.0, -(2**31), 2**31 - 1),
+        _clip_i((g.alt_amsl_m - home_alt) * 1000.0, -(2**31), 2**31 - 1),
+        _clip_i(vn * 100.0, -32768, 32767),
+        _clip_i(ve * 100.0, -32768, 32767),
+        _clip_i(vd * 100.0, -32768, 32767),
+        _clip_i(g.yaw_deg * 100.0, 0, 35999),
     )
 
 

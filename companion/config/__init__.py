@@ -99,6 +99,18 @@ class Config(Section):
         return self
 
     @model_validator(mode="after")
+    def _external_position_needs_the_leader(self) -> Config:
+        if (
+            self.mission.gps_loss_policy == "vision_external_position"
+            and self.leader.shared_position != "mqtt"
+        ):
+            raise ValueError(
+                "mission.gps_loss_policy = 'vision_external_position' needs the leader's own position: "
+                "set leader.shared_position = 'mqtt' (and [mqtt] enabled)"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _never_the_leader(self) -> Config:
         if self.link.system_id != 0 and self.link.system_id == self.leader.mavlink_system_id:
             raise ValueError(

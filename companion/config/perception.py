@@ -90,8 +90,9 @@ class LeaderConfig(Section):
     #: How far the middle of the leader's silhouette sits below its centre (landing legs hang below,
     #: propellers sit above), m: the box centre is shifted up by this before it is used.
     box_centre_below_m: float = Field(0.04, ge=-0.5, le=0.5)
-    #: Where the leader's own position comes from when it is shared (vision-external-position fallback).
-    shared_position: Literal["none", "mavlink", "mqtt"] = "none"
+    #: Where the leader's own position comes from when it is shared (vision-external-position fallback,
+    #: formations): "mqtt" subscribes to ``mqtt.leader_topic``.
+    shared_position: Literal["none", "mqtt"] = "none"
     mavlink_system_id: int = Field(1, ge=1, le=255)
 
 

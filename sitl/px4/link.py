@@ -4,8 +4,8 @@ PX4 SITL with SIH starts a MAVLink instance bound to UDP ``19450 + i`` that send
 visualiser. The simulator binds ``19410 + i``: that link carries ``HIL_STATE_QUATERNION``, which PX4 fills
 from SIH's ground truth (the true pose, not the estimate), and, once asked with SET_MESSAGE_INTERVAL, the
 state a pilot and the run's record need (HEARTBEAT modes, SYS_STATUS, EXTENDED_SYS_STATE, HOME_POSITION,
-LOCAL_POSITION_NED, GPS_RAW_INT, ESTIMATOR_STATUS) and STATUSTEXT. The offboard API link (``14540 + i``)
-stays free for the companion under test, exactly as on a vehicle.
+LOCAL_POSITION_NED, GLOBAL_POSITION_INT, GPS_RAW_INT, ESTIMATOR_STATUS) and STATUSTEXT. The offboard API
+link (``14540 + i``) stays free for the companion under test, exactly as on a vehicle.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ STREAMS_HZ: dict[int, float] = {
     mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: 1.0,
     mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 20.0,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
     mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 5.0,
     mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS: 5.0,
     mavlink.MAVLINK_MSG_ID_STATUSTEXT: 20.0,
@@ -95,6 +96,7 @@ class Px4Link:
         self.extended_state: Any = None
         self.home: Any = None
         self.local_position: Any = None
+        self.global_position: Any = None
         self.gps: Any = None
         self.estimator_flags: int | None = None
         self.texts: list[StatusText] = []
@@ -201,6 +203,8 @@ class Px4Link:
             self.home = msg
         elif kind == "LOCAL_POSITION_NED":
             self.local_position = msg
+        elif kind == "GLOBAL_POSITION_INT":
+            self.global_position = msg
         elif kind == "GPS_RAW_INT":
             self.gps = msg
         elif kind == "ESTIMATOR_STATUS":

@@ -37,7 +37,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.autopilot import AutopilotStatus
-from sitl.autopilot_state import Home
+from sitl.autopilot_state import GlobalEstimate, Home
 from sitl.config import SitlConfig
 from sitl.dynamics import VehicleTruth
 from sitl.geo import LocalProjection
@@ -57,6 +57,8 @@ READY_TIMEOUT_S = 90.0
 MAX_EXTRAPOLATION_S = 0.05
 #: The pilot's and the fault schedule's step, sim s.
 PILOT_PERIOD_S = 0.02
+#: GLOBAL_POSITION_INT's heading when the autopilot does not know it.
+UINT16_UNKNOWN = 65535
 #: A vehicle whose clock has not moved for this long (wall s) has stopped: the run ends with its log.
 STALL_S = 10.0
 
@@ -261,6 +263,16 @@ class Px4World:
         busy this process's event loop is.
         """
         self._clock.link.on_clock.append(callback)
+
+    def global_estimate(self, name: str) -> GlobalEstimate | None:
+        """PX4's own global position of ``name`` (its last GLOBAL_POSITION_INT, 10 Hz); None before one."""
+        g = self.vehicle(name).link.global_position
+        if g is None:
+            return None
+        hdg_deg = float(g.hdg) * 0.01 if g.hdg != UINT16_UNKNOWN else 0.0
+        return GlobalEstimate(
+            g.lat * 1e-7, g.lon * 1e-7, g.alt * 1e-3, (g.vx * 0.01, g.vy * 0.01, g.vz * 0.01), hdg_deg
+        )
 
     def mode(self, name: str) -> tuple[str, bool]:
         """PX4's flight mode of ``name`` (its UI name) and whether it is armed, from its HEARTBEAT."""

@@ -51,6 +51,23 @@ def test_lockstep_run_writes_the_report_and_plots(tmp_path: Path) -> None:
     assert summary_markdown({"straight": report}) in md or "Straight line" in md
 
 
+@pytest.mark.render
+@pytest.mark.slow
+def test_lockstep_hands_the_leaders_share_to_the_external_position_fallback(tmp_path: Path) -> None:
+    """With the leader's position shared, the GPS-loss fallback gets it (velocity offboard again)."""
+    overrides = ('leader.shared_position="mqtt"', 'mission.gps_loss_policy="vision_external_position"')
+    spec = RunSpec(
+        "gps-loss", 1, tmp_path, harness="lockstep", detector="truth", duration_s=18.0, plots=False,
+        overrides=overrides,
+    )  # fmt: skip
+    report = run_one(spec)
+    rows = [(float(t[0]), str(t[2]), str(t[3])) for t in report["transitions"]]  # type: ignore[attr-defined]
+    lost = next(t for t, to, why in rows if why == "GPS_LOST" and to == "FOLLOW_VISION")
+    accepted = [t for t, _, why in rows if why == "VISION_MODE_CHANGED" and t > lost]
+    assert accepted, rows
+    assert accepted[0] - lost < 3.0
+
+
 @pytest.mark.sitl
 @pytest.mark.render
 @pytest.mark.slow

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.config import Config, MissionConfig
+from companion.config import Config, LeaderConfig, MissionConfig
 from companion.kernel.flight import FlightMode
 from companion.mission.types import MissionState
 
@@ -64,7 +64,9 @@ altitude_m = 5.0
 def mission_cfg(**mission: object) -> Config:
     base = {"gps_restore_s": 2.0, "takeoff_altitude_m": 5.0}
     base.update(mission)
-    return Config(mission=MissionConfig(**base))  # type: ignore[arg-type]
+    # The harness hands the runner the leader's shares itself; the config must still say they come.
+    shared = "mqtt" if base.get("gps_loss_policy") == "vision_external_position" else "none"
+    return Config(mission=MissionConfig(**base), leader=LeaderConfig(shared_position=shared))  # type: ignore[arg-type]
 
 
 async def test_circle_on_gps_then_gps_loss_on_vision_attitude(tmp_path: Path) -> None:

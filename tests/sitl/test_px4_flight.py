@@ -103,3 +103,77 @@ def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path)
     )
     assert len(folders) == 2
     assert not any(Path(f).exists() for f in folders)
+
+
+EXTERNAL_POSITION_SCENARIO = """
+schema_version = 1
+name = "px4-gps-loss-external-position"
+description = "Leader north at 2 m/s, sharing its position; the follower's GPS stops in formation."
+seed = 1
+
+[run]
+duration_s = 52.0
+formation_start_s = 24.0
+formation_duration_s = 28.0
+takeoff_altitude_m = 5.0
+camera_rate_hz = 15.0
+
+[leader]
+type = "straight"
+start_s = 24.0
+altitude_m = 5.0
+speed_m_s = 2.0
+
+[[vehicles.follower.gps.outages]]
+at_s = 32.0
+kind = "off"
+
+[wind]
+mean_speed_m_s = 1.0
+from_deg = 270.0
+
+[companion.leader]
+shared_position = "mqtt"
+
+[companion.mission]
+gps_loss_policy = "vision_external_position"
+"""
+
+
+@pytest.mark.sitl
+@pytest.mark.render
+@pytest.mark.slow
+@pytest.mark.lab
+@pytest.mark.mqtt_broker
+@pytest.mark.timeout(300)
+def test_px4_takes_the_external_position_and_flies_velocity_again(tmp_path: Path) -> None:
+    """GPS lost, the leader's shared position minus the seen vector goes to PX4's estimator (EKF2_EV_CTRL).
+
+    The leader's position is what the leader's PX4 reports (GLOBAL_POSITION_INT), over a real mosquitto.
+    """
+    binary = _px4_binary()
+    if binary is None:
+        pytest.skip(f"no PX4 SITL build: set SITL_PX4__BINARY or put one at {SHARED_PX4}")
+    scenario = tmp_path / "px4-gps-loss-external-position.toml"
+    scenario.write_text(EXTERNAL_POSITION_SCENARIO)
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "SITL_PX4__BINARY": binary}
+    cmd = [sys.executable, "-m", "companion", "sim", "--scenario", str(scenario), "--autopilot", "px4",
+           "--no-plots", "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    rows = [(t[0], t[2], t[3]) for t in report["transitions"]]
+    lost = next(t for t, to, why in rows if why == "GPS_LOST")
+    assert next(to for t, to, why in rows if why == "GPS_LOST") == "FOLLOW_VISION"
+    # PX4 took the external fix (its horizontal estimate valid again), so the service flies velocity again.
+    accepted = [t for t, to, why in rows if why == "VISION_MODE_CHANGED" and t > lost]
+    assert accepted, rows
+    assert accepted[0] - lost < 6.0
+    assert [why for t, _, why in rows if t > lost] == ["VISION_MODE_CHANGED"], rows  # and it held to the end
+    assert report["outcome"] == "completed"
+    ap = report["autopilot"]
+    assert ap["follower_failsafes"] == []
+    assert not FAILSAFE_MODES & {m["mode"] for m in ap["follower_modes"]}
+    assert ap["follower_modes"][-1]["mode"] == "Offboard"
+    assert report["formation_max_deviation_m"] < 2.0

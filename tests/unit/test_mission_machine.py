@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.config import Config, MissionConfig
+from companion.config import Config, LeaderConfig, MissionConfig
 from companion.estimation.leader import TrackStatus
 from companion.kernel.flight import (
     AttitudeSetpoint,
@@ -27,7 +27,11 @@ R = Reason
 
 
 def cfg_with(**mission: object) -> Config:
-    return Config(mission=MissionConfig(**mission))  # type: ignore[arg-type]
+    # The external-position fallback needs the leader's shared position (the config refuses it otherwise).
+    leader = LeaderConfig(
+        shared_position="mqtt" if mission.get("gps_loss_policy") == "vision_external_position" else "none"
+    )
+    return Config(mission=MissionConfig(**mission), leader=leader)  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------------- boot to FOLLOW

@@ -40,7 +40,7 @@ from companion.lab.evaluation.plots import Snapshot
 from companion.lab.evaluation.runlog import attach_run_log
 from companion.lab.evaluation.scoring import RunScorer
 from companion.lab.evaluation.trace import RunObserver
-from companion.mission.types import MissionInputs, StepOutput, Transition
+from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.autolabel import AutoLabelConfig
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
@@ -50,6 +50,9 @@ log = logging.getLogger(__name__)
 
 #: Truth samples for crash and landing detection, per sim second.
 TRUTH_RATE_HZ = 50.0
+#: How often the leader's companion shares its position, Hz (both harnesses; the service's default share
+#: limits take 2 s of age).
+LEADER_SHARE_HZ = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,6 +139,9 @@ class LockstepRun:
             self.recorder = attach_run_log(
                 cfg, self.core, self.clock, options.mcap_path, synchronous=True, metadata=meta
             )
+        #: The leader's share to the mission (None: the config takes none), and when the next is due, sim s.
+        self._share_period_s = 1.0 / LEADER_SHARE_HZ if cfg.leader.shared_position == "mqtt" else None
+        self._next_share_s = 0.0
         self.autolabel: AutoLabelCheck | None = None
         if options.auto_label:
             self.autolabel = AutoLabelCheck(
@@ -210,7 +216,7 @@ class LockstepRun:
                 self.clock.set(t_s)
                 self.link.pump()
                 self.core.feed_telemetry()
-                if self.autolabel is not None:
+                if self.autolabel is not None or self._share_period_s is not None:
                     self._share_leader(t_s)
                 if t_s >= next_frame_s - 1e-9:
                     next_frame_s += frame_period_s
@@ -231,10 +237,17 @@ class LockstepRun:
             mission.cancel()
 
     def _share_leader(self, t_s: float) -> None:
-        """The leader's own EKF estimate, moved into the follower's local frame, as MQTT would share it."""
-        if self.autolabel is None or not self.autolabel.share.due(t_s):
+        """The leader's own EKF estimate, moved into the follower's local frame, as MQTT would share it.
+
+        To the auto-labeller when it checks labels; to the mission at ``LEADER_SHARE_HZ`` when the config
+        takes the leader's shared position (``leader.shared_position``), as the real path's broker brings it.
+        """
+        label_due = self.autolabel is not None and self.autolabel.share.due(t_s)
+        mission_due = self._share_period_s is not None and t_s >= self._next_share_s - 1e-9
+        if not (label_due or mission_due):
             return
-        est = self.world.autopilot("leader").est
+        ap = self.world.autopilot("leader")
+        est = ap.est
         off_l = self.world.origin_offset_ned_m("leader")
         off_f = self.world.origin_offset_ned_m("follower")
         p = (
@@ -242,7 +255,15 @@ class LockstepRun:
             float(est.e_m + off_l[1] - off_f[1]),
             float(est.d_m + off_l[2] - off_f[2]),
         )
-        self.autolabel.share.sample(t_s, p, bool(est.global_valid))
+        if label_due and self.autolabel is not None:
+            self.autolabel.share.sample(t_s, p, bool(est.global_valid))
+        if mission_due and self._share_period_s is not None:
+            self._next_share_s = t_s + self._share_period_s
+            if est.global_valid:
+                v = (float(est.vn_m_s), float(est.ve_m_s), float(est.vd_m_s))
+                self.core.submit_leader_shared(
+                    SharedLeaderPosition(t_s, p, yaw_rad=ap.yaw_est_rad(), v_ned_m_s=v)
+                )
 
     def _capture(self, t_s: float) -> None:
         follower = self.world.truth("follower")

@@ -8,7 +8,9 @@ picked at random and probed, so runs side by side on one machine never collide.
 from __future__ import annotations
 
 import asyncio
+import os
 import random
+import shutil
 import signal
 import socket
 import subprocess
@@ -175,3 +177,41 @@ class Child:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
+
+
+def free_tcp_port() -> int:
+    """A TCP port on the loopback address that nothing listens on now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Broker(Child):
+    """A private mosquitto on a free loopback port (the run's MQTT: shares between vehicles).
+
+    Anonymous, loopback only, no persistence; stopped like any :class:`Child`.
+    """
+
+    def __init__(self, work_dir: Path, env: dict[str, str]) -> None:
+        exe = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+        if not Path(exe).exists():
+            raise SimRunError("mosquitto is not installed (scripts/setup installs it)")
+        self.port = free_tcp_port()
+        conf = work_dir / "mosquitto.conf"
+        as_root = "user root\n" if os.geteuid() == 0 else ""
+        conf.write_text(f"{as_root}listener {self.port} 127.0.0.1\nallow_anonymous true\nlog_dest stderr\n")
+        super().__init__([exe, "-c", str(conf)], env, work_dir / "mosquitto.log")
+
+    async def start_and_wait(self, timeout_s: float = 10.0) -> None:
+        """Start it and return once it accepts connections; SimRunError if it does not."""
+        self.start()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not self.running:
+                break
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                if s.connect_ex(("127.0.0.1", self.port)) == 0:
+                    return
+            await asyncio.sleep(0.05)
+        await self.stop()
+        raise SimRunError(f"mosquitto did not listen on {self.port}:\n{self.tail()}")

@@ -38,8 +38,8 @@ from pathlib import Path
 from typing import Any, cast
 
 from companion.config import Config
-from companion.lab.evaluation.lockstep import RunResult
-from companion.lab.evaluation.procs import REPO, Child, SimRunError
+from companion.lab.evaluation.lockstep import LEADER_SHARE_HZ, RunResult
+from companion.lab.evaluation.procs import REPO, Broker, Child, SimRunError
 from companion.lab.evaluation.procs import SitlPorts as Ports
 from companion.lab.evaluation.runlog import attach_run_log
 from companion.lab.evaluation.scoring import RunScorer, snapshot_times
@@ -147,6 +147,16 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
         "mount": cfg.camera.mount.model_dump(mode="json"),
         "leader_hidden_s": [list(w) for w in scenario.run.leader_hidden_s],
     }
+    broker: Broker | None = None
+    if cfg.leader.shared_position == "mqtt":
+        # The leader's companion shares its autopilot's position over MQTT: a broker of the run's own.
+        broker = Broker(work_dir, dict(os.environ))
+        settings["leader_share"] = {
+            "host": "127.0.0.1",
+            "port": broker.port,
+            "topic": cfg.mqtt.leader_topic,
+            "rate_hz": LEADER_SHARE_HZ,
+        }
     settings_path = work_dir / "sim.json"
     settings_path.write_text(json.dumps(settings, indent=2))
     base_vehicles = [
@@ -174,7 +184,11 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
             ),
             "status": cfg.status.model_copy(update={"socket_path": str(sock_dir / "status.sock")}),
             "service": cfg.service.model_copy(update={"auto_start": True}),
-            "mqtt": cfg.mqtt.model_copy(update={"enabled": False}),
+            "mqtt": cfg.mqtt.model_copy(
+                update={"enabled": True, "host": "127.0.0.1", "port": broker.port}
+                if broker is not None
+                else {"enabled": False}
+            ),
         }
     )
     (work_dir / "service-config.json").write_text(service_cfg.model_dump_json(indent=2))
@@ -187,6 +201,8 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     sim_clock: SimClock | None = None
     service: Any = None
     try:
+        if broker is not None:
+            await broker.start_and_wait()
         sim.start()
         sim_clock = await _wait_for_sim(
             sim,
@@ -235,6 +251,8 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
         end_s = sim_clock.now_s()
     finally:
         await sim.stop()
+        if broker is not None:
+            await broker.stop()
         if sim_clock is not None:
             sim_clock.close()
         shutil.rmtree(sock_dir, ignore_errors=True)

@@ -8,24 +8,34 @@ Three tasks beside the simulation, configured by the JSON file named in ``$WINGM
 * ``camera``: the renderer's :class:`~sitl.render.server.CameraServer` for the follower at the scenario's
   camera rate, blind to the leader inside the scenario's ``[run] leader_hidden_s`` windows;
 * ``autopilot``: every vehicle's flight modes (from its HEARTBEAT) and STATUSTEXTs, as JSON lines, so the
-  report shows what the autopilot itself did (its failsafes above all), on either backend.
+  report shows what the autopilot itself did (its failsafes above all), on either backend;
+* ``leader_share`` (when set): what the leader's companion would share over MQTT for the service's
+  ``vision_external_position`` fallback: the global position the leader's *autopilot* reports (its
+  estimate, never the truth), on ``{"host", "port", "topic", "rate_hz"}``.
 
 Keys: ``camera_socket``, ``camera_rate_hz``, ``clock_path``, ``truth_path``, ``truth_rate_hz``, ``seed``,
-``mount`` (the service's ``[camera.mount]``), ``leader_hidden_s``, ``autopilot_log_path`` (optional).
+``mount`` (the service's ``[camera.mount]``), ``leader_hidden_s``, ``autopilot_log_path`` and
+``leader_share`` (optional).
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
 import time
 from pathlib import Path
 from typing import Any
 
+import aiomqtt
+
 from companion.kernel.camera import MountConfig
 from companion.lab.evaluation.simclock import SimClockWriter
 from companion.lab.evaluation.truthlog import TruthWriter, truth_row
+from companion.telemetry.payloads import LeaderPositionMsg
+
+log = logging.getLogger(__name__)
 
 RUN_ENV = "WINGMAN_SIM_RUN"
 #: How often the clock is published, sim s (the simulation advances in 5 ms physics steps).
@@ -43,6 +53,8 @@ async def run(sim: Any) -> None:
         tg.create_task(_camera(sim, settings), name="sim.camera")
         if settings.get("autopilot_log_path"):
             tg.create_task(_autopilot_log(sim, Path(settings["autopilot_log_path"])), name="sim.autopilot")
+        if settings.get("leader_share"):
+            tg.create_task(_leader_share(sim, settings["leader_share"]), name="sim.leader_share")
 
 
 async def _clock(sim: Any, path: Path) -> None:
@@ -93,6 +105,39 @@ async def _autopilot_log(sim: Any, path: Path) -> None:
                 texts_seen[name] = len(texts)
             out.flush()
             await sim.wait_until(t_s + AUTOPILOT_POLL_S)
+
+
+#: Reconnect delay of the leader's share publisher after the broker went away, s.
+SHARE_RETRY_S = 0.5
+
+
+async def _leader_share(sim: Any, where: dict[str, Any]) -> None:
+    """The leader autopilot's global position on MQTT at ``rate_hz`` (sim time), as its companion would."""
+    period_s = 1.0 / float(where["rate_hz"])
+    topic = str(where["topic"])
+    while True:
+        try:
+            async with aiomqtt.Client(
+                str(where["host"]), int(where["port"]), identifier="wingman-sim-leader"
+            ) as c:
+                next_s = sim.t_s
+                while True:
+                    await sim.wait_until(next_s)
+                    g = sim.global_estimate("leader")
+                    if g is not None:
+                        msg = LeaderPositionMsg(
+                            lat_deg=g.lat_deg,
+                            lon_deg=g.lon_deg,
+                            alt_amsl_m=g.alt_amsl_m,
+                            v_ned_m_s=g.v_ned_m_s,
+                            time_unix_s=time.time(),
+                            yaw_deg=g.yaw_deg,
+                        )
+                        await c.publish(topic, msg.model_dump_json(exclude_none=True), qos=0)
+                    next_s = max(next_s + period_s, sim.t_s)
+        except aiomqtt.MqttError as exc:
+            log.warning("leader share: %s; retrying", exc)
+            await asyncio.sleep(SHARE_RETRY_S)
 
 
 async def _camera(sim: Any, settings: dict[str, Any]) -> None:
