@@ -48,6 +48,7 @@ from companion.service.stamps import ServiceClockSource
 from companion.telemetry.leader import OriginTracker
 from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 from companion.vehicle import failsafe
+from companion.vehicle.external_vision import ev_position_bits_for
 from companion.vehicle.link import VehicleLink
 
 log = logging.getLogger(__name__)
@@ -327,7 +328,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             source = ServiceClockSource(source, ctx.clock)
         source = await stack.enter_async_context(source)
 
-        from companion.vehicle.mavsdk_link import MavsdkVehicleLink, ev_position_bits_for  # noqa: PLC0415 (mavsdk: heavy)
+        from companion.vehicle.mavsdk_link import MavsdkVehicleLink  # noqa: PLC0415 (mavsdk: heavy)
 
         background: dict[str, Callable[[], Any]] = {}
         extra_status: dict[str, Callable[[], Any]] = {}

@@ -64,6 +64,7 @@ from companion.kernel.flight import (
     VelocityNedSetpoint,
 )
 from companion.vehicle import failsafe
+from companion.vehicle.external_vision import EV_CTRL_PARAM
 from companion.vehicle.finite import require_finite_position, require_finite_setpoint
 from companion.vehicle.identity import choose_autopilot
 from companion.vehicle.mavsdk_telemetry import MavsdkTelemetry
@@ -114,18 +115,6 @@ def _settle(fut: asyncio.Future[Any], result: Any) -> None:
 def _result_name(exc: MavsdkError) -> str:
     result = getattr(exc, "result", None)
     return getattr(result, "name", None) or str(exc)
-
-
-#: PX4's external-vision aiding bitmask (EKF2; 0, off, by default).
-EV_CTRL_PARAM = "EKF2_EV_CTRL"
-
-
-def ev_position_bits_for(gps_loss_policy: str) -> int:
-    """The EKF2_EV_CTRL bits a GPS-loss policy needs PX4 to have.
-
-    Horizontal position (bit 0) for the external-position policy, none for the others.
-    """
-    return 1 if gps_loss_policy == "vision_external_position" else 0
 
 
 #: Wall time PX4 is given to apply a new MIS_TAKEOFF_ALT before the takeoff command, s.

@@ -48,6 +48,7 @@ from companion.kernel.flight import (
 )
 from companion.kernel.frames import quat_from_euler
 from companion.vehicle import failsafe
+from companion.vehicle.external_vision import EV_CTRL_PARAM
 from companion.vehicle.mavlink_telemetry import (
     AUTOPILOT_COMPONENT,
     SEVERITY_CODE,
@@ -129,7 +130,13 @@ class MessageVehicleLink:
     """
 
     def __init__(
-        self, transport: MessageTransport, clock: Clock, cfg: LinkConfig, target_system: int
+        self,
+        transport: MessageTransport,
+        clock: Clock,
+        cfg: LinkConfig,
+        target_system: int,
+        *,
+        ev_position_bits: int = 0,
     ) -> None:
         self.transport = transport
         self.clock = clock
@@ -152,6 +159,11 @@ class MessageVehicleLink:
         self._failsafe_done = False
         self._failsafe_tries = 0
         self._failsafe_sent_s = -math.inf
+        #: EKF2_EV_CTRL bits the mission needs (external_vision.ev_position_bits_for); 0: leave it alone.
+        self.ev_position_bits = ev_position_bits
+        self._ev_done = ev_position_bits == 0
+        self._ev_tries = 0
+        self._ev_sent_s = -math.inf
         self.counters = LinkCounters()
 
     # ------------------------------------------------------------------ the owner's side
@@ -179,6 +191,7 @@ class MessageVehicleLink:
                 self._last_home_request_s = now_s
                 self._command_msg(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
             self._failsafe_due(now_s)
+            self._external_vision_due(now_s)
             if not self._hover_requested:
                 self._hover_requested = True
                 self._send(
@@ -243,6 +256,8 @@ class MessageVehicleLink:
             name = text_of(msg.param_id)
             if name == failsafe.PARAM:
                 self._on_failsafe_param(param_int(float(msg.param_value), int(msg.param_type)))
+            elif name == EV_CTRL_PARAM:
+                self._on_ev_param(param_int(float(msg.param_value), int(msg.param_type)))
             else:
                 self._on_param(name, float(msg.param_value))
 
@@ -290,6 +305,44 @@ class MessageVehicleLink:
         self.telemetry.update(offboard_loss_param=value)
         ok, line = failsafe.applied(self.cfg.offboard_loss_action, value)
         (log.info if ok else log.warning)("vehicle link: %s", line)
+
+    def _external_vision_due(self, now_s: float) -> None:
+        """Read EKF2_EV_CTRL until PX4 answers (resent like a command); :meth:`_on_ev_param` adds the bits."""
+        if self._ev_done or now_s - self._ev_sent_s < COMMAND_RETRY_S:
+            return
+        if self._ev_tries >= COMMAND_RETRIES:
+            self._ev_done = True
+            log.warning(
+                "vehicle link: %s not read (no reply); PX4 will not fuse external positions", EV_CTRL_PARAM
+            )
+            return
+        self._ev_tries += 1
+        self._ev_sent_s = now_s
+        self._send(
+            mavlink.MAVLink_param_request_read_message(
+                self.target_system, AUTOPILOT_COMPONENT, EV_CTRL_PARAM.encode(), -1
+            )
+        )
+
+    def _on_ev_param(self, value: int) -> None:
+        bits = self.ev_position_bits
+        if self._ev_done or bits == 0:
+            return
+        if value & bits == bits:
+            self._ev_done = True
+            log.info("vehicle link: %s %d", EV_CTRL_PARAM, value)
+            return
+        # Add the missing bits; PX4's echo of the write comes back here and ends it.
+        self._ev_sent_s = self.clock.now_s()
+        self._send(
+            mavlink.MAVLink_param_set_message(
+                self.target_system,
+                AUTOPILOT_COMPONENT,
+                EV_CTRL_PARAM.encode(),
+                struct.unpack("<f", struct.pack("<i", value | bits))[0],  # PX4: INT32 sent bytewise
+                mavlink.MAV_PARAM_TYPE_INT32,
+            )
+        )
 
     def _on_param(self, name: str, value: float) -> None:
         if name == "MPC_THR_HOVER" and 0.05 < value < 0.95 and self.telemetry.state.hover_thrust_norm is None:

@@ -35,7 +35,8 @@ from companion.mission.geometry import Slot
 from companion.mission.machine import MissionMachine
 from companion.mission.types import MissionInputs, MissionState, SharedLeaderPosition, StepOutput, Transition
 from companion.service.mission_runner import MissionRunner
-from companion.vehicle.mavsdk_link import MavsdkVehicleLink, ev_position_bits_for
+from companion.vehicle.external_vision import ev_position_bits_for
+from companion.vehicle.mavsdk_link import MavsdkVehicleLink
 
 from .wiretap import WireTap, open_wiretap
 

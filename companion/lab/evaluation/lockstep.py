@@ -44,6 +44,7 @@ from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOut
 from companion.perception.autolabel import AutoLabelConfig
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
+from companion.vehicle.external_vision import ev_position_bits_for
 from companion.vehicle.message_link import MessageVehicleLink
 
 log = logging.getLogger(__name__)
@@ -122,7 +123,13 @@ class LockstepRun:
         self.scenario = sc
         self.clock = ManualClock(world.t_s)
         follower = world.vehicle("follower")
-        self.link = MessageVehicleLink(world.link("follower"), self.clock, cfg.link, follower.sysid)
+        self.link = MessageVehicleLink(
+            world.link("follower"),
+            self.clock,
+            cfg.link,
+            follower.sysid,
+            ev_position_bits=ev_position_bits_for(cfg.mission.gps_loss_policy),
+        )
         self.core = FlightCore(
             cfg, self.link, self.clock, stage, on_transition=self._on_transition, on_step=self._on_step
         )

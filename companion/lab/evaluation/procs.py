@@ -17,11 +17,14 @@ import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar, Self
+from typing import TYPE_CHECKING, ClassVar
 
 from companion.kernel.children import die_with_parent
 from companion.kernel.errors import CompanionError
 from companion.kernel.shipped import project_root
+
+if TYPE_CHECKING:
+    from typing import Self  # Python 3.11; the service's tests import this module on 3.10 too
 
 #: Children run here: the folder with config/ and models/ (companion/kernel/shipped.py).
 REPO = project_root()

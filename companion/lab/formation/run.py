@@ -39,6 +39,7 @@ from companion.mission.types import (
 )
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
+from companion.vehicle.external_vision import ev_position_bits_for
 from companion.vehicle.message_link import MessageVehicleLink
 from companion.viz.messages import Namespace
 from companion.viz.recorder import FlightRecorder
@@ -141,7 +142,13 @@ class FormationRun:
 
     def _follower(self, name: str, cfg: Config, stage: DetectStage, renderer: Any) -> FollowerRun:
         veh = self.world.vehicle(name)
-        link = MessageVehicleLink(self.world.link(name), self.clock, cfg.link, veh.sysid)
+        link = MessageVehicleLink(
+            self.world.link(name),
+            self.clock,
+            cfg.link,
+            veh.sysid,
+            ev_position_bits=ev_position_bits_for(cfg.mission.gps_loss_policy),
+        )
         scorer = RunScorer.for_scenario(self.scenario, 0, vehicle=name)
         slot = cfg.formation.slot_leader_m
         if slot is None:
