@@ -84,3 +84,45 @@ def test_replay_of_the_log_finds_the_detections_of_the_run(run_dir: Path) -> Non
     assert len(live) > 20
     assert sum(1 for boxes in live.values() if boxes) > 10  # the leader was found in flight
     assert replayed == live
+
+
+LAYOUT = Path(__file__).resolve().parents[2] / "docs" / "foxglove-layout.json"
+
+
+def _layout_strings(node: Any) -> list[str]:
+    if isinstance(node, dict):
+        return [s for v in node.values() for s in _layout_strings(v)]
+    if isinstance(node, list):
+        return [s for v in node for s in _layout_strings(v)]
+    return [node] if isinstance(node, str) and node.startswith("/") else []
+
+
+def test_the_shipped_layout_reads_what_a_run_logs(run_dir: Path) -> None:
+    """Every topic and message path of docs/foxglove-layout.json resolves in a real run's log."""
+    refs = _layout_strings(json.loads(LAYOUT.read_text()))
+    assert len(refs) > 10
+    #: For each JSON topic and field: the shortest list it held (-1: not a list), over non-null values.
+    seen: dict[str, dict[str, int]] = {}
+    with (run_dir / "flight.mcap").open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        topics = {c.topic: c for c in summary.channels.values()}
+        for _schema, channel, message in reader.iter_messages():
+            if channel.message_encoding != "json":
+                continue
+            fields = seen.setdefault(channel.topic, {})
+            for k, v in json.loads(message.data).items():
+                if v is not None:
+                    n = len(v) if isinstance(v, list) else -1
+                    fields[k] = min(fields.get(k, n), n)
+    for ref in refs:
+        topic, _, path = ref.partition(".")
+        assert topic in topics, f"{ref}: no channel {topic} in the log"
+        if not path:
+            continue
+        field, _, index = path.partition("[")
+        fields = seen.get(topic, {})
+        assert field in fields, f"{ref}: no message on {topic} has {field} ({sorted(fields)})"
+        if index:
+            assert fields[field] > int(index.rstrip("]")), f"{ref}: {field} is shorter"
