@@ -1,7 +1,7 @@
 """``companion``: the command-line edge: parse arguments, load config, set up logging, map errors to exits.
 
 Exit codes: 0 ok, 1 failure, unhealthy, or an operator command refused (the line says why), 2 bad usage,
-config or model, or not built yet, 3 camera or link failure, 4 a link that carries only autopilots this
+config or model, 3 camera or link failure, 4 a link that carries only autopilots this
 service must not fly, 5 no service answers on the status socket (``status``, ``start``, ``command``).
 """
 

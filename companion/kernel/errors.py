@@ -62,12 +62,6 @@ class CommandRejectedError(CompanionError):
         super().__init__(f"{command} rejected: {result}")
 
 
-class NotBuiltError(CompanionError):
-    """A command that exists in the CLI but is not implemented yet."""
-
-    exit_code = 2
-
-
 def first_companion_error(group: BaseException) -> CompanionError | None:
     """The first of our own errors inside a (nested) exception group, such as a TaskGroup's; else None."""
     for exc in getattr(group, "exceptions", ()):

@@ -10,11 +10,9 @@ depth on the same boxes, and per-stage time. ``--detector truth`` uses the recor
 from __future__ import annotations
 
 import csv
-import importlib
 import io
 import math
 import time
-from typing import Any
 
 import numpy as np
 
@@ -22,17 +20,16 @@ from companion.config import Config
 from companion.estimation.estimate import TrackState
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
-from companion.kernel.errors import ModelError
 from companion.lab.perception_eval import (
     FrameError,
     Summary,
-    TruthDetector,
     angle_between_deg,
     paper_centre_depth_m,
 )
 from companion.perception.pose import back_project
 from companion.perception.sources import open_source, parse_source
 from companion.perception.transform import AttitudeHistory, CameraGeometry
+from companion.perception.truth_detector import TruthDetector
 from companion.perception.types import DetectorResult, DetectStage
 
 CSV_FIELDS = [
@@ -81,14 +78,9 @@ def make_detect(
     if kind == "truth":
         oracle = TruthDetector(jitter_px=jitter_px, miss_rate=miss_rate, seed=seed)
         return DetectStage(oracle.detect_frame, description="ground-truth boxes")
-    try:
-        module: Any = importlib.import_module("companion.perception.detector")
-    except ModuleNotFoundError as exc:
-        if not (exc.name or "").startswith("companion.perception.detector"):
-            raise
-        raise ModelError("replay: the detector is not in this build; use --detector truth") from None
-    stage: DetectStage = module.detect_stage(cfg.detector)
-    return stage
+    from companion.perception.detector import detect_stage  # noqa: PLC0415 (onnxruntime/torch: heavy)
+
+    return detect_stage(cfg.detector)
 
 
 def _fmt(x: float | None) -> str:

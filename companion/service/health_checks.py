@@ -9,7 +9,6 @@ Healthy means every check passed; the command exits 0 then, 1 otherwise.
 from __future__ import annotations
 
 import asyncio
-import importlib
 import logging
 import socket
 import time
@@ -105,16 +104,15 @@ def model_problems(detector: DetectorConfig | None, note: str = "") -> list[str]
     """
     if detector is None or detector.runtime == "truth":
         return []
-    try:
-        detector_mod = importlib.import_module("companion.perception.detector")
-    except ModuleNotFoundError as exc:
-        return [f"detector.model_path: the detector is not in this build ({exc.name})"]
+    from companion.perception.detector import choose_runtime  # noqa: PLC0415 (torch, onnxruntime: lazily)
+    from companion.perception.detector.weights import verify_model_file  # noqa: PLC0415
+
     named = Path(detector.model_path)
-    _, loaded = detector_mod.choose_runtime(detector)
+    _, loaded = choose_runtime(detector)
     problems = []
     for path in dict.fromkeys([named, loaded]):
         try:
-            detector_mod.verify_model_file(path, detector.model_sha256 if path == named else "")
+            verify_model_file(path, detector.model_sha256 if path == named else "")
         except ModelError as exc:
             missing = not path.exists()
             problems.append(f"detector.model_path: {exc}{note if missing else ''}")
@@ -143,7 +141,8 @@ def check_model(cfg: Config) -> CheckResult:
     problems = model_problems(cfg.detector)
     if problems:
         return CheckResult("model", False, " / ".join(problems))
-    detector_mod = importlib.import_module("companion.perception.detector")
+    from companion.perception import detector as detector_mod  # noqa: PLC0415 (torch, onnxruntime: lazily)
+
     runtime, loaded = detector_mod.choose_runtime(cfg.detector)
     try:
         t0 = time.monotonic()
@@ -183,10 +182,12 @@ def check_camera_offline(cfg: Config) -> CheckResult:
             except OSError as exc:
                 return CheckResult("camera", False, f"simulator camera {p}: {exc.strerror}")
         return CheckResult("camera", True, f"simulator camera {p} answers")
+    from companion.perception.sources.realsense import import_pyrealsense2  # noqa: PLC0415
+
     try:
-        rs = importlib.import_module("pyrealsense2")
-    except ImportError as exc:  # also OSError-like failures of libusb loading surface as ImportError
-        return CheckResult("camera", False, f"pyrealsense2 unavailable: {exc}")
+        rs = import_pyrealsense2()
+    except CompanionError as exc:
+        return CheckResult("camera", False, str(exc))
     devices = rs.context().query_devices()
     names = [d.get_info(rs.camera_info.name) for d in devices]
     return CheckResult("camera", bool(names), ", ".join(names) or "no RealSense device found")

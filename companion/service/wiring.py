@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib
 import json
 import logging
 import math
@@ -23,7 +22,7 @@ from companion.config import Config, resolve_state_dir
 from companion.kernel import compat
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock, MonotonicClock
-from companion.kernel.errors import CompanionError, ConfigError, NotBuiltError, first_companion_error
+from companion.kernel.errors import CompanionError, ConfigError, first_companion_error
 from companion.kernel.flight import NEVER_S, Severity, VehicleState
 from companion.mission.types import (
     MissionInputs,
@@ -32,6 +31,8 @@ from companion.mission.types import (
     StepOutput,
     Transition,
 )
+from companion.perception.sources import open_source
+from companion.perception.truth_detector import TruthDetector
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult
@@ -53,28 +54,8 @@ from companion.vehicle.link import VehicleLink
 
 log = logging.getLogger(__name__)
 
-#: Perception modules the service needs, and which part of the project owns each.
-PERCEPTION_MODULES = {
-    "companion.perception.detector": "detector",
-    "companion.estimation.pipeline": "perception",
-    "companion.perception.sources": "perception",
-}
 #: How often the follower's attitude is copied from telemetry into the perception's history.
 _ATTITUDE_POLL_S = 0.01
-
-
-def missing_modules(modules: dict[str, str]) -> list[str]:
-    """Modules that are not importable yet, as ``module (owner)``."""
-    missing = []
-    for module, owner in modules.items():
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name is not None and module.startswith(exc.name):
-                missing.append(f"{module} ({owner})")
-            else:
-                raise
-    return missing
 
 
 def _finite(x: float) -> float | None:
@@ -294,7 +275,8 @@ class LinkGcs:
         direct = getattr(self.link, "_direct", None)
         if direct is None:
             return  # not connected yet
-        mavlink_direct = importlib.import_module("mavsdk.plugins.mavlink_direct")
+        from mavsdk.plugins import mavlink_direct  # noqa: PLC0415 (mavsdk: heavy)
+
         msg = mavlink_direct.MavlinkMessage(
             message_name="ONBOARD_COMPUTER_STATUS", fields_json=json.dumps(status.fields)
         )
@@ -313,16 +295,9 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
     """
 
     async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
-        needed = dict(PERCEPTION_MODULES)
-        if cfg.detector.runtime == "truth":
-            del needed["companion.perception.detector"]
-        missing = missing_modules(needed)
-        if missing:
-            raise NotBuiltError("run: not built yet: waiting on " + ", ".join(missing))
         # Cheapest to fail first: the model (exit 2), then the camera (exit 3), then the link.
         stage = await asyncio.to_thread(load_detect, cfg)  # reads and checks the weights: off the loop
-        sources_mod: Any = importlib.import_module("companion.perception.sources")
-        source: Any = sources_mod.open_source(cfg.camera, clock=ctx.clock)
+        source: Any = open_source(cfg.camera, clock=ctx.clock)
         # The RealSense source already stamps on arrival, our clock; "source" stamps are on it already too.
         if cfg.camera.source != "realsense" and cfg.camera.stamps == "mapped":
             source = ServiceClockSource(source, ctx.clock)
@@ -433,14 +408,14 @@ async def open_signing_relay(cfg: Config, stack: contextlib.AsyncExitStack) -> A
 def load_detect(cfg: Config) -> DetectStage:
     """The per-frame detection ``detector.runtime`` selects (blocking: loads the weights)."""
     if cfg.detector.runtime == "truth":
-        evaluate: Any = importlib.import_module("companion.lab.perception_eval")
-        truth = evaluate.TruthDetector()
+        truth = TruthDetector()
         log.warning(
             "detector: ground-truth boxes from the simulator (detector.runtime = truth), not the network"
         )
         return DetectStage(truth.detect_frame, description="ground-truth boxes")
-    detector_mod: Any = importlib.import_module("companion.perception.detector")
-    stage: DetectStage = detector_mod.detect_stage(cfg.detector)
+    from companion.perception.detector import detect_stage  # noqa: PLC0415 (onnxruntime/torch: heavy)
+
+    stage = detect_stage(cfg.detector)
     log.info("detector: %s", stage.description)
     return stage
 

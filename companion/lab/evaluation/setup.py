@@ -77,7 +77,7 @@ def load_detect(cfg: Config, runtime: str) -> DetectStage:
     and the report says so.
     """
     if runtime == "truth":
-        from companion.lab.perception_eval import TruthDetector  # noqa: PLC0415 (only for this mode)
+        from companion.perception.truth_detector import TruthDetector  # noqa: PLC0415 (only for this mode)
 
         truth = TruthDetector()
         return DetectStage(truth.detect_frame, description="ground-truth boxes (NOT the network)")

@@ -8,9 +8,7 @@ Nothing is opened until ``async with``; modules with heavy imports load only whe
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
-from typing import Any
 
 from companion.config import CameraConfig
 from companion.kernel.clock import Clock
@@ -46,13 +44,6 @@ def open_source(camera: CameraConfig, *, clock: Clock | None = None) -> FrameSou
         from companion.perception.sources.realsense import RealSenseSource  # noqa: PLC0415
 
         return RealSenseSource(camera)
-    try:
-        sim: Any = importlib.import_module("companion.perception.sources.sim")
-    except ModuleNotFoundError as exc:
-        if exc.name != "companion.perception.sources.sim":
-            raise
-        raise CameraError(
-            "sim source: not available in this build (companion/perception/sources/sim.py)"
-        ) from None
-    source: FrameSource = sim.open_sim_source(camera, clock=clock)
-    return source
+    from companion.perception.sources.sim import open_sim_source  # noqa: PLC0415
+
+    return open_sim_source(camera, clock=clock)
