@@ -29,7 +29,8 @@ def _check_report(out: Path, scenario: str, harness: str) -> dict[str, object]:
     assert report["outcome"] == "completed"
     assert "ground-truth boxes" in str(report["detector"])
     assert report["frames"] > 20
-    assert report["formation_max_deviation_m"] is not None
+    # The paper's own bar for the straight line (0.60 m); the real path's socket timing moves it run to run.
+    assert report["formation_max_deviation_m"] < 0.60
     assert report["relative_position_rmse_m"] < 0.5
     assert (out / "report.md").read_text().startswith(f"# Scenario `{scenario}`")
     return report
@@ -48,7 +49,7 @@ def test_lockstep_run_writes_the_report_and_plots(tmp_path: Path) -> None:
     md = (tmp_path / "all" / "summary.md").read_text()
     assert "| Straight line | 0.25 / " in md
     assert json.loads((tmp_path / "all" / "summary.json").read_text())["straight"]["seed"] == 2
-    assert summary_markdown({"straight": report}) in md or "Straight line" in md
+    assert summary_markdown({"straight": report}) in md
 
 
 @pytest.mark.render

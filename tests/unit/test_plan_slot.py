@@ -11,7 +11,7 @@ from companion.config import FormationConfig, SafetyConfig
 from companion.mission.formation import FormationLaw
 from companion.mission.geometry import FollowerState
 from companion.mission.plan_slot import HEADING_STALE_S, SlotTurner, neighbours_now
-from companion.mission.safety import SafetyLimits
+from companion.mission.safety import SafetyLimits, barrier_speed_m_s
 from companion.mission.types import SharedLeaderPosition, SharedNeighbour
 
 SLOT = (-5.0, -6.0, 0.0)
@@ -79,24 +79,33 @@ def test_neighbours_relative_to_us_with_and_without_our_gps() -> None:
 
 def test_the_law_never_closes_on_a_neighbour_inside_the_separation() -> None:
     cfg = FormationConfig()
-    law = FormationLaw(cfg, SafetyLimits.from_config(SafetyConfig(), cfg.max_accel_m_s2))
+    limits = SafetyLimits.from_config(SafetyConfig(), cfg.max_accel_m_s2)
     follower = FollowerState(
         yaw_rad=0.0, v_ned_m_s=np.zeros(3), v_down_m_s=0.0, alt_rel_m=5.0, p_ned_m=np.zeros(3)
     )
-    # The leader 5 m ahead but 3 m too far: the law wants to fly north; a neighbour 2.2 m north is in the way.
+    # The leader 5 m ahead but 3 m too far: the law wants to fly north; a neighbour north is in the way.
     p_rel, v_rel = np.array([8.0, 0.0, 0.0]), np.zeros(3)
-    free = law.velocity(p_rel, v_rel, follower, 0.0).v_ned_m_s
-    assert free[0] > 1.0
-    law.reset()
-    neighbour = neighbours_now(
-        [SharedNeighbour("follower1", 0.0, (2.2, 0.0, 0.0))],
-        0.0,
-        p_own_ned_m=np.zeros(3),
-        v_own_ned_m_s=np.zeros(3),
-    )
-    law.neighbours = neighbour
-    held = law.velocity(p_rel, v_rel, follower, 0.0).v_ned_m_s
-    assert held[0] < 0.35 * free[0]
+    free = FormationLaw(cfg, limits).velocity(p_rel, v_rel, follower, 0.0).v_ned_m_s
+    assert free[0] > 2.0
+
+    def north_with_neighbour_at(d_m: float) -> float:
+        law = FormationLaw(cfg, limits)
+        law.neighbours = neighbours_now(
+            [SharedNeighbour("follower1", 0.0, (d_m, 0.0, 0.0))],
+            0.0,
+            p_own_ned_m=np.zeros(3),
+            v_own_ned_m_s=np.zeros(3),
+        )
+        return float(law.velocity(p_rel, v_rel, follower, 0.0).v_ned_m_s[0])
+
+    sep = limits.min_separation_m
+    for inside_m in (0.5 * sep, 0.95 * sep, sep):
+        assert north_with_neighbour_at(inside_m) <= 0.0, inside_m  # holds or backs off, never closes
+    for outside_m in (sep + 0.2, sep + 1.0, sep + 2.0):
+        # Closing no faster than it can brake to a stop at the separation.
+        assert (
+            north_with_neighbour_at(outside_m) <= barrier_speed_m_s(outside_m - sep, limits.brake_m_s2) + 1e-9
+        )
 
 
 def test_a_shared_leader_velocity_replaces_the_estimated_one_in_the_feed_forward() -> None:

@@ -134,11 +134,7 @@ def finetune(
     export_and_sign(new_pt)
     before = _score(det_cfg, base, eval_sets)
     after = _score(det_cfg, new_pt, eval_sets)
-    accepted = bool(
-        after["map50"] is not None
-        and after["map50"] > (before["map50"] or 0.0)
-        and (after["recall"] or 0.0) >= (before["recall"] or 0.0)
-    )
+    accepted = accepts(before, after)
     result = {
         "base_model": str(base),
         "base_sha256": sha256_file(base),
@@ -154,6 +150,15 @@ def finetune(
     (out / "finetune.json").write_text(json.dumps(result, indent=2))
     (out / "MODEL_CARD.md").write_text(card_section(result))
     return result
+
+
+def accepts(before: dict[str, Any], after: dict[str, Any]) -> bool:
+    """The gate: the new model's mAP@0.5 beats the old one's, and its recall is not lower (held-out sets)."""
+    return bool(
+        after["map50"] is not None
+        and after["map50"] > (before["map50"] or 0.0)
+        and (after["recall"] or 0.0) >= (before["recall"] or 0.0)
+    )
 
 
 def _pct(v: float | None) -> str:

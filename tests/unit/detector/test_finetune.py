@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from companion.config import DetectorConfig
-from companion.lab.training.finetune import FinetuneOptions, finetune, install, sources_for
+from companion.lab.training.finetune import FinetuneOptions, accepts, finetune, install, sources_for
 from companion.lab.training.train_config import DataSource
 from tests.unit.detector.synthetic import make_dataset
 
@@ -28,6 +28,17 @@ def test_the_mix_gives_the_recordings_their_share() -> None:
         sources_for([], replay, own_weight=0.5)
 
 
+def test_a_fine_tune_is_accepted_only_when_it_beats_the_model_in_service() -> None:
+    old = {"map50": 0.80, "recall": 0.90}
+    assert accepts(old, {"map50": 0.85, "recall": 0.90})
+    assert not accepts(old, {"map50": 0.80, "recall": 0.95})  # equal mAP is not better
+    assert not accepts(old, {"map50": 0.90, "recall": 0.89})  # better mAP, lower recall
+    assert not accepts(old, {"map50": None, "recall": 1.0})  # no boxes to judge on
+    assert accepts(
+        {"map50": None, "recall": None}, {"map50": 0.1, "recall": 0.0}
+    )  # the old one found nothing
+
+
 def test_finetune_scores_old_and_new_on_held_out_recordings(shipped_model: Path, tmp_path: Path) -> None:
     own = make_dataset(tmp_path / "own", {"train": 12}, seed=5, size=(160, 120))
     held = make_dataset(tmp_path / "held", {"test": 6}, seed=6, size=(160, 120))
@@ -42,9 +53,10 @@ def test_finetune_scores_old_and_new_on_held_out_recordings(shipped_model: Path,
         assert key in result["before"]
         assert key in result["after"]
     assert result["before"]["images"] == result["after"]["images"] == 6
+    assert result["accepted"] is accepts(result["before"], result["after"])
     assert (tmp_path / "run" / "leader_detector.onnx").is_file()
     assert "Fine-tuned on the team's own flights" in (tmp_path / "run" / "MODEL_CARD.md").read_text()
-    # The gate: a refused model is never installed over the one in service.
+    # Installing follows the verdict: a refused model is never installed over the one in service.
     doc = json.loads((tmp_path / "run" / "finetune.json").read_text())
     doc["accepted"] = False
     (tmp_path / "run" / "finetune.json").write_text(json.dumps(doc))
