@@ -51,7 +51,8 @@ from companion.service.supervise import Backoff, supervise
 from companion.service.sysinfo import SystemMonitor, SystemReading
 from companion.service.systemd import SystemdNotifier
 from companion.telemetry.commands import Command, HighWaterMarks
-from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
+from companion.telemetry.mqtt import MqttReporter, TelemetrySources
+from companion.telemetry.mqtt_setup import MqttCredentials
 from companion.telemetry.payloads import HealthMsg, PoseMsg, StateMsg
 
 log = logging.getLogger(__name__)

@@ -34,7 +34,11 @@ def register(sub: Any) -> None:
 def _run(args: argparse.Namespace) -> int:
     from companion.config import resolve_state_dir
     from companion.service.systemd import NotifyConfig
-    from companion.telemetry.mqtt import MqttCredentials, load_command_marks, load_mqtt_credentials
+    from companion.telemetry.mqtt_setup import (
+        MqttCredentials,
+        load_command_marks,
+        load_mqtt_credentials,
+    )
 
     cfg = load(args)
     # The edge: the only place that reads systemd's variables, the secret files and the state folder.

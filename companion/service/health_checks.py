@@ -24,7 +24,7 @@ from companion.config import Config, ConfigCheck, DetectorConfig, check_config
 from companion.kernel import compat
 from companion.kernel.errors import CompanionError, ModelError
 from companion.service.status import ServiceNotRunningError, query_status
-from companion.telemetry.mqtt import load_mqtt_credentials
+from companion.telemetry.mqtt_setup import load_mqtt_credentials
 
 log = logging.getLogger(__name__)
 

@@ -305,7 +305,7 @@ async def test_mqtt_telemetry_and_commands_through_the_service(tmp_path: Path) -
             },
         )
         from companion.telemetry.commands import sign_command
-        from companion.telemetry.mqtt import load_mqtt_credentials
+        from companion.telemetry.mqtt_setup import load_mqtt_credentials
 
         svc._mqtt_credentials = load_mqtt_credentials(svc.cfg.mqtt)
         got: list[tuple[str, dict[str, Any]]] = []

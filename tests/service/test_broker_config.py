@@ -22,7 +22,8 @@ from companion.config import MqttConfig
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.kernel.errors import ConfigError
-from companion.telemetry.mqtt import MqttReporter, TelemetrySources, load_mqtt_credentials
+from companion.telemetry.mqtt import MqttReporter, TelemetrySources
+from companion.telemetry.mqtt_setup import load_mqtt_credentials
 from companion.telemetry.payloads import HealthMsg, PoseMsg, StateMsg
 from tests.mosquitto import Mosquitto
 

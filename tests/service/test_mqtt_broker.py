@@ -21,7 +21,8 @@ from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.telemetry.commands import Command, sign_command
 from companion.telemetry.inbound import Keyring
-from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
+from companion.telemetry.mqtt import MqttReporter, TelemetrySources
+from companion.telemetry.mqtt_setup import MqttCredentials
 from companion.telemetry.payloads import HealthMsg, LeaderPositionMsg, PoseMsg, StateMsg
 from tests.mosquitto import Collector, Mosquitto
 
@@ -196,7 +197,7 @@ async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> 
     kinds = [(e["kind"], e["data"].get("reason")) for e in collector.payloads("events")]
     assert kinds == [("command", None), ("command_rejected", "REPLAYED"), ("command_rejected", "BAD_MAC")]
     assert vehicle.leader[0].lat_deg == pytest.approx(47.39)
-    assert reporter.commands_rejected == 2
+    assert reporter.inbound.commands_rejected == 2
 
 
 REPORTER_PROC = """

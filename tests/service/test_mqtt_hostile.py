@@ -45,7 +45,8 @@ from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.telemetry.commands import Command, HighWaterMarks, sign_command
 from companion.telemetry.inbound import Keyring
-from companion.telemetry.mqtt import MqttCredentials, MqttReporter, TelemetrySources
+from companion.telemetry.mqtt import MqttReporter, TelemetrySources
+from companion.telemetry.mqtt_setup import MqttCredentials
 from companion.telemetry.payloads import HealthMsg, LeaderPositionMsg, PoseMsg, StateMsg
 from companion.telemetry.shares import sign_share
 from tests.mosquitto import Collector, Mosquitto
@@ -265,9 +266,10 @@ async def test_a_hostile_volley_neither_crashes_nor_steers_nor_blocks(
                 await attacker.run(lambda a: a.publish(noise[1000:], qos=1))
                 shares = [(t, b, False) for t, b in non_finite_shares(time.time())]
                 await attacker.run(lambda a: a.publish(shares, qos=1))
+                inb = first.inbound
                 await wait_for(
                     lambda: (
-                        first.inbound_dropped + first.commands_rejected + sum(first.shares.rejected.values())
+                        inb.inbound_dropped + inb.commands_rejected + sum(inb.shares.rejected.values())
                         >= 2000
                     ),
                     30,
@@ -317,10 +319,11 @@ async def test_a_hostile_volley_neither_crashes_nor_steers_nor_blocks(
                     task.cancel()
 
         stats = first.stats()
+        inb = first.inbound
         print(
-            f"\nvolley: {attacker.sent} messages; dropped unread {first.inbound_dropped}, commands refused "
-            f"{first.commands_rejected}, shares refused {dict(first.shares.rejected)}, handler errors "
-            f"{first.inbound_errors}, warnings {len(warned)}, events {len(events.payloads('events'))}; "
+            f"\nvolley: {attacker.sent} messages; dropped unread {inb.inbound_dropped}, commands refused "
+            f"{inb.commands_rejected}, shares refused {dict(inb.shares.rejected)}, handler errors "
+            f"{inb.inbound_errors}, warnings {len(warned)}, events {len(events.payloads('events'))}; "
             f"signed command answered in {answered_s * 1e3:.0f} ms; loop: max CPU per wake-up "
             f"{probe.max_cpu_s * 1e3:.1f} ms, max wall lag {probe.max_wall_lag_s * 1e3:.1f} ms over "
             f"{probe.wakeups} wake-ups"
@@ -330,7 +333,7 @@ async def test_a_hostile_volley_neither_crashes_nor_steers_nor_blocks(
         assert flight.neighbours == [], "no bad neighbour pose reached the flight"
         assert stats["inbound_errors"] == 0
         assert stats["commands_accepted"] == 1
-        assert first.inbound_dropped >= 6  # the 8 MB and 100 kB payloads never reached a parser
+        assert first.inbound.inbound_dropped >= 6  # the 8 MB and 100 kB payloads never reached a parser
         assert len(warned) <= 60, f"{len(warned)} warnings for {attacker.sent} bad messages"
         assert probe.wakeups > 50
         assert probe.max_cpu_s < LOOP_BOUND_S, f"the loop's thread ran {probe.max_cpu_s * 1e3:.0f} ms at once"
@@ -354,4 +357,4 @@ async def test_a_hostile_volley_neither_crashes_nor_steers_nor_blocks(
             for task in tasks:
                 task.cancel()
         assert again.commands == []
-        assert second.inbound_errors == 0
+        assert second.inbound.inbound_errors == 0

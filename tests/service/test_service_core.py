@@ -15,7 +15,7 @@ from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.mailbox import Latest, MailboxClosedError
 from companion.service.supervise import Backoff, supervise
-from companion.telemetry.mqtt import Outbox, Outgoing
+from companion.telemetry.outbox import Outbox, Outgoing
 
 
 async def test_latest_drops_stale_values_and_counts_them() -> None:
