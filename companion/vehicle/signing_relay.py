@@ -34,8 +34,6 @@ import asyncio
 import contextlib
 import hashlib
 import logging
-import os
-import termios
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -62,12 +60,10 @@ from companion.vehicle.mavlink_signing import (
     setup_signing_frame,
     signature_matches,
     split_frames,
-    take_stream_frames,
 )
+from companion.vehicle.relay_transports import Addr, Datagrams, Transport, open_autopilot
 
 log = logging.getLogger("companion.vehicle.signing")
-
-Addr = tuple[str, int]
 
 #: The file in ``service.state_dir`` holding the signing timestamp.
 TIMESTAMP_FILE = "mavlink-signing-timestamp"
@@ -83,9 +79,6 @@ COMPANION_COMPONENT = 195
 _AUTOPILOT_COMPONENT = 1
 #: Where frames from a serial link come from (it has no address).
 _SERIAL: Addr = ("serial", 0)
-_BAUDS = {
-    int(name[1:]): getattr(termios, name) for name in dir(termios) if name[:1] == "B" and name[1:].isdigit()
-}
 
 
 class SigningRelay:
@@ -119,7 +112,7 @@ class SigningRelay:
         self._verifier = Verifier(key, self.clock)
         self.counters: Counter[str] = Counter()
         self._throttle = Throttle(window_s=30.0, burst=2)
-        self._autopilot: _Transport | None = None
+        self._autopilot: Transport | None = None
         self._local: asyncio.DatagramTransport | None = None
         self._mavsdk_addr: Addr | None = None
         self._peers: dict[Addr, float] = {}
@@ -141,10 +134,10 @@ class SigningRelay:
 
     async def __aenter__(self) -> Self:
         loop = asyncio.get_running_loop()
-        self._autopilot = await _open_autopilot(self.cfg.url, self._from_autopilot, self._key)
+        self._autopilot = await open_autopilot(self.cfg.url, self._from_autopilot, self._key)
         try:
             transport, _ = await loop.create_datagram_endpoint(
-                lambda: _Datagrams(self._from_mavsdk), local_addr=("127.0.0.1", 0)
+                lambda: Datagrams(self._from_mavsdk), local_addr=("127.0.0.1", 0)
             )
         except OSError as exc:
             self._autopilot.close()
@@ -396,139 +389,3 @@ class SigningRelay:
 
     def _key_id(self) -> str:
         return hashlib.sha256(self._key).hexdigest()[:8]
-
-
-# ---------------------------------------------------------------------- transports
-class _Transport:
-    """The autopilot side: ``send(data, dests)`` and ``close()``."""
-
-    def send(self, data: bytes, dests: list[Addr]) -> None:
-        raise NotImplementedError
-
-    def close(self) -> None:
-        raise NotImplementedError
-
-
-class _Datagrams(asyncio.DatagramProtocol):
-    def __init__(self, on_data: Callable[[bytes, Addr], None]) -> None:
-        self._on_data = on_data
-
-    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
-        self._on_data(data, (str(addr[0]), int(addr[1])))
-
-    def error_received(self, exc: Exception) -> None:
-        log.debug("signing relay: %s", exc)  # ICMP port unreachable while nobody listens
-
-
-class _Udp(_Transport):
-    def __init__(self, transport: asyncio.DatagramTransport, fixed: Addr | None) -> None:
-        self._transport = transport
-        self._fixed = fixed
-
-    def send(self, data: bytes, dests: list[Addr]) -> None:
-        if self._fixed is not None:
-            self._transport.sendto(data)  # connected: the kernel drops every other sender's datagrams
-            return
-        for addr in dests:
-            self._transport.sendto(data, addr)
-
-    def close(self) -> None:
-        self._transport.close()
-
-
-class _Serial(_Transport):
-    """A serial port in raw mode, read and written without blocking on the event loop."""
-
-    def __init__(self, fd: int, on_data: Callable[[bytes, Addr | None], None], key: bytes) -> None:
-        self._fd = fd
-        self._on_data = on_data
-        self._key = key
-        self._loop = asyncio.get_running_loop()
-        self._buffer = bytearray()
-        self._pending = bytearray()
-        self._loop.add_reader(fd, self._readable)
-
-    def _readable(self) -> None:
-        try:
-            chunk = os.read(self._fd, 4096)
-        except BlockingIOError:
-            return
-        except OSError as exc:
-            log.error("signing relay: serial read failed: %s", exc)
-            self._loop.remove_reader(self._fd)
-            return
-        self._buffer += chunk
-        frames, rest = take_stream_frames(self._buffer, self._key)
-        self._buffer = bytearray(rest)
-        if frames:
-            self._on_data(b"".join(frames), None)
-
-    def send(self, data: bytes, dests: list[Addr]) -> None:
-        if self._pending:
-            self._pending += data
-            return
-        try:
-            written = os.write(self._fd, data)
-        except BlockingIOError:
-            written = 0
-        if written < len(data):
-            self._pending += data[written:]
-            self._loop.add_writer(self._fd, self._writable)
-
-    def _writable(self) -> None:
-        try:
-            written = os.write(self._fd, self._pending)
-        except BlockingIOError:
-            return
-        del self._pending[:written]
-        if not self._pending:
-            self._loop.remove_writer(self._fd)
-
-    def close(self) -> None:
-        self._loop.remove_reader(self._fd)
-        self._loop.remove_writer(self._fd)
-        os.close(self._fd)
-
-
-def _open_serial(device: str, baud: int) -> int:
-    fd = os.open(device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    try:
-        attrs = termios.tcgetattr(fd)
-        speed = _BAUDS.get(baud)
-        if speed is None:
-            raise LinkLostError(f"signing relay: unsupported baud rate {baud}")
-        attrs[0] = 0  # iflag: raw
-        attrs[1] = 0  # oflag
-        attrs[2] = termios.CS8 | termios.CREAD | termios.CLOCAL  # cflag
-        attrs[3] = 0  # lflag
-        attrs[4] = attrs[5] = speed
-        attrs[6][termios.VMIN] = 0
-        attrs[6][termios.VTIME] = 0
-        termios.tcsetattr(fd, termios.TCSANOW, attrs)
-    except BaseException:
-        os.close(fd)
-        raise
-    return fd
-
-
-async def _open_autopilot(url: str, on_data: Callable[[bytes, Addr | None], None], key: bytes) -> _Transport:
-    scheme, _, rest = url.partition("://")
-    loop = asyncio.get_running_loop()
-    try:
-        if scheme == "serial":
-            device, _, baud = rest.partition(":")
-            return _Serial(_open_serial(device, int(baud or 57600)), on_data, key)
-        host, _, port = rest.rpartition(":")
-        if scheme == "udpin":
-            transport, _ = await loop.create_datagram_endpoint(
-                lambda: _Datagrams(on_data), local_addr=(host, int(port))
-            )
-            return _Udp(transport, None)
-        if scheme == "udpout":
-            transport, _ = await loop.create_datagram_endpoint(
-                lambda: _Datagrams(on_data), remote_addr=(host, int(port))
-            )
-            return _Udp(transport, (host, int(port)))
-    except OSError as exc:
-        raise LinkLostError(f"signing relay: cannot open {url}: {exc.strerror or exc}") from exc
-    raise LinkLostError(f"signing relay: {url}: only udpin://, udpout:// and serial:// links can be signed")

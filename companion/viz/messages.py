@@ -8,34 +8,35 @@ their annotations and the frame's transforms line up.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
-import numpy as np
 from foxglove import messages as fm
-from numpy.typing import NDArray
 
-from companion.kernel.camera import DepthImage, Intrinsics, RgbdFrame, RgbImage
+from companion.kernel.camera import Intrinsics, RgbdFrame
 from companion.kernel.flight import (
-    NEVER_S,
-    AttitudeSetpoint,
-    Setpoint,
     Severity,
     VehicleState,
-    VelocityBodySetpoint,
-    VelocityNedSetpoint,
 )
 from companion.kernel.frames import R_from_euler, quat_from_R
 from companion.mission.types import MissionInputs, StepOutput, Transition
 from companion.perception.transform import CameraGeometry
 from companion.perception.types import DetectorResult
 from companion.viz import channels as ch
+from companion.viz.encode import (
+    Record,
+    depth_mm,
+    json_record,
+    pose,
+    quat,
+    rounded,
+    setpoint_fields,
+    stamp,
+    v3,
+    vehicle_fields,
+)
 from companion.viz.frames import CAMERA, FOLLOWER, LEADER, R_FLU_FRD, WORLD, R_world_follower, enu
-
-Record = tuple[str, int, bytes]
 
 _LOG_LEVEL = {
     Severity.EMERGENCY: fm.LogLevel.Fatal,
@@ -58,67 +59,6 @@ _TRACK_COLOUR = {
 _TENTATIVE = fm.Color(r=0.6, g=0.6, b=0.6, a=0.35)
 #: The camera frustum is drawn out to this range, m (about the stereo range).
 FRUSTUM_RANGE_M = 10.0
-
-
-def _ts(ns: int) -> fm.Timestamp:
-    return fm.Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
-
-
-def _v3(x: float, y: float, z: float) -> fm.Vector3:
-    return fm.Vector3(x=x, y=y, z=z)
-
-
-def _q(R: Any) -> fm.Quaternion:
-    w, x, y, z = (float(c) for c in quat_from_R(R))
-    return fm.Quaternion(x=x, y=y, z=z, w=w)
-
-
-def _pose(p: tuple[float, float, float], R: Any = None) -> fm.Pose:
-    q = fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0) if R is None else _q(R)
-    return fm.Pose(position=_v3(*p), orientation=q)
-
-
-def _json(topic: str, ns: int, payload: dict[str, Any]) -> Record:
-    try:
-        text = json.dumps(payload, allow_nan=False, separators=(",", ":"))
-    except ValueError:  # a NaN or infinity somewhere: JSON has none, so null
-        text = json.dumps(_no_nan(payload), separators=(",", ":"))
-    return topic, ns, text.encode()
-
-
-def _no_nan(x: Any) -> Any:
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, dict):
-        return {k: _no_nan(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_no_nan(v) for v in x]
-    return x
-
-
-def _finite(x: float) -> float | None:
-    return x if math.isfinite(x) else None
-
-
-def _r(v: Any, nd: int = 4) -> list[float]:
-    return [round(float(c), nd) for c in v]
-
-
-def encode_colour(rgb: RgbImage, fmt: str, jpeg_quality: int) -> bytes:
-    """RGB pixels as JPEG or PNG bytes."""
-    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
-    params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
-    ok, buf = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", bgr, params)
-    if not ok:
-        raise ValueError(f"{fmt} encoding failed")
-    return buf.tobytes()
-
-
-def depth_mm(depth_m: DepthImage, step: int = 1) -> NDArray[np.uint16]:
-    """Depth in millimetres as uint16 (0: no depth), every ``step``-th pixel."""
-    d = depth_m[::step, ::step] if step > 1 else depth_m
-    mm: NDArray[np.uint16] = np.clip(np.nan_to_num(d, nan=0.0) * 1000.0 + 0.5, 0.0, 65535.0).astype(np.uint16)
-    return mm
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,12 +113,12 @@ class MessageBuilder:
             "track_status": "none" if track is None else track.status.value,
             "track_id": 0 if track is None else track.track_id,
             "tracked_box_xyxy_px": None if meas is None else list(meas.box_xyxy_px),
-            "leader_cam_m": None if est is None else _r(est.p_cam_leader_m),
+            "leader_cam_m": None if est is None else rounded(est.p_cam_leader_m),
             "range_m": None if est is None else round(float(est.range_m), 3),
             "q_ned_body_wxyz": None if est is None else [float(c) for c in quat_from_R(est.R_ned_body)],
         }
         records = [
-            _json(ns_.topic(ch.PERCEPTION), ns, payload),
+            json_record(ns_.topic(ch.PERCEPTION), ns, payload),
             (ns_.topic(ch.ANNOTATIONS), ns, self._annotations(ns, result, track)),
         ]
         if self._intrinsics != frame.intrinsics:
@@ -192,7 +132,7 @@ class MessageBuilder:
         ns = self.ns_of(frame.stamp_s)
         i = frame.intrinsics
         msg = fm.CameraCalibration(
-            timestamp=_ts(ns),
+            timestamp=stamp(ns),
             frame_id=self.ns.frame(CAMERA),
             width=i.width_px,
             height=i.height_px,
@@ -206,7 +146,7 @@ class MessageBuilder:
 
     def image(self, frame: RgbdFrame, data: bytes, fmt: str) -> Record:
         ns = self.ns_of(frame.stamp_s)
-        msg = fm.CompressedImage(timestamp=_ts(ns), frame_id=self.ns.frame(CAMERA), data=data, format=fmt)
+        msg = fm.CompressedImage(timestamp=stamp(ns), frame_id=self.ns.frame(CAMERA), data=data, format=fmt)
         return self.ns.topic(ch.IMAGE), ns, msg.encode()
 
     def depth(self, frame: RgbdFrame, step: int = 1) -> Record:
@@ -215,7 +155,7 @@ class MessageBuilder:
         mm = depth_mm(frame.depth_m, step)
         h, w = mm.shape
         msg = fm.RawImage(
-            timestamp=_ts(ns),
+            timestamp=stamp(ns),
             frame_id=self.ns.frame(CAMERA),
             width=w,
             height=h,
@@ -226,7 +166,7 @@ class MessageBuilder:
         return self.ns.topic(ch.DEPTH), ns, msg.encode()
 
     def _annotations(self, ns: int, result: DetectorResult, track: Any) -> bytes:
-        ts = _ts(ns)
+        ts = stamp(ns)
         meas = None if track is None else track.measurement
         points, texts = [], []
         for d in result.detections:
@@ -281,7 +221,7 @@ class MessageBuilder:
         records = [
             (self.ns.topic(ch.TF), ns, self._transforms(ns, v, est)),
             (self.ns.topic(ch.SCENE), ns, self._scene(ns, inputs, out)),
-            _json(
+            json_record(
                 self.ns.topic(ch.MISSION_STATE),
                 ns,
                 {
@@ -290,8 +230,8 @@ class MessageBuilder:
                     "vision_mode": None if out.vision_mode is None else str(out.vision_mode.value),
                 },
             ),
-            _json(self.ns.topic(ch.FORMATION), ns, self._formation(now_s, inputs, out)),
-            _json(self.ns.topic(ch.VEHICLE), ns, _vehicle(now_s, v)),
+            json_record(self.ns.topic(ch.FORMATION), ns, self._formation(now_s, inputs, out)),
+            json_record(self.ns.topic(ch.VEHICLE), ns, vehicle_fields(now_s, v)),
         ]
         return records
 
@@ -300,7 +240,7 @@ class MessageBuilder:
         return enu((v.p_ned_m[0] + o[0], v.p_ned_m[1] + o[1], v.p_ned_m[2] + o[2]))
 
     def _transforms(self, ns: int, v: VehicleState, est: Any) -> bytes:
-        ts = _ts(ns)
+        ts = stamp(ns)
         R = R_world_follower(R_from_euler(v.roll_rad, v.pitch_rad, v.yaw_rad))
         p = self._follower_enu(v)
         tfs = [
@@ -308,15 +248,15 @@ class MessageBuilder:
                 timestamp=ts,
                 parent_frame_id=WORLD,
                 child_frame_id=self.ns.frame(FOLLOWER),
-                translation=_v3(*p),
-                rotation=_q(R),
+                translation=v3(*p),
+                rotation=quat(R),
             ),
             fm.FrameTransform(
                 timestamp=ts,
                 parent_frame_id=self.ns.frame(FOLLOWER),
                 child_frame_id=self.ns.frame(CAMERA),
-                translation=_v3(*self._t_flu_cam),
-                rotation=_q(self._R_flu_cam),
+                translation=v3(*self._t_flu_cam),
+                rotation=quat(self._R_flu_cam),
             ),
         ]
         if est is not None:
@@ -326,14 +266,14 @@ class MessageBuilder:
                     timestamp=ts,
                     parent_frame_id=WORLD,
                     child_frame_id=self.ns.frame(LEADER),
-                    translation=_v3(p[0] + rel[0], p[1] + rel[1], p[2] + rel[2]),
+                    translation=v3(p[0] + rel[0], p[1] + rel[1], p[2] + rel[2]),
                     rotation=fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
                 )
             )
         return fm.FrameTransforms(transforms=tfs).encode()
 
     def _scene(self, ns: int, inputs: MissionInputs, out: StepOutput) -> bytes:
-        ts = _ts(ns)
+        ts = stamp(ns)
         v = inputs.vehicle
         p = self._follower_enu(v)
         pre = self.ns.prefix or "follower"
@@ -345,14 +285,14 @@ class MessageBuilder:
                 frame_locked=True,
                 cubes=[
                     fm.CubePrimitive(
-                        pose=_pose((0.0, 0.0, 0.0)),
-                        size=_v3(0.45, 0.45, 0.12),
+                        pose=pose((0.0, 0.0, 0.0)),
+                        size=v3(0.45, 0.45, 0.12),
                         color=fm.Color(r=0.2, g=0.5, b=1.0, a=0.9),
                     )
                 ],
                 arrows=[
                     fm.ArrowPrimitive(
-                        pose=_pose((0.0, 0.0, 0.0)),
+                        pose=pose((0.0, 0.0, 0.0)),
                         shaft_length=0.5,
                         shaft_diameter=0.04,
                         head_length=0.15,
@@ -362,7 +302,7 @@ class MessageBuilder:
                 ],
                 texts=[
                     fm.TextPrimitive(
-                        pose=_pose((0.0, 0.0, 0.4)),
+                        pose=pose((0.0, 0.0, 0.4)),
                         billboard=True,
                         font_size=14.0,
                         scale_invariant=True,
@@ -390,17 +330,17 @@ class MessageBuilder:
                     spheres=[
                         # The 2-sigma ellipsoid of the estimate (axes of the NED covariance diagonal).
                         fm.SpherePrimitive(
-                            pose=_pose(c), size=_v3(*(max(0.05, 4.0 * abs(s)) for s in sd)), color=colour
+                            pose=pose(c), size=v3(*(max(0.05, 4.0 * abs(s)) for s in sd)), color=colour
                         ),
                         fm.SpherePrimitive(
-                            pose=_pose(c),
-                            size=_v3(0.15, 0.15, 0.15),
+                            pose=pose(c),
+                            size=v3(0.15, 0.15, 0.15),
                             color=fm.Color(r=1.0, g=0.2, b=0.2, a=1.0),
                         ),
                     ],
                     texts=[
                         fm.TextPrimitive(
-                            pose=_pose((c[0], c[1], c[2] + 0.5)),
+                            pose=pose((c[0], c[1], c[2] + 0.5)),
                             billboard=True,
                             font_size=14.0,
                             scale_invariant=True,
@@ -423,8 +363,8 @@ class MessageBuilder:
                     cubes=[
                         fm.CubePrimitive(
                             # Where the follower should be: its position plus the formation error.
-                            pose=_pose((p[0] + e[0], p[1] + e[1], p[2] + e[2])),
-                            size=_v3(0.45, 0.45, 0.12),
+                            pose=pose((p[0] + e[0], p[1] + e[1], p[2] + e[2])),
+                            size=v3(0.45, 0.45, 0.12),
                             color=fm.Color(r=0.3, g=0.9, b=1.0, a=0.3),
                         )
                     ],
@@ -439,12 +379,12 @@ class MessageBuilder:
                 q = enu((n.p_ned_m[0] + o[0], n.p_ned_m[1] + o[1], n.p_ned_m[2] + o[2]))
                 spheres.append(
                     fm.SpherePrimitive(
-                        pose=_pose(q), size=_v3(0.5, 0.5, 0.5), color=fm.Color(r=0.8, g=0.4, b=1.0, a=0.6)
+                        pose=pose(q), size=v3(0.5, 0.5, 0.5), color=fm.Color(r=0.8, g=0.4, b=1.0, a=0.6)
                     )
                 )
                 texts.append(
                     fm.TextPrimitive(
-                        pose=_pose((q[0], q[1], q[2] + 0.5)),
+                        pose=pose((q[0], q[1], q[2] + 0.5)),
                         billboard=True,
                         font_size=12.0,
                         scale_invariant=True,
@@ -482,7 +422,7 @@ class MessageBuilder:
             lines=[
                 fm.LinePrimitive(
                     type=fm.LinePrimitiveLineType.LineList,
-                    pose=_pose((0.0, 0.0, 0.0)),
+                    pose=pose((0.0, 0.0, 0.0)),
                     thickness=1.5,
                     scale_invariant=True,
                     points=self._frustum,
@@ -496,15 +436,15 @@ class MessageBuilder:
         err = out.formation_error_ned_m
         payload: dict[str, Any] = {
             "stamp_s": now_s,
-            "formation_error_ned_m": None if err is None else _r(err),
+            "formation_error_ned_m": None if err is None else rounded(err),
             "formation_error_m": None if err is None else round(math.sqrt(sum(c * c for c in err)), 4),
-            "leader_rel_ned_m": None if est is None else _r(est.p_ned_rel_m),
+            "leader_rel_ned_m": None if est is None else rounded(est.p_ned_rel_m),
             "leader_rel_sd_ned_m": None
             if est is None
-            else _r(math.sqrt(max(0.0, x)) for x in est.var_ned_rel_m2),
+            else rounded(math.sqrt(max(0.0, x)) for x in est.var_ned_rel_m2),
             "leader_status": "none" if est is None else est.status.value,
         }
-        payload.update(_setpoint(out.setpoint))
+        payload.update(setpoint_fields(out.setpoint))
         return payload
 
     # ---------------------------------------------------------------- per transition
@@ -514,14 +454,14 @@ class MessageBuilder:
         detail = f" ({tr.detail})" if tr.detail else ""
         text = f"{tr.from_state.value} -> {tr.to_state.value}: {tr.reason.value}{detail}"
         log = fm.Log(
-            timestamp=_ts(ns),
+            timestamp=stamp(ns),
             level=_LOG_LEVEL.get(tr.severity, fm.LogLevel.Info),
             message=text,
             name=self.ns.prefix or "mission",
         )
         return [
             (self.ns.topic(ch.MISSION_LOG), ns, log.encode()),
-            _json(
+            json_record(
                 self.ns.topic(ch.MISSION_STATE),
                 ns,
                 {
@@ -534,48 +474,4 @@ class MessageBuilder:
         ]
 
     def health_record(self, now_s: float, payload: dict[str, Any]) -> Record:
-        return _json(self.ns.topic(ch.HEALTH), self.ns_of(now_s), {"stamp_s": now_s, **payload})
-
-
-def _vehicle(now_s: float, v: VehicleState) -> dict[str, Any]:
-    return {
-        "stamp_s": now_s,
-        "link_ok": v.connected,
-        "heartbeat_age_s": None
-        if v.heartbeat_stamp_s == NEVER_S
-        else round(max(0.0, now_s - v.heartbeat_stamp_s), 3),
-        "armed": v.armed,
-        "in_air": v.in_air,
-        "flight_mode": v.flight_mode.value,
-        "gps_fix_type": v.gps_fix_type,
-        "gps_satellites": v.gps_satellites,
-        "gps_ok": v.global_position_ok,
-        "position_valid": v.position_valid,
-        "p_ned_m": _r(v.p_ned_m),
-        "v_ned_m_s": _r(v.v_ned_m_s),
-        "battery_remaining_frac": _finite(v.battery_remaining_frac),
-    }
-
-
-def _setpoint(sp: Setpoint | None) -> dict[str, Any]:
-    if isinstance(sp, VelocityNedSetpoint):
-        return {
-            "setpoint_kind": "velocity_ned",
-            "setpoint_v_m_s": _r(sp.v_ned_m_s),
-            "setpoint_yaw_rad": sp.yaw_rad,
-        }
-    if isinstance(sp, VelocityBodySetpoint):
-        return {
-            "setpoint_kind": "velocity_body",
-            "setpoint_v_m_s": _r(sp.v_body_m_s),
-            "setpoint_yaw_rate_rad_s": sp.yaw_rate_rad_s,
-        }
-    if isinstance(sp, AttitudeSetpoint):
-        return {
-            "setpoint_kind": "attitude",
-            "setpoint_roll_rad": sp.roll_rad,
-            "setpoint_pitch_rad": sp.pitch_rad,
-            "setpoint_yaw_rad": sp.yaw_rad,
-            "setpoint_thrust_norm": sp.thrust_norm,
-        }
-    return {"setpoint_kind": "none"}
+        return json_record(self.ns.topic(ch.HEALTH), self.ns_of(now_s), {"stamp_s": now_s, **payload})

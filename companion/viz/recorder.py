@@ -29,7 +29,8 @@ from companion.mission.types import MissionInputs, StepOutput, Transition
 from companion.perception.transform import CameraGeometry
 from companion.perception.types import DetectorResult
 from companion.viz import channels as ch
-from companion.viz.messages import MessageBuilder, Namespace, Record, encode_colour
+from companion.viz.encode import Record, encode_colour
+from companion.viz.messages import MessageBuilder, Namespace
 from companion.viz.sinks import LiveSink, McapSink, SinkError
 
 log = logging.getLogger(__name__)
