@@ -30,7 +30,8 @@ from sitl.autopilot_state import (
 )
 from sitl.commander import mode_can_run
 from sitl.control import NAN
-from sitl.estimator import GpsFailure, VisionSample
+from sitl.estimator import VisionSample
+from sitl.gps import GpsFailure
 from sitl.links import VehicleSigning
 from sitl.modes import NavState, nav_state_from_mode
 from sitl.offboard import OffboardSetpoint, parse_attitude_target, parse_global_int, parse_local_ned

@@ -21,8 +21,9 @@ from sitl.attitude import Quat, quat_from_euler, wrap_pi
 from sitl.commander import Action, DisarmTimer, Flags, ValidityChecks, mode_can_run
 from sitl.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
 from sitl.dynamics import QUAD, QuadDynamics, QuadModel
-from sitl.estimator import Estimator, GpsSample, GpsSensor, VisionSample
+from sitl.estimator import Estimator, VisionSample
 from sitl.geo import LocalProjection
+from sitl.gps import GpsSample, GpsSensor
 from sitl.heading_error import HeadingError
 from sitl.inner_loop import AttitudeGains, InnerLoop
 from sitl.modes import NavState

@@ -82,7 +82,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from companion.kernel.config import Section, format_validation_error, read_toml
 from companion.kernel.errors import ConfigError
-from sitl.estimator import GpsFailure, GpsJump, GpsNoise, GpsOutage
+from sitl.gps import GpsFailure, GpsJump, GpsNoise, GpsOutage
 from sitl.trajectory import Circle, FigureEight, SpeedProfile, Straight, Trajectory, Waypoints
 from sitl.wind import WindParams
 

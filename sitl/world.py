@@ -35,8 +35,8 @@ from sitl.autopilot import Autopilot
 from sitl.autopilot_state import LINK_API, LINK_GCS
 from sitl.config import SitlConfig
 from sitl.dynamics import QuadDynamics, VehicleTruth
-from sitl.estimator import GpsSensor
 from sitl.geo import LocalProjection
+from sitl.gps import GpsSensor
 from sitl.heading_error import HeadingError, HeadingErrorModel
 from sitl.links import LinkFaults, MessageLink
 from sitl.pilot import TrajectoryPilot

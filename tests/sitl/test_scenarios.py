@@ -136,8 +136,8 @@ def test_link_faults_cut_loss_and_latency() -> None:
 
 
 def test_gps_sensor_outages_stuck_wrong_and_jumps() -> None:
-    from sitl.estimator import GpsFailure, GpsJump, GpsOutage, GpsSensor
     from sitl.geo import LocalProjection
+    from sitl.gps import GpsFailure, GpsJump, GpsOutage, GpsSensor
 
     world = LocalProjection(47.0, 8.0, 400.0)
     gps = GpsSensor(
