@@ -39,7 +39,7 @@ from dataclasses import replace
 from types import TracebackType
 from typing import Any, TypeVar
 
-from mavsdk import LogLevel, log_subscribe, log_unsubscribe
+from mavsdk import log_subscribe, log_unsubscribe
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
 from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.param import ParamAsync
@@ -47,7 +47,7 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.plugins.action import Action, ActionResult
 from mavsdk.plugins.mocap import AngleBody, Covariance, Mocap, PositionBody, VisionPositionEstimate
 from mavsdk.plugins.offboard import Attitude, Offboard, OffboardResult, VelocityBodyYawspeed, VelocityNedYaw
-from mavsdk.plugins.server_utility import ServerUtility, StatusTextType
+from mavsdk.plugins.server_utility import ServerUtility
 
 from companion.config import LinkConfig
 from companion.kernel import compat
@@ -67,10 +67,16 @@ from companion.vehicle import failsafe
 from companion.vehicle.external_vision import EV_CTRL_PARAM
 from companion.vehicle.finite import require_finite_position, require_finite_setpoint
 from companion.vehicle.identity import choose_autopilot
+from companion.vehicle.mavsdk_glue import (
+    STATUSTEXT_SEVERITY,
+    mavsdk_log,
+    result_name,
+    route_mavsdk_log,
+    settle,
+)
 from companion.vehicle.mavsdk_telemetry import MavsdkTelemetry
 
 log = logging.getLogger("companion.vehicle")
-mavsdk_log = logging.getLogger("companion.vehicle.mavsdk")
 
 T = TypeVar("T")
 
@@ -81,41 +87,6 @@ _DISCOVERY_LOG_EVERY_S = 10.0
 _DISCOVERY_POLL_S = 0.2
 #: A MAVSDK "_async" start that holds the loop longer than this is reported (it should return at once).
 _BLOCKING_WARN_S = 0.02
-
-_MAVSDK_LEVEL = {
-    LogLevel.DEBUG: logging.DEBUG,
-    LogLevel.INFO: logging.INFO,
-    LogLevel.WARN: logging.WARNING,
-    LogLevel.ERROR: logging.ERROR,
-}
-_STATUSTEXT_SEVERITY = {
-    Severity.EMERGENCY: StatusTextType.EMERGENCY,
-    Severity.ALERT: StatusTextType.ALERT,
-    Severity.CRITICAL: StatusTextType.CRITICAL,
-    Severity.ERROR: StatusTextType.ERROR,
-    Severity.WARNING: StatusTextType.WARNING,
-    Severity.NOTICE: StatusTextType.NOTICE,
-    Severity.INFO: StatusTextType.INFO,
-    Severity.DEBUG: StatusTextType.DEBUG,
-}
-
-
-def _route_mavsdk_log(level: Any, message: str, file: str | None, line: int) -> bool:
-    """MAVSDK log callback (runs on MAVSDK's threads): to Python logging, and nothing to stdout."""
-    del file, line
-    mavsdk_log.log(_MAVSDK_LEVEL.get(level, logging.INFO), "%s", message)
-    return True
-
-
-def _settle(fut: asyncio.Future[Any], result: Any) -> None:
-    if not fut.done():
-        fut.set_result(result)
-
-
-def _result_name(exc: MavsdkError) -> str:
-    result = getattr(exc, "result", None)
-    return getattr(result, "name", None) or str(exc)
-
 
 #: Wall time PX4 is given to apply a new MIS_TAKEOFF_ALT before the takeoff command, s.
 TAKEOFF_PARAM_SETTLE_S = 0.3
@@ -160,7 +131,7 @@ class MavsdkVehicleLink:
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> Self:
         mavsdk_log.setLevel(self.cfg.mavsdk_log_level)
-        log_subscribe(_route_mavsdk_log)  # before Mavsdk(): it logs its version on construction
+        log_subscribe(route_mavsdk_log)  # before Mavsdk(): it logs its version on construction
         cfg = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
         if self.cfg.system_id:
             # A companion computer speaks as its autopilot's system (component 195). MAVSDK's default, 1,
@@ -371,7 +342,7 @@ class MavsdkVehicleLink:
 
         def done(result: Any, _user_data: Any) -> None:  # on MAVSDK's thread
             with contextlib.suppress(RuntimeError):  # the loop may be closed by the time a late reply comes
-                loop.call_soon_threadsafe(_settle, fut, result)
+                loop.call_soon_threadsafe(settle, fut, result)
 
         t0_s = time.monotonic()
         start(*args, done)
@@ -404,7 +375,7 @@ class MavsdkVehicleLink:
             async with compat.timeout(self.cfg.command_timeout_s * 4):
                 await asyncio.to_thread(action.set_takeoff_altitude, float(altitude_m))
         except (MavsdkError, TimeoutError) as exc:
-            why = _result_name(exc) if isinstance(exc, MavsdkError) else "TIMEOUT"
+            why = result_name(exc) if isinstance(exc, MavsdkError) else "TIMEOUT"
             log.warning("vehicle link: takeoff altitude not set (%s); PX4 uses MIS_TAKEOFF_ALT", why)
         else:
             # PX4's navigator takes a parameter change on one of its next cycles: a takeoff sent at once after
@@ -445,7 +416,7 @@ class MavsdkVehicleLink:
                     )
                 )
         except MavsdkError as exc:
-            raise CommandRejectedError("set_setpoint", _result_name(exc)) from exc
+            raise CommandRejectedError("set_setpoint", result_name(exc)) from exc
         self._last_setpoint_s = self.clock.now_s()
         self._stream_active = True
 
@@ -512,11 +483,11 @@ class MavsdkVehicleLink:
         try:
             mocap.set_vision_position_estimate(estimate)  # a plain send: returns at once
         except MavsdkError as exc:
-            raise CommandRejectedError("vision_position_estimate", _result_name(exc)) from exc
+            raise CommandRejectedError("vision_position_estimate", result_name(exc)) from exc
 
     async def send_status_text(self, text: str, severity: Severity) -> None:
         su = self._require(self._server_utility)
         try:
-            su.send_status_text(_STATUSTEXT_SEVERITY[severity], text[:50])  # a plain send
+            su.send_status_text(STATUSTEXT_SEVERITY[severity], text[:50])  # a plain send
         except MavsdkError as exc:
-            raise CommandRejectedError("status_text", _result_name(exc)) from exc
+            raise CommandRejectedError("status_text", result_name(exc)) from exc
