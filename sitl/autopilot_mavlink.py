@@ -1,8 +1,7 @@
 """The autopilot's MAVLink endpoint: incoming commands, setpoints, external vision, parameters and the rest.
 
-The third layer of :class:`sitl.autopilot.Autopilot`, on :class:`~sitl.autopilot_flight.AutopilotFlight`:
-:meth:`AutopilotMavlink.handle_message` dispatches one message (:data:`MESSAGE_HANDLERS`), commands go
-through :data:`_COMMANDS` and are acknowledged on the link they came from.
+The third layer of :class:`sitl.autopilot.Autopilot`: :meth:`AutopilotMavlink.handle_message` dispatches one
+message (:data:`MESSAGE_HANDLERS`), commands go through :data:`_COMMANDS`, acknowledged where they came from.
 """
 
 from __future__ import annotations

@@ -29,13 +29,21 @@ history and commands a hover instead (``non_finite`` counts it). The slot's geom
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from companion.config import FormationConfig
-from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint, VelocityNedSetpoint
+from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint
 from companion.kernel.frames import Vec3, heading_to_ned, ned_to_heading, wrap_pi
+from companion.mission.formation_commands import (
+    NO_ERROR,
+    AttitudeCommand,
+    VelocityCommand,
+    all_finite,
+    bounded_velocity,
+    clamp_norm,
+    low_passed_rate,
+)
 from companion.mission.geometry import FollowerState, Slot, SlotError, slot_error, tilt_from_accel
 from companion.mission.plan_slot import NeighbourNow, SlotTarget
 from companion.mission.safety import (
@@ -43,11 +51,8 @@ from companion.mission.safety import (
     altitude_limit,
     clamp_horizontal_accel,
     clamp_speed,
-    geofence_limit,
-    separation_limit,
     separation_limit_accel,
 )
-from companion.mission.static_pass import pass_static
 from companion.mission.thrust import ThrustController
 
 #: A gap between two law updates longer than this restarts the integrators and the slew (s).
@@ -56,62 +61,6 @@ MAX_DT_S = 0.5
 #: long (one control period at the default 20 Hz): without it the first command of FOLLOW jumped straight
 #: to the full PID output, and the vehicle pitched past 40 deg and lost the leader from view (s).
 FIRST_SLEW_DT_S = 0.05
-
-
-#: The error reported with a hover that replaced a non-finite command (nothing is known of the slot).
-_NO_ERROR = SlotError(
-    u_los=np.zeros(3),
-    bearing_rad=0.0,
-    bearing_rate_rad_s=0.0,
-    e_range_m=0.0,
-    e_range_rate_m_s=0.0,
-    e_down_m=0.0,
-    yaw_des_rad=0.0,
-    error_ned_m=np.zeros(3),
-)
-
-
-def _finite(*values: object) -> bool:
-    """Are all these inputs (numbers, vectors, follower states, slots, neighbours; None skipped) finite?"""
-    for v in values:
-        if v is None:
-            continue
-        if isinstance(v, FollowerState):
-            # alt_rel_m may be NaN: "height unknown", which the altitude band handles by standing aside.
-            if not _finite(v.yaw_rad, v.v_ned_m_s, v.v_down_m_s, v.p_ned_m, v.roll_rad, v.pitch_rad):
-                return False
-        elif isinstance(v, SlotTarget):
-            if not _finite(v.p_ned_rel_m, v.v_ned_rel_m_s):
-                return False
-        elif isinstance(v, NeighbourNow):
-            if not _finite(v.p_ned_rel_m, v.v_ned_m_s, v.v_ned_rel_m_s):
-                return False
-        elif isinstance(v, list):
-            if not _finite(*v):
-                return False
-        elif not np.all(np.isfinite(np.asarray(v, dtype=np.float64))):
-            return False
-    return True
-
-
-@dataclass(frozen=True, slots=True)
-class VelocityCommand:
-    """The velocity law's output: the setpoint to send and what went into it."""
-
-    setpoint: VelocityBodySetpoint
-    v_ned_m_s: Vec3T
-    yaw_rate_rad_s: float
-    error: SlotError
-
-
-@dataclass(frozen=True, slots=True)
-class AttitudeCommand:
-    """The attitude law's output."""
-
-    setpoint: AttitudeSetpoint
-    a_ned_m_s2: Vec3T
-    v_down_des_m_s: float
-    error: SlotError | None
 
 
 class FormationLaw:
@@ -171,7 +120,7 @@ class FormationLaw:
         """
         limit = self.cfg.max_accel_m_s2
         if a_track is not None:
-            self._a_leader = _clamp_norm(np.array(a_track, dtype=np.float64), limit)
+            self._a_leader = clamp_norm(np.array(a_track, dtype=np.float64), limit)
             self._v_leader_prev = None if v_leader is None else np.array(v_leader, dtype=np.float64)
             return self._a_leader
         if v_leader is None:
@@ -179,7 +128,7 @@ class FormationLaw:
             self._a_leader = np.zeros(3)
             return self._a_leader
         if self._v_leader_prev is not None and dt > 0.0:
-            self._a_leader = _rate(
+            self._a_leader = low_passed_rate(
                 self._a_leader,
                 v_leader,
                 self._v_leader_prev,
@@ -247,7 +196,7 @@ class FormationLaw:
         own velocity where it shares one (GPS on both ends: steadier than the camera's at the range of an
         outer slot, and unbroken while the detector misses it); default: ours plus the estimate's relative.
         """
-        if not _finite(
+        if not all_finite(
             p_ned_rel_m,
             v_ned_rel_m_s,
             follower.yaw_rad,
@@ -261,7 +210,7 @@ class FormationLaw:
             self.neighbours,
         ):
             self._non_finite()
-            return VelocityCommand(self.hover_velocity(), (0.0, 0.0, 0.0), 0.0, _NO_ERROR)
+            return VelocityCommand(self.hover_velocity(), (0.0, 0.0, 0.0), 0.0, NO_ERROR)
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
         err = slot_error(self.slot, p_ned_rel_m, v_ned_rel_m_s, follower.yaw_rad)
@@ -306,7 +255,8 @@ class FormationLaw:
             max_z = cfg.command_slew_m_s2 * step_s
             dv[2] = min(max(dv[2], -max_z), max_z)
             v = self._v_prev + dv
-        v = self._bound(v, np.asarray(p_ned_rel_m, dtype=np.float64), v_leader, follower, obstacle_ned_m)
+        p = np.asarray(p_ned_rel_m, dtype=np.float64)
+        v = bounded_velocity(v, p, v_leader, follower, self.limits, self.neighbours, obstacle_ned_m)
         # Separation wins over max speed: a leader rushing at us may push the command past it.
         self._v_prev = v
 
@@ -364,7 +314,7 @@ class FormationLaw:
         v = -np.asarray(target.v_ned_rel_m_s, dtype=np.float64)
         if self._v_slot_prev is not None and dt > 0.0:
             cfg = self.cfg
-            self._a_slot = _rate(
+            self._a_slot = low_passed_rate(
                 self._a_slot, v, self._v_slot_prev, dt, tau_s=cfg.leader_accel_tau_s, limit=cfg.max_accel_m_s2
             )
         self._v_slot_prev = v
@@ -393,7 +343,7 @@ class FormationLaw:
         slot_target: SlotTarget | None = None,
     ) -> AttitudeCommand:
         """The GPS-lost law: attitude and thrust from the relative estimate and the baro (see module doc)."""
-        if not _finite(p_ned_rel_m, v_ned_rel_m_s, follower, slot_target, self.neighbours):
+        if not all_finite(p_ned_rel_m, v_ned_rel_m_s, follower, slot_target, self.neighbours):
             return AttitudeCommand(self._level(follower.yaw_rad), (0.0, 0.0, 0.0), 0.0, None)
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
@@ -471,7 +421,9 @@ class FormationLaw:
         Brakes on PX4's velocity estimate while it is still valid (``follower.v_ned_m_s`` not None),
         otherwise stays level. Keeps the separation barrier when a relative estimate is given.
         """
-        if not _finite(follower, v_down_des_m_s, yaw_rate_rad_s, p_ned_rel_m, v_ned_rel_m_s, self.neighbours):
+        if not all_finite(
+            follower, v_down_des_m_s, yaw_rate_rad_s, p_ned_rel_m, v_ned_rel_m_s, self.neighbours
+        ):
             return AttitudeCommand(self._level(follower.yaw_rad), (0.0, 0.0, 0.0), 0.0, None)
         dt = self._dt(now_s)
         lim = self.limits
@@ -494,29 +446,6 @@ class FormationLaw:
         sp = self._finite_attitude(sp, follower.yaw_rad)
         return AttitudeCommand(sp, (float(a[0]), float(a[1]), float(a[2])), v_down_des_m_s, None)
 
-    def _bound(
-        self,
-        v: Vec3,
-        p_ned_rel_m: Vec3,
-        v_leader: Vec3 | None,
-        follower: FollowerState,
-        obstacle_ned_m: Vec3 | None = None,
-    ) -> Vec3:
-        """The velocity laws' last limits, in precedence order: separation, geofence, altitude band.
-
-        Separation holds against the leader (with its velocity), the neighbours (with theirs) and the depth
-        guard's obstacle (static: nothing is known of its motion).
-        """
-        lim = self.limits
-        v = separation_limit(v, p_ned_rel_m, v_leader, lim, follower.v_ned_m_s)
-        for n in self.neighbours:
-            v = separation_limit(v, n.p_ned_rel_m, n.v_ned_m_s, lim, follower.v_ned_m_s)
-        if obstacle_ned_m is not None:
-            v = pass_static(v, np.asarray(obstacle_ned_m, dtype=np.float64), follower, lim)
-        v = geofence_limit(v, follower.p_ned_m, lim)
-        v[2] = altitude_limit(float(v[2]), follower.alt_rel_m, lim)
-        return v
-
     def coast_velocity(
         self,
         v_leader_ned_m_s: Vec3,
@@ -531,7 +460,7 @@ class FormationLaw:
         leader in 1.5 s (network circle runs). The separation barrier still applies against the
         dead-reckoned position.
         """
-        if not _finite(
+        if not all_finite(
             v_leader_ned_m_s,
             p_ned_rel_m,
             follower.yaw_rad,
@@ -545,9 +474,8 @@ class FormationLaw:
         lim = self.limits
         p = np.asarray(p_ned_rel_m, dtype=np.float64)
         v_leader = np.asarray(v_leader_ned_m_s, dtype=np.float64)
-        v = self._bound(
-            clamp_speed(np.array([v_leader[0], v_leader[1], 0.0]), lim), p, v_leader, follower, obstacle_ned_m
-        )
+        level = clamp_speed(np.array([v_leader[0], v_leader[1], 0.0]), lim)
+        v = bounded_velocity(level, p, v_leader, follower, lim, self.neighbours, obstacle_ned_m)
         v_rel = v_leader - (np.zeros(3) if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s))
         yaw_rate = self._yaw_rate(slot_error(self.slot, p, v_rel, follower.yaw_rad), follower.yaw_rad)
         v_body = ned_to_heading(v, follower.yaw_rad)
@@ -564,19 +492,3 @@ class FormationLaw:
             self.non_finite += 1
             v_down_m_s = yaw_rate_rad_s = 0.0
         return VelocityBodySetpoint(v_body_m_s=(0.0, 0.0, v_down_m_s), yaw_rate_rad_s=yaw_rate_rad_s)
-
-
-def _clamp_norm(a: Vec3, limit: float) -> Vec3:
-    n = float(np.linalg.norm(a))
-    return a * (limit / n) if n > limit else a
-
-
-def _rate(a_prev: Vec3, v: Vec3, v_prev: Vec3, dt: float, *, tau_s: float, limit: float) -> Vec3:
-    """The low-passed (``tau_s``) derivative of ``v``, its norm capped at ``limit``; one step of ``dt``."""
-    k = dt / (tau_s + dt)
-    return _clamp_norm(a_prev + k * ((v - v_prev) / dt - a_prev), limit)
-
-
-def velocity_ned_setpoint(v_ned_m_s: Vec3T, yaw_rad: float) -> VelocityNedSetpoint:
-    """A NED velocity setpoint (used where an absolute yaw is wanted, e.g. landing straight down)."""
-    return VelocityNedSetpoint(v_ned_m_s=v_ned_m_s, yaw_rad=yaw_rad)
