@@ -26,6 +26,7 @@ def _lint(root: Path) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.lab  # the project's own tooling (import-linter in .venv), not the flight service on 3.10
 def test_a_planted_service_to_lab_import_breaks_the_rules(tmp_path: Path) -> None:
     if not LINT_IMPORTS.exists():
         pytest.fail("import-linter is installed by scripts/setup")
