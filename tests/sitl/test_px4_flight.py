@@ -62,23 +62,29 @@ def _px4_binary() -> str | None:
     return str(SHARED_PX4) if SHARED_PX4.is_file() else None
 
 
-@pytest.mark.sitl
-@pytest.mark.render
-@pytest.mark.slow
-@pytest.mark.lab
-@pytest.mark.timeout(300)
-def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path) -> None:
+def _fly(tmp_path: Path, scenario_toml: str) -> Path:
+    """``companion sim --autopilot px4`` on ``scenario_toml``, as a user runs it; the run's folder."""
     binary = _px4_binary()
     if binary is None:
         pytest.skip(f"no PX4 SITL build: set SITL_PX4__BINARY or put one at {SHARED_PX4}")
-    scenario = tmp_path / "px4-gps-loss-land.toml"
-    scenario.write_text(SCENARIO)
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(scenario_toml)
     out = tmp_path / "run"
     env = {**os.environ, "PYTHONPATH": str(REPO), "SITL_PX4__BINARY": binary}
     cmd = [sys.executable, "-m", "companion", "sim", "--scenario", str(scenario), "--autopilot", "px4",
            "--no-plots", "--out", str(out)]  # fmt: skip
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return out
+
+
+@pytest.mark.sitl
+@pytest.mark.render
+@pytest.mark.slow
+@pytest.mark.lab
+@pytest.mark.timeout(300)
+def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path) -> None:
+    out = _fly(tmp_path, SCENARIO)
     report = json.loads((out / "report.json").read_text())
     ap = report["autopilot"]
     assert ap["backend"] == "px4"
@@ -151,18 +157,7 @@ def test_px4_takes_the_external_position_and_flies_velocity_again(tmp_path: Path
 
     The leader's position is what the leader's PX4 reports (GLOBAL_POSITION_INT), over a real mosquitto.
     """
-    binary = _px4_binary()
-    if binary is None:
-        pytest.skip(f"no PX4 SITL build: set SITL_PX4__BINARY or put one at {SHARED_PX4}")
-    scenario = tmp_path / "px4-gps-loss-external-position.toml"
-    scenario.write_text(EXTERNAL_POSITION_SCENARIO)
-    out = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "SITL_PX4__BINARY": binary}
-    cmd = [sys.executable, "-m", "companion", "sim", "--scenario", str(scenario), "--autopilot", "px4",
-           "--no-plots", "--out", str(out)]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    report = json.loads((out / "report.json").read_text())
+    report = json.loads((_fly(tmp_path, EXTERNAL_POSITION_SCENARIO) / "report.json").read_text())
     rows = [(t[0], t[2], t[3]) for t in report["transitions"]]
     lost = next(t for t, to, why in rows if why == "GPS_LOST")
     assert next(to for t, to, why in rows if why == "GPS_LOST") == "FOLLOW_VISION"

@@ -1,6 +1,6 @@
 """What ``companion sim`` runs *inside* ``sitl serve`` (``--component ...evaluation.sitl_components:run``).
 
-Three tasks beside the simulation, configured by the JSON file named in ``$WINGMAN_SIM_RUN`` (written by
+Tasks beside the simulation, configured by the JSON file named in ``$WINGMAN_SIM_RUN`` (written by
 ``companion sim`` for this run; read once here, at the component's edge):
 
 * ``clock``: publishes the sim time for the service (:mod:`companion.lab.evaluation.simclock`);
@@ -43,7 +43,7 @@ CLOCK_PERIOD_S = 0.002
 
 
 async def run(sim: Any) -> None:
-    """The component: clock, truth and camera until ``sitl serve`` stops."""
+    """The component: the tasks above (those its settings ask for) until ``sitl serve`` stops."""
     settings = json.loads(Path(os.environ[RUN_ENV]).read_text())  # noqa: ASYNC240 (once, at start)
     async with asyncio.TaskGroup() as tg:
         tg.create_task(_clock(sim, Path(settings["clock_path"])), name="sim.clock")
