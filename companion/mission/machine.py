@@ -79,6 +79,7 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
     def step(self, inp: MissionInputs, now_s: float) -> StepOutput:
         """Advance the mission to ``now_s`` with this tick's inputs."""
         self._now_s = now_s
+        self.ages.tick(now_s)
         self.book.outgoing = []
         self._transitions = []
         self._absorb(inp.command_results)

@@ -1,7 +1,9 @@
 """The mission machine's health checks: GPS (debounced), the telemetry link, and the leader track.
 
 Each monitor is pure: time comes in as ``now_s``, and only :class:`GpsMonitor` and :class:`LinkMonitor`
-remember anything between ticks (the GPS debounce, the link's age average).
+remember anything between ticks (the GPS debounce, the link's age average). Staleness is judged on ages
+that leave out the service's own stalls (:class:`~companion.kernel.stall.StallAwareAge`, ticked by the
+machine): a paused service must not take its own pause for a lost link, GPS or leader.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from companion.config import FormationConfig, LinkConfig, MissionConfig
 from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.kernel.flight import VehicleState
 from companion.kernel.frames import Vec3
+from companion.kernel.stall import StallAwareAge
 
 #: GPS fix data older than this counts as no fix, s.
 GPS_STALE_S = 2.0
@@ -26,15 +29,16 @@ LINK_AGE_TAU_S = 1.0
 class GpsMonitor:
     """The debounced GPS verdict the machine flies on (``ok``), and how long the fix has been bad or good."""
 
-    def __init__(self, m: MissionConfig) -> None:
+    def __init__(self, m: MissionConfig, ages: StallAwareAge) -> None:
         self.m = m
+        self.ages = ages
         self.ok = False
         self.bad_since: float | None = None
         self.good_since: float | None = None
 
     def good_now(self, veh: VehicleState, now_s: float) -> bool:
         """A 3D fix that is not stale, and PX4 not saying its position estimate is invalid."""
-        fix = veh.gps_fix_type >= 3 and now_s - veh.gps_stamp_s <= GPS_STALE_S
+        fix = veh.gps_fix_type >= 3 and self.ages.age_s(veh.gps_stamp_s, now_s) <= GPS_STALE_S
         return fix and veh.position_valid is not False
 
     def update(self, veh: VehicleState, now_s: float) -> None:
@@ -66,9 +70,10 @@ class LinkMonitor:
     ``steady_link_hold_s`` after (a lossy or slow link; the fast slew swung the follower there).
     """
 
-    def __init__(self, link: LinkConfig, formation: FormationConfig) -> None:
+    def __init__(self, link: LinkConfig, formation: FormationConfig, ages: StallAwareAge) -> None:
         self.link = link
         self.formation = formation
+        self.ages = ages
         #: The attitude's age averaged over LINK_AGE_TAU_S, and until when the link counts as late (s).
         self.age_avg_s = 0.0
         self.age_stamp_s = -math.inf
@@ -76,11 +81,13 @@ class LinkMonitor:
 
     def ok(self, veh: VehicleState, now_s: float) -> bool:
         """Connected, with attitude telemetry within the link's timeout."""
-        return veh.connected and now_s - veh.attitude_stamp_s <= self.link.telemetry_timeout_s
+        return veh.connected and self.ages.age_s(veh.attitude_stamp_s, now_s) <= self.link.telemetry_timeout_s
 
     def attitude_available(self, veh: VehicleState, now_s: float) -> bool:
         """Attitude fresh enough, and an altitude, for the attitude law."""
-        return now_s - veh.attitude_stamp_s <= ATTITUDE_STALE_S and math.isfinite(veh.alt_rel_m)
+        return self.ages.age_s(veh.attitude_stamp_s, now_s) <= ATTITUDE_STALE_S and math.isfinite(
+            veh.alt_rel_m
+        )
 
     def watch_age(self, veh: VehicleState, now_s: float) -> None:
         """Note late telemetry, which keeps the fast slew off."""
@@ -100,11 +107,12 @@ class LinkMonitor:
 class TrackMonitor:
     """The leader track's health as the mission sees it: fresh, tracked, steady."""
 
-    def __init__(self, m: MissionConfig) -> None:
+    def __init__(self, m: MissionConfig, ages: StallAwareAge) -> None:
         self.m = m
+        self.ages = ages
 
     def fresh(self, est: LeaderEstimate | None, now_s: float) -> bool:
-        return est is not None and now_s - est.stamp_s <= self.m.stale_estimate_s
+        return est is not None and self.ages.age_s(est.stamp_s, now_s) <= self.m.stale_estimate_s
 
     def tracked(self, est: LeaderEstimate | None, now_s: float, *, confirmed_only: bool = False) -> bool:
         if not self.fresh(est, now_s) or est is None:

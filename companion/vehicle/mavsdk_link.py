@@ -63,6 +63,7 @@ from companion.kernel.flight import (
     VelocityBodySetpoint,
     VelocityNedSetpoint,
 )
+from companion.kernel.stall import StallAwareAge
 from companion.vehicle import failsafe
 from companion.vehicle.external_vision import EV_CTRL_PARAM
 from companion.vehicle.finite import require_finite_position, require_finite_setpoint
@@ -82,6 +83,8 @@ T = TypeVar("T")
 
 #: How often the setpoint guard looks, s.
 _GUARD_PERIOD_S = 0.05
+#: A gap between the guard's looks longer than this is a stall of the whole service, s.
+_GUARD_STALL_S = 4 * _GUARD_PERIOD_S
 _START_ATTEMPTS = 3
 _DISCOVERY_LOG_EVERY_S = 10.0
 _DISCOVERY_POLL_S = 0.2
@@ -451,11 +454,15 @@ class MavsdkVehicleLink:
 
     async def _setpoint_guard(self) -> None:
         """Stop offboard when the mission stops refreshing (MAVSDK would resend the last one forever)."""
+        # The guard's own stall (the whole service paused) is not the mission's: ages restart after it.
+        ages = StallAwareAge(_GUARD_STALL_S)
         while True:
             await asyncio.sleep(_GUARD_PERIOD_S)
+            now_s = self.clock.now_s()
+            ages.tick(now_s)
             if not self._stream_active:
                 continue
-            age_s = self.clock.now_s() - self._last_setpoint_s
+            age_s = ages.age_s(self._last_setpoint_s, now_s)
             if age_s <= self.cfg.setpoint_timeout_s:
                 continue
             self._stream_active = False

@@ -62,8 +62,12 @@ def _px4_binary() -> str | None:
     return str(SHARED_PX4) if SHARED_PX4.is_file() else None
 
 
-def _fly(tmp_path: Path, scenario_toml: str) -> Path:
-    """``companion sim --autopilot px4`` on ``scenario_toml``, as a user runs it; the run's folder."""
+def _fly(tmp_path: Path, scenario_toml: str) -> tuple[Path, str]:
+    """``companion sim --autopilot px4`` on ``scenario_toml``, as a user runs it.
+
+    Returns the run's folder, and what a failed assertion should show: the service's warnings and errors,
+    and PX4's modes and messages as the run recorded them.
+    """
     binary = _px4_binary()
     if binary is None:
         pytest.skip(f"no PX4 SITL build: set SITL_PX4__BINARY or put one at {SHARED_PX4}")
@@ -75,7 +79,14 @@ def _fly(tmp_path: Path, scenario_toml: str) -> Path:
            "--no-plots", "--out", str(out)]  # fmt: skip
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return out
+    said = [
+        ln for ln in (proc.stdout + proc.stderr).splitlines() if re.search(r" (WARNING|ERROR|CRITICAL) ", ln)
+    ]
+    autopilot = out / "logs" / "autopilot.jsonl"
+    px4 = (
+        [ln for ln in autopilot.read_text().splitlines() if '"follower"' in ln] if autopilot.is_file() else []
+    )
+    return out, "\n".join(["service:", *said[-40:], "PX4 follower:", *px4[-40:]])
 
 
 @pytest.mark.sitl
@@ -84,7 +95,7 @@ def _fly(tmp_path: Path, scenario_toml: str) -> Path:
 @pytest.mark.lab
 @pytest.mark.timeout(300)
 def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path) -> None:
-    out = _fly(tmp_path, SCENARIO)
+    out, said = _fly(tmp_path, SCENARIO)
     report = json.loads((out / "report.json").read_text())
     ap = report["autopilot"]
     assert ap["backend"] == "px4"
@@ -93,14 +104,15 @@ def test_px4_gps_loss_is_the_services_landing_not_a_px4_failsafe(tmp_path: Path)
     assert ("TAKEOFF", "ACQUIRE", "TAKEOFF_DONE") in states
     assert any(to == "FOLLOW" for _, to, _ in states)
     gps_lost = [s for s in states if s[2] == "GPS_LOST"]
-    assert gps_lost, states
-    assert gps_lost[0][1] == "CONTROLLED_LANDING"
-    assert report["outcome"] == "landed_safely"
+    shown = f"{states}\n{said}"
+    assert gps_lost, shown
+    assert gps_lost[0][1] == "CONTROLLED_LANDING", shown
+    assert report["outcome"] == "landed_safely", shown
     # PX4 did only what it was asked: no failsafe text, no failsafe mode, disarmed at the end.
-    assert ap["follower_failsafes"] == []
+    assert ap["follower_failsafes"] == [], shown
     modes = [m["mode"] for m in ap["follower_modes"]]
-    assert "Offboard" in modes
-    assert not FAILSAFE_MODES & set(modes), modes
+    assert "Offboard" in modes, shown
+    assert not FAILSAFE_MODES & set(modes), shown
     assert ap["follower_modes"][-1]["armed"] is False
     # PX4's flight logs are kept beside the report; its working folders (named in the run's log) are gone.
     assert any(p.endswith("px4-follower-0.ulg") and Path(p).stat().st_size > 0 for p in ap["flight_logs"])
@@ -157,18 +169,20 @@ def test_px4_takes_the_external_position_and_flies_velocity_again(tmp_path: Path
 
     The leader's position is what the leader's PX4 reports (GLOBAL_POSITION_INT), over a real mosquitto.
     """
-    report = json.loads((_fly(tmp_path, EXTERNAL_POSITION_SCENARIO) / "report.json").read_text())
+    out, said = _fly(tmp_path, EXTERNAL_POSITION_SCENARIO)
+    report = json.loads((out / "report.json").read_text())
     rows = [(t[0], t[2], t[3]) for t in report["transitions"]]
+    shown = f"{rows}\n{said}"
     lost = next(t for t, to, why in rows if why == "GPS_LOST")
     assert next(to for t, to, why in rows if why == "GPS_LOST") == "FOLLOW_VISION"
     # PX4 took the external fix (its horizontal estimate valid again), so the service flies velocity again.
     accepted = [t for t, to, why in rows if why == "VISION_MODE_CHANGED" and t > lost]
-    assert accepted, rows
-    assert accepted[0] - lost < 6.0
-    assert [why for t, _, why in rows if t > lost] == ["VISION_MODE_CHANGED"], rows  # and it held to the end
-    assert report["outcome"] == "completed"
+    assert accepted, shown
+    assert accepted[0] - lost < 6.0, shown
+    assert [why for t, _, why in rows if t > lost] == ["VISION_MODE_CHANGED"], shown  # held to the end
+    assert report["outcome"] == "completed", shown
     ap = report["autopilot"]
-    assert ap["follower_failsafes"] == []
-    assert not FAILSAFE_MODES & {m["mode"] for m in ap["follower_modes"]}
-    assert ap["follower_modes"][-1]["mode"] == "Offboard"
+    assert ap["follower_failsafes"] == [], shown
+    assert not FAILSAFE_MODES & {m["mode"] for m in ap["follower_modes"]}, shown
+    assert ap["follower_modes"][-1]["mode"] == "Offboard", shown
     assert report["formation_max_deviation_m"] < 2.0

@@ -54,6 +54,8 @@ class FakeAutopilot:
     #: How old the attitude sample is on arrival (a slow or lossy link), s.
     attitude_lag_s: float = 0.0
     target_alt_m: float = 0.0
+    #: Telemetry stamped at this time whatever the clock says (messages not read since), s.
+    frozen_at_s: float | None = None
     sent: list[Command] = field(default_factory=list)
 
     def apply(self, cmd: Command) -> CommandResult | None:
@@ -90,6 +92,8 @@ class FakeAutopilot:
 
     def state(self, now_s: float) -> VehicleState:
         stamp = now_s if self.telemetry else now_s - 100.0
+        if self.frozen_at_s is not None:
+            stamp = self.frozen_at_s
         return VehicleState(
             stamp_s=now_s,
             connected=self.connected,
@@ -229,6 +233,14 @@ class Harness:
             if r is not None:
                 self.results.append(r)
         return out
+
+    def stall(self, seconds: float) -> StepOutput:
+        """The service paused for ``seconds`` (no step), then one step on what it had read before."""
+        before_s = self.now_s
+        self.ap.frozen_at_s = before_s
+        self.leader_mode = "frozen" if self.leader_mode == "fresh" else self.leader_mode
+        self.clock.advance(seconds - DT_S)
+        return self.step()
 
     def run(self, seconds: float) -> list[StepOutput]:
         n = max(1, round(seconds / DT_S))

@@ -332,6 +332,34 @@ def test_no_attitude_telemetry_means_no_vision_fallback() -> None:
     assert h.last_transition().reason == R.NO_VISION_FALLBACK
 
 
+def test_a_stall_of_the_service_is_not_a_lost_link_or_leader() -> None:
+    """A paused service resumes on old telemetry and an old leader track: that is its pause, not the world's.
+
+    The inputs get their whole timeout after the resume; the same silence without the pause is a loss.
+    """
+    h = Harness()
+    h.to_follow()
+    h.lose_gps()
+    h.run_until(S.FOLLOW_VISION, timeout_s=2)
+    n = len(h.transitions)
+    out = h.stall(0.9)  # longer than the attitude (0.5 s) and leader (1.0 s with the gap) timeouts
+    assert h.transitions[n:] == [], h.reasons()
+    assert out.setpoint is not None
+    # Still silent a whole timeout after the resume: now it is the link.
+    h.run(h.cfg.link.telemetry_timeout_s + 0.1)
+    assert h.has(S.CONTROLLED_LANDING, R.NO_VISION_FALLBACK), h.reasons()
+
+
+def test_the_same_silence_without_a_stall_is_a_loss() -> None:
+    h = Harness()
+    h.to_follow()
+    h.lose_gps()
+    h.run_until(S.FOLLOW_VISION, timeout_s=2)
+    h.ap.frozen_at_s = h.now_s
+    h.run(0.9)
+    assert h.has(S.CONTROLLED_LANDING, R.NO_VISION_FALLBACK), h.reasons()
+
+
 def test_gps_restored_returns_to_velocity_follow_after_probation() -> None:
     h = Harness()
     h.to_follow()

@@ -17,6 +17,7 @@ from companion.config import Config
 from companion.estimation.leader import LeaderEstimate
 from companion.kernel.flight import VehicleState
 from companion.kernel.frames import Vec3, wrap_pi
+from companion.kernel.stall import StallAwareAge
 from companion.mission.ego import EgoMotion
 from companion.mission.formation import FormationLaw
 from companion.mission.geometry import FollowerState
@@ -71,6 +72,9 @@ NOT_IN_CONTROL = frozenset(
 ARM_RETRY_S = 2.0
 #: A depth-guard reading older than this is dropped (the camera runs at 15-30 Hz), s.
 OBSTACLE_STALE_S = 0.5
+#: Control ticks missed in a row that make a stall of the service itself (ages then restart, see
+#: companion.kernel.stall).
+STALL_TICKS = 4
 
 
 class MachineBase:
@@ -93,9 +97,10 @@ class MachineBase:
         self._attempts = 0
         self._last_attempt_s = -math.inf
         # Health checks.
-        self.gps = GpsMonitor(cfg.mission)
-        self.link = LinkMonitor(cfg.link, cfg.formation)
-        self.track = TrackMonitor(cfg.mission)
+        self.ages = StallAwareAge(STALL_TICKS / cfg.link.setpoint_rate_hz)
+        self.gps = GpsMonitor(cfg.mission, self.ages)
+        self.link = LinkMonitor(cfg.link, cfg.formation, self.ages)
+        self.track = TrackMonitor(cfg.mission, self.ages)
         # Per-state memory.
         self._attitude_kind = False
         self._last_leader: LeaderEstimate | None = None
@@ -193,7 +198,7 @@ class MachineBase:
     def _obstacle_now(self, inp: MissionInputs) -> Vec3 | None:
         """The depth guard's obstacle relative to the follower now (static: shifted by our own motion)."""
         ob = inp.obstacle
-        if ob is None or not 0.0 <= self._now_s - ob.stamp_s <= OBSTACLE_STALE_S:
+        if ob is None or not 0.0 <= self.ages.age_s(ob.stamp_s, self._now_s) <= OBSTACLE_STALE_S:
             return None
         p = np.array(ob.p_ned_rel_m)
         disp = self._ego.displacement(ob.stamp_s, self._now_s)

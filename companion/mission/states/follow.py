@@ -64,7 +64,7 @@ class FollowStates(MachineBase):
         sh = inp.leader_shared
         if self._slot_turner is None or sh is None or sh.v_ned_m_s is None:
             return None
-        if not 0.0 <= self._now_s - sh.stamp_s <= SHARED_STALE_S:
+        if not 0.0 <= self.ages.age_s(sh.stamp_s, self._now_s) <= SHARED_STALE_S:
             return None
         return np.asarray(sh.v_ned_m_s, dtype=np.float64)
 
@@ -90,7 +90,7 @@ class FollowStates(MachineBase):
     def _external_fix(self, inp: MissionInputs) -> ExternalPosition | None:
         """The follower's position for PX4: the leader's shared position minus the seen relative vector."""
         est, shared = inp.leader, inp.leader_shared
-        if est is None or shared is None or self._now_s - shared.stamp_s > SHARED_STALE_S:
+        if est is None or shared is None or self.ages.age_s(shared.stamp_s, self._now_s) > SHARED_STALE_S:
             return None
         p = np.array(shared.p_ned_m) - np.array(est.p_ned_rel_m)
         var = np.array(shared.variance_m2) + np.array(est.var_ned_rel_m2)
