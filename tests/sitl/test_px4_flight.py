@@ -11,8 +11,10 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -51,6 +53,10 @@ from_deg = 270.0
 gps_loss_policy = "land"
 """
 
+#: How long the service's process is stopped in the paused flight, s (longer than its attitude and
+#: leader timeouts, shorter than PX4's offboard-loss timeout).
+PAUSE_S = 0.8
+
 #: The modes PX4 enters only by its own failsafes in this flight (the service asks for none of them).
 FAILSAFE_MODES = {"Land", "Descend", "Return", "Altitude", "Position", "Termination"}
 
@@ -62,8 +68,12 @@ def _px4_binary() -> str | None:
     return str(SHARED_PX4) if SHARED_PX4.is_file() else None
 
 
-def _fly(tmp_path: Path, scenario_toml: str) -> tuple[Path, str]:
+def _fly(tmp_path: Path, scenario_toml: str, *, pause_after: str | None = None) -> tuple[Path, str]:
     """``companion sim --autopilot px4`` on ``scenario_toml``, as a user runs it.
+
+    ``pause_after``: once the run prints this, the whole ``companion sim`` process (the service and its
+    MAVSDK) is stopped for :data:`PAUSE_S` twice, as a loaded companion computer stops it; PX4 and the
+    simulator run on meanwhile.
 
     Returns the run's folder, and what a failed assertion should show: the service's warnings and errors,
     and PX4's modes and messages as the run recorded them.
@@ -77,11 +87,31 @@ def _fly(tmp_path: Path, scenario_toml: str) -> tuple[Path, str]:
     env = {**os.environ, "PYTHONPATH": str(REPO), "SITL_PX4__BINARY": binary}
     cmd = [sys.executable, "-m", "companion", "sim", "--scenario", str(scenario), "--autopilot", "px4",
            "--no-plots", "--out", str(out)]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=280, check=False)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    said = [
-        ln for ln in (proc.stdout + proc.stderr).splitlines() if re.search(r" (WARNING|ERROR|CRITICAL) ", ln)
-    ]
+    lines: list[str] = []
+    paused = 0
+    with subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    ) as proc:
+        assert proc.stdout is not None
+        try:
+            for line in proc.stdout:
+                lines.append(line)
+                if pause_after is not None and not paused and pause_after in line:
+                    for _ in range(2):
+                        time.sleep(1.5)
+                        proc.send_signal(signal.SIGSTOP)
+                        time.sleep(PAUSE_S)
+                        proc.send_signal(signal.SIGCONT)
+                        paused += 1
+            rc = proc.wait(timeout=280)
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
+                proc.kill()
+    text = "".join(lines)
+    assert rc == 0, text[-6000:]
+    assert pause_after is None or paused == 2, f"never printed {pause_after!r}:\n{text[-3000:]}"
+    said = [ln for ln in text.splitlines() if re.search(r" (WARNING|ERROR|CRITICAL) ", ln)]
     autopilot = out / "logs" / "autopilot.jsonl"
     px4 = (
         [ln for ln in autopilot.read_text().splitlines() if '"follower"' in ln] if autopilot.is_file() else []
@@ -168,8 +198,10 @@ def test_px4_takes_the_external_position_and_flies_velocity_again(tmp_path: Path
     """GPS lost, the leader's shared position minus the seen vector goes to PX4's estimator (EKF2_EV_CTRL).
 
     The leader's position is what the leader's PX4 reports (GLOBAL_POSITION_INT), over a real mosquitto.
+    Once PX4 has taken the fix, the service is paused twice (as a loaded computer pauses it): it must take
+    its own pause for neither a lost link nor a lost leader, and PX4 must stay in offboard.
     """
-    out, said = _fly(tmp_path, EXTERNAL_POSITION_SCENARIO)
+    out, said = _fly(tmp_path, EXTERNAL_POSITION_SCENARIO, pause_after="external position accepted")
     report = json.loads((out / "report.json").read_text())
     rows = [(t[0], t[2], t[3]) for t in report["transitions"]]
     shown = f"{rows}\n{said}"
