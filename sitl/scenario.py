@@ -61,6 +61,12 @@ Schema (all times are sim seconds from simulator start; all keys optional unless
     latency_ms = 50.0
     cut = false                       # true: nothing gets through
 
+    [timing]                          # the lockstep harness's camera pipeline (the real path has its own)
+    camera_latency_ms = 60.0          # frame capture -> its estimate at the mission
+    camera_jitter_ms = 0.0            # standard deviation around that (never below 0 in all)
+    frame_drop = 0.0                  # probability that a frame never reaches the detector
+    detector_load_ms = 0.0            # mean of an exponential extra detection time (a loaded computer)
+
     [wind]
     mean_speed_m_s = 2.0
     from_deg = 270.0                  # where the wind comes from (meteorological)
@@ -239,6 +245,24 @@ class VehicleFaultSpec(Section):
     link: LinkSpec = LinkSpec()
 
 
+class TimingSpec(Section):
+    """The camera pipeline's timing in the lockstep harness, seeded by the run's seed.
+
+    With the follower's ``[vehicles.follower.link]`` latency and jitter (telemetry and setpoints) this is
+    what sockets and a loaded computer do to the real path, made repeatable.
+    """
+
+    camera_latency_ms: float = Field(60.0, ge=0.0, le=2_000.0)
+    camera_jitter_ms: float = Field(0.0, ge=0.0, le=1_000.0)
+    frame_drop: float = Field(0.0, ge=0.0, lt=1.0)
+    detector_load_ms: float = Field(0.0, ge=0.0, le=1_000.0)
+
+    @property
+    def is_fixed(self) -> bool:
+        """Every frame delivered after the same latency (no random draw at all)."""
+        return self.camera_jitter_ms == 0 and self.frame_drop == 0 and self.detector_load_ms == 0
+
+
 class WindSpec(Section):
     """Mean wind, gusts and turbulence."""
 
@@ -269,6 +293,7 @@ class Scenario(Section):
     leader: LeaderSpec = LeaderSpec()
     vehicles: dict[str, VehicleFaultSpec] = Field(default_factory=dict)
     wind: WindSpec = WindSpec()
+    timing: TimingSpec = TimingSpec()
     #: Opaque to the simulator: fog, sun elevation, occluders, leader distance... for the renderer.
     visual: dict[str, Any] = Field(default_factory=dict)
     #: Opaque to the simulator: service config overrides (``companion sim`` validates them).

@@ -64,6 +64,14 @@ def register(sub: Any) -> None:
         metavar="SECTION.KEY=VALUE",
         help="override a service config key for these runs (TOML value), e.g. formation.kp_xy=1.5",
     )
+    p.add_argument(
+        "--timing",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="merge a timing profile into the scenario: [timing] (the lockstep camera pipeline) and "
+        "[vehicles.NAME.link] (MAVLink latency, jitter, loss), e.g. config/timing/real-path.toml",
+    )
     p.add_argument("--no-plots", action="store_true", help="write the report without plots")
     p.add_argument(
         "--executor",
@@ -94,6 +102,7 @@ def _sim(args: argparse.Namespace) -> int:
     from companion.lab.evaluation.campaign import (
         RunSpec,
         parse_seeds,
+        read_timing_profile,
         require_weights,
         run_many,
         run_one,
@@ -116,6 +125,7 @@ def _sim(args: argparse.Namespace) -> int:
         "duration_s": args.duration,
         "plots": not args.no_plots,
         "overrides": tuple(args.set),
+        "timing": None if args.timing is None else read_timing_profile(args.timing)[0],
     }
     env = {
         **os.environ,

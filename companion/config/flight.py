@@ -42,6 +42,10 @@ class FormationConfig(Section):
     #: estimate's velocity is extrapolated, and the faster lead amplified it (circle seed 3 with tau 0.2 and
     #: the lead kept: 1.34 m, the follower past the leader at 1.51 m).
     accel_lead_while_coasting: bool = False
+    #: Bring each leader estimate from its frame's capture instant to the control tick, with the
+    #: follower's own motion in between (companion/mission/ego.py). False flies on the estimate as
+    #: captured (the paper's way): for comparison campaigns only.
+    latency_compensation: bool = True
     kp_yaw: float = 1.5
     max_yaw_rate_deg_s: float = Field(60.0, gt=0)
     max_accel_m_s2: float = Field(3.0, gt=0)

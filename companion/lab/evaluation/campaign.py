@@ -25,7 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
-from companion.kernel.config import deep_merge
+from pydantic import ValidationError
+
+from companion.kernel.config import deep_merge, format_validation_error, read_toml
 from companion.kernel.errors import CompanionError, ConfigError
 from companion.lab.evaluation.campaign_summary import write_campaign_summary
 from companion.lab.evaluation.progress import ProgressLine
@@ -62,13 +64,51 @@ class RunSpec:
     plots: bool = True
     #: ``section.key=value`` service config overrides (TOML values) on top of the scenario's.
     overrides: tuple[str, ...] = ()
+    #: A timing profile merged into the scenario (:func:`read_timing_profile`), or None.
+    timing: Path | None = None
 
 
-def effective_scenario(path: Path, duration_s: float | None) -> Any:
-    """The scenario file's model, with the formation window reshaped to ``duration_s`` when given."""
-    from sitl.scenario import load_scenario  # noqa: PLC0415 (pydantic models of the simulator)
+#: The tables a timing profile may set.
+TIMING_TABLES = ("timing", "vehicles")
+
+
+def read_timing_profile(path: Path) -> tuple[Path, dict[str, Any]]:
+    """A timing profile (``config/timing/*.toml``): its absolute path and tables; errors in one line each.
+
+    It may hold ``[timing]`` (the lockstep harness's camera pipeline) and ``[vehicles.NAME.link]`` (MAVLink
+    latency, jitter and loss on that vehicle's links, both harnesses), nothing else.
+    """
+    if not path.is_file():
+        raise ConfigError(str(path), ["no such timing profile"])
+    data = read_toml(path)
+    problems = [
+        f"{k}: not a timing table (a profile sets {', '.join(TIMING_TABLES)})"
+        for k in data
+        if k not in TIMING_TABLES
+    ]
+    for name, veh in data.get("vehicles", {}).items():
+        extra = sorted(set(veh) - {"link"}) if isinstance(veh, dict) else ["(not a table)"]
+        problems += [f"vehicles.{name}.{k}: a profile sets only vehicles.{name}.link" for k in extra]
+    if problems:
+        raise ConfigError(str(path), problems)
+    return path.resolve(), data
+
+
+def effective_scenario(path: Path, duration_s: float | None, timing: Path | None = None) -> Any:
+    """The scenario file's model: a timing profile merged in, the formation window reshaped to ``duration_s``.
+
+    The profile's keys replace the scenario's keys they name; the rest of the scenario stays.
+    """
+    from sitl.scenario import Scenario, load_scenario  # noqa: PLC0415 (pydantic models of the simulator)
 
     sc = load_scenario(path)
+    if timing is not None:
+        _, profile = read_timing_profile(timing)
+        merged = deep_merge(sc.model_dump(mode="json", exclude_unset=True), profile)
+        try:
+            sc = Scenario.model_validate(merged)
+        except ValidationError as exc:
+            raise ConfigError(f"{path} with {timing}", format_validation_error(exc)) from None
     if duration_s is None:
         return sc
     if not (math.isfinite(duration_s) and duration_s > 0):
@@ -98,7 +138,7 @@ def run_one(spec: RunSpec, progress: Callable[[float], None] | None = None) -> d
 
     path = scenario_path(spec.scenario)
     # The run's own seed in its scenario.toml: the folder alone reproduces the run.
-    scenario = effective_scenario(path, spec.duration_s).model_copy(update={"seed": spec.seed})
+    scenario = effective_scenario(path, spec.duration_s, spec.timing).model_copy(update={"seed": spec.seed})
     spec.out_dir.mkdir(parents=True, exist_ok=True)
     run_file = spec.out_dir / "scenario.toml"
     run_file.write_text(dumps(scenario.model_dump(mode="json")))
@@ -262,6 +302,8 @@ def child_args(spec: RunSpec) -> list[str]:
         args += ["--no-plots"]
     for o in spec.overrides:
         args += ["--set", o]
+    if spec.timing is not None:
+        args += ["--timing", str(spec.timing)]
     return args
 
 

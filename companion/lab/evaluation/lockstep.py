@@ -9,9 +9,11 @@ runner, and the glue between them) fly the follower through a
 
 What differs from the real path (``companion sim`` over UDP with MAVSDK) and why:
 
-* Compute is instantaneous in sim time, so perception latency is modelled: a frame captured at ``t`` reaches
-  the tracker and the mission at ``t + perception_latency_s`` (default 60 ms: the D435i's own latency plus
-  detection; the real path measures its own).
+* Compute is instantaneous in sim time, so the camera pipeline's timing is modelled (the scenario's
+  ``[timing]``, :mod:`companion.lab.evaluation.camera_timing`): by default a frame captured at ``t`` reaches
+  the tracker and the mission at ``t + 60 ms`` (the D435i's own latency plus detection); jitter, dropped
+  frames and a loaded detector are drawn from the run's seed. The real path measures its own. MAVLink
+  latency and jitter (telemetry and setpoints) come from the scenario's ``[vehicles.follower.link]``.
 * The camera renders only once the follower is armed (nothing before takeoff reaches the mission).
 
 Truth reaches only the :class:`~companion.lab.evaluation.scoring.RunScorer`.
@@ -35,6 +37,7 @@ from companion.config import Config
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import ManualClock
 from companion.lab.evaluation.autolabel_check import AutoLabelCheck
+from companion.lab.evaluation.camera_timing import CameraTiming
 from companion.lab.evaluation.log import FlightLog
 from companion.lab.evaluation.plots import Snapshot
 from companion.lab.evaluation.runlog import attach_run_log
@@ -60,8 +63,6 @@ LEADER_SHARE_HZ = 10.0
 class LockstepOptions:
     """Knobs of the lockstep harness (the scenario and the service config carry everything else)."""
 
-    #: Capture -> estimate delivered to the mission, sim s.
-    perception_latency_s: float = 0.06
     #: Camera frames kept for the report's strip.
     snapshots: int = 5
     #: Called now and then with the sim time (a progress line).
@@ -137,6 +138,7 @@ class LockstepRun:
         self.runner = self.core.runner
         self.pipeline = self.core.pipeline
         self.scorer = RunScorer.for_scenario(sc, options.snapshots)
+        self.camera_timing = CameraTiming(sc.timing, world.seed)
         self._in_flight: deque[_InFlight] = deque()
         self._compute_ms: list[float] = []
         self.observer = RunObserver(self.clock, [])
@@ -196,8 +198,9 @@ class LockstepRun:
         extra.update(
             {
                 "harness": "lockstep",
-                "perception_latency_model_s": self.options.perception_latency_s,
+                "camera_timing": self.camera_timing.summary(),
                 "detector_compute_ms": _percentiles(self._compute_ms),
+                "control_tick_ages_ms": self.observer.timing(),
                 "camera_rate_hz": sc.run.camera_rate_hz,
                 "link": {
                     "setpoints_sent": self.link.counters.setpoints_sent,
@@ -273,12 +276,15 @@ class LockstepRun:
                 )
 
     def _capture(self, t_s: float) -> None:
+        due_s = self.camera_timing.due_s(t_s)
+        if due_s is None:
+            return
         follower = self.world.truth("follower")
         leader = None if self.scenario.run.leader_hidden(t_s) else self.world.truth("leader")
         frame = self.renderer.render(follower, leader, t_s)
         c0 = time.perf_counter()
         result = self.stage.detect(frame)
-        self._in_flight.append(_InFlight(t_s + self.options.perception_latency_s, frame, result, 0.0))
+        self._in_flight.append(_InFlight(due_s, frame, result, 0.0))
         self._in_flight[-1].compute_ms = (time.perf_counter() - c0) * 1e3
 
     def _deliver(self, item: _InFlight) -> None:

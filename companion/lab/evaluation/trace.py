@@ -53,6 +53,9 @@ class RunObserver:
     snapshot_times_s: list[float]
     ticks: list[TraceTick] = field(default_factory=list)
     frames: list[TraceFrame] = field(default_factory=list)
+    #: Per tick: the attitude telemetry's age and the leader estimate's age (capture to control), s.
+    telemetry_age_s: list[float] = field(default_factory=list)
+    estimate_age_s: list[float] = field(default_factory=list)
     _next_snapshot: int = 0
 
     def on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
@@ -60,8 +63,14 @@ class RunObserver:
         now_s = self.clock.now_s()
         v = inputs.vehicle
         sp = out.setpoint
+        att_age_s = now_s - v.attitude_stamp_s
+        if 0.0 <= att_age_s < 10.0:
+            self.telemetry_age_s.append(att_age_s)
+        if est is not None and est.usable:
+            self.estimate_age_s.append(now_s - est.stamp_s)
         trace = {
             "state": out.state.name,
+            "att_age_s": round(att_age_s, 4),
             "est_age_s": None if est is None else round(now_s - est.stamp_s, 3),
             "est_status": None if est is None else est.status.value,
             "v_ned_m_s": [round(c, 3) for c in v.v_ned_m_s],
@@ -73,6 +82,16 @@ class RunObserver:
         ]
         rel = est.p_ned_rel_m if est is not None and est.usable else None
         self.ticks.append(TraceTick(now_s, rel, transitions, trace))
+
+    def timing(self) -> dict[str, dict[str, float | None]]:
+        """The ages the control ticks saw, ms (p50/p95/max).
+
+        The attitude telemetry's age at the tick, and the leader estimate's age (from its frame's capture).
+        """
+        return {
+            "telemetry_age_ms": _pcts_ms(self.telemetry_age_s),
+            "leader_estimate_age_ms": _pcts_ms(self.estimate_age_s),
+        }
 
     def write_trace(self, path: Path) -> None:
         """Every tick and frame as JSON lines (no pixels): the run's record for a post-mortem."""
@@ -126,3 +145,11 @@ class RunObserver:
                 },
             )
         )
+
+
+def _pcts_ms(values_s: list[float]) -> dict[str, float | None]:
+    if not values_s:
+        return {"p50": None, "p95": None, "max": None}
+    a = np.asarray(values_s) * 1e3
+    p50, p95 = np.percentile(a, [50.0, 95.0])
+    return {"p50": round(float(p50), 2), "p95": round(float(p95), 2), "max": round(float(a.max()), 2)}

@@ -24,6 +24,7 @@ from companion.config import Config
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import ManualClock
 from companion.kernel.flight import Vec3T
+from companion.lab.evaluation.camera_timing import CameraTiming
 from companion.lab.evaluation.lockstep import TRUTH_RATE_HZ
 from companion.lab.evaluation.runlog import recorder_for, run_sink
 from companion.lab.evaluation.scoring import RunScorer
@@ -51,9 +52,8 @@ FORMATION_STATES = frozenset({MissionState.FOLLOW, MissionState.FOLLOW_VISION})
 
 @dataclass(frozen=True, slots=True)
 class FormationOptions:
-    """The harness's knobs: perception latency, and the shares' rate and latency."""
+    """The harness's knobs: the shares' rate and latency (the camera's timing is the scenario's)."""
 
-    perception_latency_s: float = 0.06
     share_rate_hz: float = 10.0
     share_latency_s: float = 0.1
     progress: Callable[[float], None] | None = None
@@ -80,6 +80,8 @@ class FollowerRun:
     renderer: Any
     scorer: RunScorer
     score: FollowerScore
+    #: When each frame's estimate reaches this follower's mission (the scenario's ``[timing]``).
+    camera_timing: CameraTiming
     in_flight: deque[_InFlight] = field(default_factory=deque)
     compute_ms: list[float] = field(default_factory=list)
 
@@ -171,7 +173,8 @@ class FormationRun:
             )
 
         core = FlightCore(cfg, link, self.clock, stage, on_transition=on_transition, on_step=on_step)
-        return FollowerRun(name, cfg, link, core, stage, renderer, scorer, score)
+        timing = CameraTiming(self.scenario.timing, self.world.seed, stream=len(self.followers))
+        return FollowerRun(name, cfg, link, core, stage, renderer, scorer, score, timing)
 
     async def run(self) -> FormationResult:
         wall0 = time.perf_counter()
@@ -267,6 +270,9 @@ class FormationRun:
 
     # ------------------------------------------------------------------ camera
     def _capture(self, f: FollowerRun, t_s: float) -> None:
+        due_s = f.camera_timing.due_s(t_s)
+        if due_s is None:
+            return
         me = self.world.truth(f.name)
         hidden = self.scenario.run.leader_hidden(t_s)
         leader = None if hidden else self.world.truth("leader")
@@ -275,7 +281,7 @@ class FormationRun:
         c0 = time.perf_counter()
         result = f.stage.detect(frame)
         f.compute_ms.append((time.perf_counter() - c0) * 1e3)
-        f.in_flight.append(_InFlight(t_s + self.options.perception_latency_s, frame, result))
+        f.in_flight.append(_InFlight(due_s, frame, result))
 
     def _deliver(self, f: FollowerRun, item: _InFlight) -> None:
         track = f.core.on_frame(item.frame, item.result)

@@ -77,6 +77,8 @@ class FollowStates(MachineBase):
 
     def _relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
         """The estimate brought from its frame's capture instant to now (see :mod:`companion.mission.ego`)."""
+        if not self.cfg.formation.latency_compensation:
+            return np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s)
         a_leader = (
             self.law.leader_accel_ned_m_s2
             if est.a_ned_leader_m_s2 is None
