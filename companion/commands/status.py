@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -221,7 +222,11 @@ def render_status(s: dict[str, Any]) -> str:
         )
     for stage, st in (s.get("latency_ms") or {}).items():
         rows.append(
-            (f"  {stage}", f"p50 {st['p50_ms']:.1f} ms, p99 {st['p99_ms']:.1f} ms ({st['count']} samples)")
+            (
+                f"  {stage}",
+                f"p50 {st['p50_ms']:.1f} ms, p95 {st.get('p95_ms', math.nan):.1f} ms, "
+                f"p99 {st['p99_ms']:.1f} ms ({st['count']} samples)",
+            )
         )
     sysr = s.get("system") or {}
     if sysr:

@@ -36,6 +36,7 @@ from companion.perception.truth_detector import TruthDetector
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight_core import FlightCore
 from companion.service.health_checks import CheckResult
+from companion.service.latency import TickAges
 from companion.service.parts import Parts, PartsContext, PartsFactory
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import (
@@ -323,6 +324,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             )
         )
         flight = FlightAdapter(cfg, link, clock, stage)
+        flight.core.observers.append(TickAges(ctx.latency, clock))
         recorder = open_recorder(cfg, flight.core, clock, ctx, stack)
         if recorder is not None:
             extra_status["viz"] = recorder.counters

@@ -9,10 +9,13 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.kernel import compat
 from companion.kernel.clock import ManualClock
+from companion.kernel.flight import VehicleState
+from companion.mission.types import MissionInputs, MissionState, StepOutput
 from companion.service.health import HealthBoard
-from companion.service.latency import LatencyStats
+from companion.service.latency import LatencyStats, TickAges
 from companion.service.mailbox import Latest, MailboxClosedError
 from companion.service.supervise import Backoff, supervise
 from companion.telemetry.outbox import Outbox, Outgoing
@@ -139,8 +142,32 @@ def test_latency_percentiles_over_window() -> None:
     s = lat.summary()["detect"]
     assert s["count"] == 1000
     assert s["p50_ms"] == pytest.approx(49.5)
+    assert s["p95_ms"] == pytest.approx(94.05)
     assert s["p99_ms"] == pytest.approx(98.01)
     assert s["max_ms"] == 99.0
+
+
+def test_tick_ages_record_what_the_tick_flies_on() -> None:
+    """Attitude and leader-estimate ages per control tick; an unusable or stale input is not a latency."""
+    lat = LatencyStats()
+    clock = ManualClock(100.0)
+    ages = TickAges(lat, clock)
+
+    def est(stamp_s: float, status: TrackStatus) -> LeaderEstimate:
+        return LeaderEstimate(stamp_s, status, (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), stamp_s)
+
+    out = StepOutput(MissionState.FOLLOW)
+    for leader in (
+        est(99.92, TrackStatus.CONFIRMED),
+        est(99.9, TrackStatus.LOST),
+        est(50.0, TrackStatus.CONFIRMED),
+    ):
+        ages.on_step(MissionInputs(VehicleState(attitude_stamp_s=99.99), leader=leader), out)
+    s = lat.summary()
+    assert s["telemetry_age"]["count"] == 3
+    assert s["telemetry_age"]["p50_ms"] == pytest.approx(10.0)
+    assert s["camera_age"]["count"] == 1
+    assert s["camera_age"]["p50_ms"] == pytest.approx(80.0)
 
 
 def test_outbox_drops_oldest_and_ack_is_safe() -> None:
