@@ -75,7 +75,9 @@ class StatusText:
 class VehicleState:
     """A snapshot of everything the mission reads from the autopilot.
 
-    ``*_stamp_s`` are arrival times on the service clock (``NEVER_S`` if never received). Positions and
+    ``*_stamp_s`` are service-clock times (``NEVER_S`` if never received): attitude, velocity and local
+    position are stamped when the autopilot sampled them (its boot time mapped through MAVLink TIMESYNC,
+    companion/vehicle/boottime.py), the rest on arrival. Positions and
     velocities are PX4's own estimate: after a GPS loss they keep streaming while drifting, so the validity
     flags (``position_valid``, ``gps_fix_type``) must be read before trusting them.
     """
@@ -132,6 +134,12 @@ class VehicleState:
     hover_thrust_norm: float | None = None
     #: PX4's COM_OBL_RC_ACT (offboard-loss action) as read back from it; None until known.
     offboard_loss_param: int | None = None
+
+    #: The last MAVLink TIMESYNC round trip to the autopilot and when it came back, s (NaN: none yet).
+    link_rtt_s: float = math.nan
+    link_rtt_stamp_s: float = NEVER_S
+    #: The link's one-way delay: half the shortest recent round trip, s (NaN: not measured).
+    link_delay_s: float = math.nan
 
     last_status_text: StatusText | None = None
     #: Counts STATUSTEXTs received, so a reader can tell a new one from the same one.

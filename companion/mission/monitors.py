@@ -90,9 +90,14 @@ class LinkMonitor:
         )
 
     def watch_age(self, veh: VehicleState, now_s: float) -> None:
-        """Note late telemetry, which keeps the fast slew off."""
+        """Note late telemetry, which keeps the fast slew off.
+
+        Late is what arrives later than the link's measured one-way delay (lost and held-up samples): a
+        steady delay is taken out of every stamp already (companion/vehicle/boottime.py).
+        """
         f = self.formation
-        age_s = min(max(now_s - veh.attitude_stamp_s, 0.0), 1.0)
+        delay_s = veh.link_delay_s if math.isfinite(veh.link_delay_s) else 0.0
+        age_s = min(max(now_s - veh.attitude_stamp_s - delay_s, 0.0), 1.0)
         dt_s = min(max(now_s - self.age_stamp_s, 0.0), 1.0)
         self.age_stamp_s = now_s
         self.age_avg_s += dt_s / (LINK_AGE_TAU_S + dt_s) * (age_s - self.age_avg_s)

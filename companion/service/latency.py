@@ -2,11 +2,13 @@
 
 Stages follow the frame: capture -> detect (pre/infer/post) -> pose -> track -> setpoint, plus end_to_end.
 The control tick adds the age of what it flies on, per link (:class:`TickAges`): ``telemetry_age`` (the
-autopilot's attitude) and ``camera_age`` (the leader estimate, from its frame's capture).
+autopilot's attitude, from when the autopilot sampled it), ``camera_age`` (the leader estimate, from its
+frame's capture) and ``mavlink_rtt`` (the link's TIMESYNC round trip).
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Any
 
@@ -63,15 +65,20 @@ class TickAges:
     def __init__(self, latency: LatencyStats, clock: Clock) -> None:
         self._latency = latency
         self._clock = clock
+        self._rtt_stamp_s = -math.inf
 
     def on_frame(self, frame: Any, result: Any, track: Any) -> None:
         return None
 
     def on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
         now_s = self._clock.now_s()
-        age_s = now_s - inputs.vehicle.attitude_stamp_s
+        veh = inputs.vehicle
+        age_s = now_s - veh.attitude_stamp_s
         if 0.0 <= age_s <= _MAX_AGE_S:
             self._latency.record("telemetry_age", age_s * 1e3)
+        if veh.link_rtt_stamp_s > self._rtt_stamp_s:
+            self._rtt_stamp_s = veh.link_rtt_stamp_s
+            self._latency.record("mavlink_rtt", veh.link_rtt_s * 1e3)
         est = inputs.leader
         if est is not None and est.usable and 0.0 <= now_s - est.stamp_s <= _MAX_AGE_S:
             self._latency.record("camera_age", (now_s - est.stamp_s) * 1e3)

@@ -120,11 +120,16 @@ class MavlinkTelemetry:
             )
         elif kind == "ATTITUDE":
             sampled_s = self.boot_clock.stamp(int(msg.time_boot_ms), now_s)
+            if sampled_s < st.attitude_stamp_s:
+                return True
             self.update(roll_rad=msg.roll, pitch_rad=msg.pitch, yaw_rad=msg.yaw, attitude_stamp_s=sampled_s)
         elif kind == "GLOBAL_POSITION_INT":
+            sampled_s = self.boot_clock.stamp(int(msg.time_boot_ms), now_s)
+            if sampled_s < st.velocity_stamp_s:
+                return True  # overtaken by a newer sample (a jittery link reorders)
             self.update(
                 v_ned_m_s=(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0),
-                velocity_stamp_s=now_s,
+                velocity_stamp_s=sampled_s,
                 lat_deg=msg.lat * 1e-7,
                 lon_deg=msg.lon * 1e-7,
                 alt_amsl_m=msg.alt / 1000.0,
@@ -132,7 +137,12 @@ class MavlinkTelemetry:
                 global_position_stamp_s=now_s,
             )
         elif kind == "LOCAL_POSITION_NED":
-            self.update(p_ned_m=(msg.x, msg.y, msg.z), local_position_stamp_s=now_s, local_position_ok=True)
+            sampled_s = self.boot_clock.stamp(int(msg.time_boot_ms), now_s)
+            if sampled_s < st.local_position_stamp_s:
+                return True
+            self.update(
+                p_ned_m=(msg.x, msg.y, msg.z), local_position_stamp_s=sampled_s, local_position_ok=True
+            )
         elif kind == "GPS_RAW_INT":
             self.update(
                 gps_fix_type=int(msg.fix_type), gps_satellites=int(msg.satellites_visible), gps_stamp_s=now_s
@@ -163,6 +173,12 @@ class MavlinkTelemetry:
                 battery_remaining_frac=remaining / 100.0 if remaining >= 0 else math.nan,
                 battery_voltage_v=msg.voltages[0] / 1000.0 if msg.voltages[0] != 65535 else math.nan,
             )
+        elif kind == "TIMESYNC":
+            # Only the answer to our own request (tc1 set, ts1 our send time); the autopilot's requests
+            # (tc1 = 0) are not a measure of anything here.
+            if int(msg.tc1) != 0 and self.boot_clock.sync(int(msg.tc1) * 1e-9, int(msg.ts1) * 1e-9, now_s):
+                clock = self.boot_clock
+                self.update(link_rtt_s=clock.last_rtt_s, link_rtt_stamp_s=now_s, link_delay_s=clock.one_way_s)
         elif kind == "STATUSTEXT":
             text = StatusText(now_s, _SEVERITY.get(int(msg.severity), Severity.INFO), text_of(msg.text))
             log.info("autopilot: [%s] %s", text.severity.value, text.text)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import time
@@ -41,7 +42,7 @@ from typing import Any, TypeVar
 
 from mavsdk import log_subscribe, log_unsubscribe
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
-from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync, MavlinkDirectError
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.plugins.action import Action, ActionResult
@@ -53,7 +54,7 @@ from companion.config import LinkConfig
 from companion.kernel import compat
 from companion.kernel.clock import Clock
 from companion.kernel.compat import Self
-from companion.kernel.errors import CommandRejectedError, LinkLostError, WrongVehicleError
+from companion.kernel.errors import CommandRejectedError, CompanionError, LinkLostError, WrongVehicleError
 from companion.kernel.flight import (
     AttitudeSetpoint,
     ExternalPosition,
@@ -65,6 +66,7 @@ from companion.kernel.flight import (
 )
 from companion.kernel.stall import StallAwareAge
 from companion.vehicle import failsafe
+from companion.vehicle.boottime import TIMESYNC_PERIOD_S
 from companion.vehicle.external_vision import EV_CTRL_PARAM
 from companion.vehicle.finite import require_finite_position, require_finite_setpoint
 from companion.vehicle.identity import choose_autopilot
@@ -209,11 +211,13 @@ class MavsdkVehicleLink:
             "estimator": lambda: self._each(
                 self._direct.subscribe_message("ESTIMATOR_STATUS"), h.on_estimator_status
             ),
+            "timesync": lambda: self._each(self._direct.subscribe_message("TIMESYNC"), h.on_timesync),
         }
         async with compat.TaskGroup() as tg:
             for name, factory in streams.items():
                 tg.create_task(factory(), name=f"companion.vehicle.{name}")
             tg.create_task(self._setpoint_guard(), name="companion.vehicle.setpoint_guard")
+            tg.create_task(self._timesync(), name="companion.vehicle.timesync")
             tg.create_task(self._read_hover_thrust(), name="companion.vehicle.hover_thrust")
             tg.create_task(self._configure_failsafe(), name="companion.vehicle.failsafe")
             if self.ev_position_bits:
@@ -451,6 +455,20 @@ class MavsdkVehicleLink:
 
     async def release_offboard(self) -> None:
         self._stream_active = False
+
+    async def _timesync(self) -> None:
+        """Ask the autopilot for its boot time now and then (MAVLink TIMESYNC; answers: on_timesync)."""
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage  # noqa: PLC0415 (mavsdk: heavy)
+
+        while True:
+            fields = json.dumps({"tc1": 0, "ts1": int(self.clock.now_s() * 1e9)})
+            try:
+                await self._require(self._direct).send_message(
+                    MavlinkMessage(message_name="TIMESYNC", fields_json=fields)
+                )
+            except (CompanionError, MavlinkDirectError) as exc:
+                log.debug("vehicle link: TIMESYNC not sent: %s", exc)
+            await asyncio.sleep(TIMESYNC_PERIOD_S)
 
     async def _setpoint_guard(self) -> None:
         """Stop offboard when the mission stops refreshing (MAVSDK would resend the last one forever)."""

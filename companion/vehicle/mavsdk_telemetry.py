@@ -109,6 +109,18 @@ class MavsdkTelemetry:
         log.info("autopilot: [%s] %s", severity.value, text.text)
         self.update(last_status_text=text, status_text_seq=self.state.status_text_seq + 1)
 
+    def on_timesync(self, msg: Any) -> None:
+        """The autopilot's answer to our TIMESYNC request (see companion/vehicle/boottime.py)."""
+        try:
+            fields = json.loads(msg.fields_json)
+            tc1, ts1 = int(fields["tc1"]), int(fields["ts1"])
+        except (ValueError, KeyError, TypeError):
+            return
+        now_s = self.clock.now_s()
+        if tc1 != 0 and self.boot_clock.sync(tc1 * 1e-9, ts1 * 1e-9, now_s):
+            clock = self.boot_clock
+            self.update(link_rtt_s=clock.last_rtt_s, link_rtt_stamp_s=now_s, link_delay_s=clock.one_way_s)
+
     def on_estimator_status(self, msg: Any) -> None:
         try:
             flags = int(json.loads(msg.fields_json)["flags"])

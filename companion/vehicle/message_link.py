@@ -48,6 +48,7 @@ from companion.kernel.flight import (
 )
 from companion.kernel.frames import quat_from_euler
 from companion.vehicle import failsafe
+from companion.vehicle.boottime import TIMESYNC_PERIOD_S
 from companion.vehicle.external_vision import EV_CTRL_PARAM
 from companion.vehicle.mavlink_telemetry import (
     AUTOPILOT_COMPONENT,
@@ -165,6 +166,7 @@ class MessageVehicleLink:
         self._ev_tries = 0
         self._ev_sent_s = -math.inf
         self.counters = LinkCounters()
+        self._last_timesync_s = -math.inf
 
     # ------------------------------------------------------------------ the owner's side
     def pump(self) -> None:
@@ -187,6 +189,9 @@ class MessageVehicleLink:
             )
         st = self.telemetry.state
         if st.connected:
+            if now_s - self._last_timesync_s >= TIMESYNC_PERIOD_S:
+                self._last_timesync_s = now_s
+                self._send(mavlink.MAVLink_timesync_message(0, int(now_s * 1e9)))
             if not st.home_position_ok and now_s - self._last_home_request_s >= HOME_REQUEST_PERIOD_S:
                 self._last_home_request_s = now_s
                 self._command_msg(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
