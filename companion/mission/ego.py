@@ -12,8 +12,12 @@ overshoot the leader's speed by 60 %. So, all in local NED:
     v_rel(now) = v_leader - v_follower(now)
 
 ``v_follower`` is PX4's velocity estimate, recorded here per control tick; it is only trusted while PX4's
-position estimate is valid (GPS healthy). Without it the estimate is carried forward at constant relative
-velocity. Pure: time comes in as arguments.
+position estimate is valid (GPS healthy). Without it (after a GPS loss) the estimate is flown as captured:
+carried forward at its own relative velocity, a derivative of noisy positions, it destabilised the GPS-lost
+attitude law once telemetry and setpoints took 12 ms plus a 10 ms spread each way (lockstep, `gps-loss`
+seeds 1-4 with config/timing/real-path.toml: max deviation 2.05 / 1.64 / 1.25 / 0.53 m carried forward,
+0.25 / 0.31 / 0.46 / 0.34 m as captured; without injected timing both 0.22-0.34 m). Pure: time comes in as
+arguments.
 """
 
 from __future__ import annotations
@@ -111,7 +115,7 @@ class EgoMotion:
         v_f1 = self.v_at(now_s)
         disp = self.displacement(t0, now_s)
         if v_f0 is None or v_f1 is None or disp is None:
-            return RelativeNow(p + v * age, v, None)
+            return RelativeNow(p, v, None)
         v_leader = v_f0 + v
         a = np.zeros(3) if a_leader is None else np.asarray(a_leader, dtype=np.float64)
         p_now = p + v_leader * age + 0.5 * a * age * age - disp

@@ -162,8 +162,11 @@ def test_tick_ages_record_what_the_tick_flies_on() -> None:
         est(99.9, TrackStatus.LOST),
         est(50.0, TrackStatus.CONFIRMED),
     ):
-        ages.on_step(MissionInputs(VehicleState(attitude_stamp_s=99.99), leader=leader), out)
+        veh = VehicleState(attitude_stamp_s=99.99, link_rtt_s=0.006, link_rtt_stamp_s=99.5)
+        ages.on_step(MissionInputs(veh, leader=leader), out)
     s = lat.summary()
+    assert s["mavlink_rtt"]["count"] == 1  # one exchange, however many ticks saw it
+    assert s["mavlink_rtt"]["p50_ms"] == pytest.approx(6.0)
     assert s["telemetry_age"]["count"] == 3
     assert s["telemetry_age"]["p50_ms"] == pytest.approx(10.0)
     assert s["camera_age"]["count"] == 1
