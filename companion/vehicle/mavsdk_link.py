@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import math
 import time
@@ -42,7 +41,7 @@ from typing import Any, TypeVar
 
 from mavsdk import log_subscribe, log_unsubscribe
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
-from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync, MavlinkDirectError
+from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.plugins.action import Action, ActionResult
@@ -54,7 +53,7 @@ from companion.config import LinkConfig
 from companion.kernel import compat
 from companion.kernel.clock import Clock
 from companion.kernel.compat import Self
-from companion.kernel.errors import CommandRejectedError, CompanionError, LinkLostError, WrongVehicleError
+from companion.kernel.errors import CommandRejectedError, LinkLostError, WrongVehicleError
 from companion.kernel.flight import (
     AttitudeSetpoint,
     ExternalPosition,
@@ -66,13 +65,14 @@ from companion.kernel.flight import (
 )
 from companion.kernel.stall import StallAwareAge
 from companion.vehicle import failsafe
-from companion.vehicle.boottime import TIMESYNC_PERIOD_S
 from companion.vehicle.external_vision import EV_CTRL_PARAM
 from companion.vehicle.finite import require_finite_position, require_finite_setpoint
 from companion.vehicle.identity import choose_autopilot
 from companion.vehicle.mavsdk_glue import (
     STATUSTEXT_SEVERITY,
     mavsdk_log,
+    read_hover_thrust,
+    request_timesync,
     result_name,
     route_mavsdk_log,
     settle,
@@ -217,8 +217,11 @@ class MavsdkVehicleLink:
             for name, factory in streams.items():
                 tg.create_task(factory(), name=f"companion.vehicle.{name}")
             tg.create_task(self._setpoint_guard(), name="companion.vehicle.setpoint_guard")
-            tg.create_task(self._timesync(), name="companion.vehicle.timesync")
-            tg.create_task(self._read_hover_thrust(), name="companion.vehicle.hover_thrust")
+            tg.create_task(request_timesync(self._direct, self.clock), name="companion.vehicle.timesync")
+            tg.create_task(
+                read_hover_thrust(self._param, self.cfg.command_timeout_s, self.telemetry),
+                name="companion.vehicle.hover_thrust",
+            )
             tg.create_task(self._configure_failsafe(), name="companion.vehicle.failsafe")
             if self.ev_position_bits:
                 tg.create_task(self._configure_external_vision(), name="companion.vehicle.external_vision")
@@ -273,18 +276,6 @@ class MavsdkVehicleLink:
         async with contextlib.aclosing(stream) as items:  # type: ignore[type-var]
             async for item in items:
                 handle(item)
-
-    async def _read_hover_thrust(self) -> None:
-        """PX4's MPC_THR_HOVER, to start the attitude law's thrust from; absent is fine."""
-        try:
-            async with compat.timeout(self.cfg.command_timeout_s):
-                value = float(await self._param.get_param_float("MPC_THR_HOVER"))
-        except (MavsdkError, TimeoutError) as exc:
-            log.info("vehicle link: MPC_THR_HOVER not readable (%s); using the configured default", exc)
-            return
-        if 0.05 < value < 0.95:
-            self.telemetry.update(hover_thrust_norm=value)
-            log.info("vehicle link: hover thrust %.3f from MPC_THR_HOVER", value)
 
     async def _configure_failsafe(self) -> None:
         """Set PX4's offboard-loss action (``link.offboard_loss_action``) and read back what it is.
@@ -455,20 +446,6 @@ class MavsdkVehicleLink:
 
     async def release_offboard(self) -> None:
         self._stream_active = False
-
-    async def _timesync(self) -> None:
-        """Ask the autopilot for its boot time now and then (MAVLink TIMESYNC; answers: on_timesync)."""
-        from mavsdk.plugins.mavlink_direct import MavlinkMessage  # noqa: PLC0415 (mavsdk: heavy)
-
-        while True:
-            fields = json.dumps({"tc1": 0, "ts1": int(self.clock.now_s() * 1e9)})
-            try:
-                await self._require(self._direct).send_message(
-                    MavlinkMessage(message_name="TIMESYNC", fields_json=fields)
-                )
-            except (CompanionError, MavlinkDirectError) as exc:
-                log.debug("vehicle link: TIMESYNC not sent: %s", exc)
-            await asyncio.sleep(TIMESYNC_PERIOD_S)
 
     async def _setpoint_guard(self) -> None:
         """Stop offboard when the mission stops refreshing (MAVSDK would resend the last one forever)."""

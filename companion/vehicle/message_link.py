@@ -1,25 +1,22 @@
 """``MessageVehicleLink``: the :class:`~companion.vehicle.link.VehicleLink` over MAVLink *message objects*.
 
-No sockets and no threads: it sends pymavlink message objects to a :class:`MessageTransport` and reads what
-comes back when its owner calls :meth:`MessageVehicleLink.pump`. Its use is the lockstep evaluation harness
-(``sitl.world.World.link(...)`` is such a transport), where the simulation and the service share one clock
-and MAVSDK, which needs real UDP and real time, cannot run.
+No sockets, no threads: it sends pymavlink message objects to a :class:`MessageTransport` and reads what comes
+back when its owner calls :meth:`MessageVehicleLink.pump`. For the lockstep harness (``sitl.world.World.link``
+is such a transport): one clock for simulation and service, where MAVSDK (real UDP, real time) cannot run.
 
 It does on the wire what :class:`~companion.vehicle.mavsdk_link.MavsdkVehicleLink` makes MAVSDK 4 do, so the
 mission sees the same vehicle through either link:
 
-* telemetry is assembled as MAVSDK's telemetry plugin does (flight mode from HEARTBEAT custom mode,
-  health from SYS_STATUS present/health bits, velocity from GLOBAL_POSITION_INT, position from
-  LOCAL_POSITION_NED, ``position_valid`` from ESTIMATOR_STATUS), stamped on arrival on the given clock;
+* telemetry is assembled as MAVSDK's telemetry plugin does (mode from HEARTBEAT, health from SYS_STATUS,
+  ``position_valid`` from ESTIMATOR_STATUS), samples stamped when taken (TIMESYNC, vehicle/boottime.py);
 * commands are COMMAND_LONG resent every 0.5 s up to three times, matched to their COMMAND_ACK;
   ``takeoff`` sets MIS_TAKEOFF_ALT first, as MAVSDK's ``set_takeoff_altitude`` + ``takeoff`` do;
 * setpoints are sent at once and then resent at 20 Hz (MAVSDK's offboard plugin), with the same setpoint
   guard as the MAVSDK link (no fresh setpoint for ``setpoint_timeout_s``: stop offboard) and MAVSDK's
   watchdog (a non-offboard HEARTBEAT more than 3 s after start ends the stream).
 
-Time: everything is on the clock passed in (sim time in lockstep); :meth:`pump` must be called often (every
-physics step in the harness) because retries, resends and timeouts are checked there. Telemetry is assembled
-in :mod:`companion.vehicle.mavlink_telemetry`.
+Time: the clock passed in (sim time in lockstep); :meth:`pump` must be called often (every physics step in
+the harness): retries, resends and timeouts are checked there. Telemetry: vehicle/mavlink_telemetry.py.
 """
 
 from __future__ import annotations
