@@ -8,9 +8,10 @@ estimate erred by 0.035 m (median) and, with a brisker velocity command, up to 1
 With MAVLink TIMESYNC (:meth:`BootClockMap.sync`: the companion's request echoed with the autopilot's
 boot time) the map is the offset of the exchange with the shortest round trip among the recent ones, half
 the round trip taken as the one-way delay, as NTP does: the link's own latency is then taken out of every
-stamp. Stamped by the fastest delivery alone, every sample stayed late by the link's shortest latency:
-12 ms of it (lockstep, telemetry 12 ms plus a 10 ms spread) doubled the leader's height error, 0.026 ->
-0.055 m, and shook the follower's climb rate (0.03 -> 0.18 m/s RMS).
+stamp. The fastest delivery still bounds it (no sample arrives before it was taken). Stamped by the
+fastest delivery alone, every sample stayed late by the link's shortest latency: 12 ms of it (lockstep,
+telemetry 12 ms plus a 10 ms spread) doubled the leader's height error, 0.026 -> 0.055 m, and shook the
+follower's climb rate (0.03 -> 0.18 m/s RMS).
 
 Without TIMESYNC (an autopilot that does not answer) the map is the lowest ``arrival - boot time`` seen (the
 fastest delivery), allowed to creep up slowly so a clock drift or an autopilot reboot is followed. Pure:
@@ -91,6 +92,9 @@ class BootClockMap:
             self._offset_s += DRIFT_S_PER_S * max(0.0, arrival_s - self._last_arrival_s)
         self._last_arrival_s = arrival_s
         self._offset_s = min(self._offset_s, arrival_s - boot_s)
+        offset_s = self._offset_s
         if self._syncs:
-            return min(arrival_s, boot_s + min(self._syncs)[1])
-        return min(arrival_s, boot_s + self._offset_s)
+            # No sample arrives before it was taken, so the fastest delivery bounds the offset from above:
+            # it wins where the round trip is lopsided (an answer that waits for the autopilot's next step).
+            offset_s = min(offset_s, min(self._syncs)[1])
+        return min(arrival_s, boot_s + offset_s)
