@@ -28,6 +28,7 @@ if sys.version_info < (3, 11):  # noqa: UP036 (the service side also runs on 3.1
         "unit/detector/*",
         "unit/test_detector*",
         "unit/test_campaign_*.py",
+        "unit/test_camera_timing.py",
         "unit/test_dataset_profiles.py",
         "unit/test_procs.py",
         "unit/test_sim_command.py",
