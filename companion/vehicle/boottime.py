@@ -45,18 +45,20 @@ class BootClockMap:
         self._last_boot_s = -math.inf
         #: Recent TIMESYNC exchanges: (round trip, local minus boot time), s.
         self._syncs: deque[tuple[float, float]] = deque(maxlen=SYNC_WINDOW)
+        #: The one of them with the shortest round trip (None: unsynced), chosen once per exchange.
+        self._best: tuple[float, float] | None = None
         #: The last exchange's round trip, s (NaN: none yet).
         self.last_rtt_s = math.nan
 
     @property
     def synced(self) -> bool:
         """Whether TIMESYNC sets the map (else the fastest delivery does)."""
-        return bool(self._syncs)
+        return self._best is not None
 
     @property
     def one_way_s(self) -> float:
         """The link's one-way delay by the best recent exchange (half its round trip), s; NaN unsynced."""
-        return min(self._syncs)[0] / 2.0 if self._syncs else math.nan
+        return self._best[0] / 2.0 if self._best is not None else math.nan
 
     def sync(self, boot_s: float, sent_s: float, received_s: float) -> bool:
         """Take one TIMESYNC exchange; False when it cannot be a measure (ignored).
@@ -71,11 +73,13 @@ class BootClockMap:
             self._reboot()
         self.last_rtt_s = rtt_s
         self._syncs.append((rtt_s, 0.5 * (sent_s + received_s) - boot_s))
+        self._best = min(self._syncs)
         return True
 
     def _reboot(self) -> None:
         self._offset_s = math.inf
         self._syncs.clear()
+        self._best = None
 
     def stamp(self, boot_ms: int, arrival_s: float) -> float:
         """The local time at which a sample stamped ``boot_ms`` was taken: never after ``arrival_s``.
@@ -93,8 +97,8 @@ class BootClockMap:
         self._last_arrival_s = arrival_s
         self._offset_s = min(self._offset_s, arrival_s - boot_s)
         offset_s = self._offset_s
-        if self._syncs:
+        if self._best is not None:
             # No sample arrives before it was taken, so the fastest delivery bounds the offset from above:
             # it wins where the round trip is lopsided (an answer that waits for the autopilot's next step).
-            offset_s = min(offset_s, min(self._syncs)[1])
+            offset_s = min(offset_s, self._best[1])
         return min(arrival_s, boot_s + offset_s)
