@@ -41,6 +41,7 @@ from companion.telemetry.mqtt_client import (
     INBOUND_QUEUE,
     bounded_queue,
     call,
+    cancel_and_wait,
     connection_error,
 )
 from companion.telemetry.mqtt_inbound import MqttInbound
@@ -356,9 +357,7 @@ class MqttReporter:
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
+            await cancel_and_wait(tasks)
         for task in done:
             task.result()  # the error that ended the session (a loop that returns means the same)
         raise aiomqtt.MqttError("session ended")

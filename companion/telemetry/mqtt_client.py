@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import TypeVar
 
 import aiomqtt
@@ -54,6 +54,41 @@ def connection_error(raised: BaseException) -> BaseException:
     while isinstance(first, compat.BaseExceptionGroup):
         first = first.exceptions[0]
     return first
+
+
+#: How long a cancelled task has to end before it is cancelled again: longer than any cleanup of the
+#: session's own tasks (a cancellation during cleanup would cut it short), short enough for a stop.
+RECANCEL_PERIOD_S = 0.5
+
+
+async def cancel_and_wait(tasks: Sequence[asyncio.Task[object]]) -> None:
+    """Cancel ``tasks`` and return once every one has ended, cancelling again any that swallowed it.
+
+    On Python 3.10 a task not made by a TaskGroup has no ``cancelling()``, so :func:`call` cannot see a
+    cancellation that aiomqtt's ``asyncio.wait_for`` swallowed (CPython gh-86296): the task goes back to
+    waiting for work and a plain ``gather`` after ``cancel()`` waits for ever. That ended the session loop
+    for good: no reconnect, and no stop. The next cancellation reaches the task wherever it waits.
+    A cancellation of the caller meanwhile is kept and raised once the tasks have ended.
+    """
+    cancelled = False
+    pending = [t for t in tasks if not t.done()]
+    for task in pending:
+        task.cancel()
+    while pending:
+        try:
+            await asyncio.wait(pending, timeout=RECANCEL_PERIOD_S)
+        except asyncio.CancelledError:
+            cancelled = True  # the tasks still get their whole period: wait again
+            pending = [t for t in pending if not t.done()]
+            continue
+        pending = [t for t in pending if not t.done()]
+        for task in pending:
+            task.cancel()
+    for task in tasks:
+        if not task.cancelled():
+            task.exception()  # retrieved: the caller reads the one that matters from its own ``done``
+    if cancelled:
+        raise asyncio.CancelledError
 
 
 async def call(awaitable: Awaitable[T]) -> T:

@@ -110,6 +110,8 @@ async def test_publishes_state_pose_health_and_events(broker: Mosquitto) -> None
         await wait_for(lambda: collector.payloads("events"))
         await wait_for(lambda: collector.payloads("state")[-1]["state"] == "CONTROLLED_LANDING")
         assert await reporter.stop("test over")
+        # stop() returns once the broker has the message; the collector gets it a moment later.
+        await wait_for(lambda: collector.payloads("state")[-1]["online"] is False)
     state = collector.payloads("state")
     assert state[0]["vehicle_id"] == "f1"
     assert state[0]["online"] is True
@@ -192,10 +194,15 @@ async def test_authenticated_commands_and_leader_position(broker: Mosquitto) -> 
             pos = {"lat_deg": 47.39, "lon_deg": 8.54, "alt_amsl_m": 500.0, "time_unix_s": time.time()}
             await gcs.publish("leader/pos", json.dumps(pos), qos=0)
             await gcs.publish("leader/pos", b"{not json", qos=0)
-        await wait_for(lambda: len(collector.payloads("events")) >= 3 and vehicle.leader)
+        await wait_for(lambda: len(collector.payloads("events")) >= 4 and vehicle.leader)
     assert [c.name.value for c in vehicle.commands] == ["hold"]
     kinds = [(e["kind"], e["data"].get("reason")) for e in collector.payloads("events")]
-    assert kinds == [("command", None), ("command_rejected", "REPLAYED"), ("command_rejected", "BAD_MAC")]
+    assert kinds == [
+        ("command", None),
+        ("command_rejected", "REPLAYED"),
+        ("command_rejected", "BAD_MAC"),
+        ("share_rejected", "malformed"),
+    ]
     assert vehicle.leader[0].lat_deg == pytest.approx(47.39)
     assert reporter.inbound.commands_rejected == 2
 
