@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import random
 from collections.abc import Awaitable, Callable
@@ -83,6 +84,8 @@ class FollowerService:
         mqtt_credentials: password, TLS, command and formation keys, loaded at the edge.
         command_marks: the operators' last command times, kept in ``service.state_dir`` (None: memory).
         rng: jitter for backoffs.
+        freeze_heap: once everything is open, move it out of the garbage collector's reach (``gc.freeze``):
+            the daemon and the lab's real path ask it (undone when the service returns).
     """
 
     def __init__(
@@ -97,8 +100,10 @@ class FollowerService:
         mqtt_credentials: MqttCredentials | None = None,
         command_marks: HighWaterMarks | None = None,
         rng: random.Random | None = None,
+        freeze_heap: bool = False,
     ) -> None:
         self.cfg = cfg
+        self._freeze_heap = freeze_heap
         self._open_parts = open_parts
         self.clock = clock
         self._wall_time_s = wall_time_s
@@ -169,6 +174,13 @@ class FollowerService:
                 self.mqtt = self._build_mqtt(parts)
                 self.health.register(MQTT, critical=False)
             parts.mission.set_on_change(self._on_change)
+            if self._freeze_heap:
+                # What is open now (torch, the model, the link) lives as long as the process. A full
+                # collection walks all of it (70-150 ms for ~200k objects on a 2-core x86), holding the
+                # control loop: rare in flight, but never needed for these. Garbage is collected first.
+                gc.collect()
+                gc.freeze()
+                stack.callback(gc.unfreeze)
             try:
                 async with compat.TaskGroup() as tg:
                     for name, loop in parts.background.items():

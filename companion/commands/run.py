@@ -73,6 +73,7 @@ async def _serve(cfg: Config, notify: Any, creds: Any, marks: Any, guard: ExitGu
             notifier=notifier,
             mqtt_credentials=creds,
             command_marks=marks,
+            freeze_heap=True,
         )
         loop = asyncio.get_running_loop()
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import os
 import socket
@@ -162,7 +163,12 @@ def drain(rx: socket.socket) -> list[str]:
 
 
 def make_service(
-    tmp_path: Path, mission: ScriptedMission, notify_path: str | None, **cfg_kw: Any
+    tmp_path: Path,
+    mission: ScriptedMission,
+    notify_path: str | None,
+    *,
+    freeze_heap: bool = False,
+    **cfg_kw: Any,
 ) -> tuple[FollowerService, RecordingGcs]:
     data: dict[str, Any] = {
         "status": {"socket_path": str(tmp_path / "run" / "status.sock")},
@@ -178,7 +184,14 @@ def make_service(
 
     notifier = SystemdNotifier(NotifyConfig(notify_path, 0.4))
     notifier.__enter__()
-    svc = FollowerService(cfg, open_parts, clock=mission.clock, wall_time_s=time.time, notifier=notifier)
+    svc = FollowerService(
+        cfg,
+        open_parts,
+        clock=mission.clock,
+        wall_time_s=time.time,
+        notifier=notifier,
+        freeze_heap=freeze_heap,
+    )
     return svc, gcs
 
 
@@ -195,11 +208,14 @@ async def test_stop_request_lands_then_exits_zero(
     path, rx = notify_socket
     clock = MonotonicClock()
     mission = ScriptedMission(clock)
-    svc, gcs = make_service(tmp_path, mission, path)
+    svc, gcs = make_service(tmp_path, mission, path, freeze_heap=True)
     sock = Path(svc.cfg.status.socket_path)
+    frozen_before = gc.get_freeze_count()
     async with compat.TaskGroup() as tg:
         task = tg.create_task(svc.run())
         await wait_until(lambda: mission.state == "follow" and exists(sock))
+        # The daemon's heap as it flies: what was open at start is out of the collector's reach.
+        assert gc.get_freeze_count() > frozen_before + 10_000
         await asyncio.sleep(0.5)
         started = await asyncio.to_thread(query_status, sock, "start")
         assert started == {"ok": True, "detail": "start: follow -> follow (scripted)"}
@@ -209,6 +225,7 @@ async def test_stop_request_lands_then_exits_zero(
         svc.request_stop("SIGTERM")
         svc.request_stop("SIGTERM")  # a second signal changes nothing
     assert task.result() == 0
+    assert gc.get_freeze_count() == frozen_before  # given back when the service returns
     assert mission.history == ["wait_link", "follow", "px4_hold", "px4_land"]
     assert not mission.snapshot().vehicle.armed  # the service waited for the disarm before exiting
     assert not exists(sock)

@@ -245,7 +245,12 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
 
         with SystemdNotifier(NotifyConfig()) as notifier:
             service = FollowerService(
-                service_cfg, open_parts, clock=sim_clock, wall_time_s=time.time, notifier=notifier
+                service_cfg,
+                open_parts,
+                clock=sim_clock,
+                wall_time_s=time.time,
+                notifier=notifier,
+                freeze_heap=True,
             )
             await _fly(service, sim, sim_clock, scenario.run.duration_s, options.progress)
         end_s = sim_clock.now_s()
