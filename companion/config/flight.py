@@ -17,6 +17,10 @@ class FormationConfig(Section):
     #: Tuned on the circle (15 m, 3 m/s) against the simulator's PX4-like velocity loop, whose tracking
     #: error varies once per revolution: kp 0.9 / ki 0.05 left 0.27 m RMSE, these 0.13 m.
     kp_xy: float = 1.8
+    #: The range gain of the GPS-lost attitude law, 1/s: its outer loop feeds its own relative-velocity
+    #: loop (``FormationLaw.KV_XY_1_S``), not PX4's, and is kept apart from ``kp_xy`` so that each is
+    #: tuned for its loop.
+    kp_xy_attitude: float = Field(1.8, gt=0.0, le=5.0)
     ki_xy: float = 0.1
     kd_xy: float = 0.8
     i_limit_xy_m_s: float = 0.5

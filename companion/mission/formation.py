@@ -352,7 +352,7 @@ class FormationLaw:
         err = slot_error(self.slot, p, v_rel, follower.yaw_rad)
 
         # Outer loop: the relative velocity we want (radial only; tangential relative motion is unwanted).
-        v_rel_des = -(cfg.kp_xy * err.e_range_m + self._i_range_m_s) * err.u_los
+        v_rel_des = -(cfg.kp_xy_attitude * err.e_range_m + self._i_range_m_s) * err.u_los
         if slot_target is not None:
             # The follower's velocity for the slot is minus the relative velocity it needs.
             v_rel_des = v_rel_des - self._slot_velocity(p, err.u_los, slot_target)

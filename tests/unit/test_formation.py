@@ -312,6 +312,17 @@ def test_attitude_law_respects_tilt_and_thrust_bounds(
         assert abs(math.remainder(sp.yaw_rad - yaw, 2 * math.pi)) <= math.radians(60.0) / 1.5 + 1e-9
 
 
+def test_each_law_has_its_own_range_gain() -> None:
+    """``kp_xy`` tunes the velocity law; the attitude law, with its own inner loop, has ``kp_xy_attitude``."""
+    p_rel, v_rel = np.array([5.4, 0.0, 0.0]), np.zeros(3)  # 0.4 m behind the slot: no limit reached
+    base = law(leader_velocity_ff=0.0).velocity(p_rel, v_rel, hover(), 0.0).v_ned_m_s[0]
+    stiff = law(leader_velocity_ff=0.0, kp_xy=2.5).velocity(p_rel, v_rel, hover(), 0.0).v_ned_m_s[0]
+    assert stiff > base > 0.0
+    tilt = law(kp_xy=2.5).attitude(p_rel, v_rel, hover(), 0.0).setpoint.pitch_rad
+    assert tilt == law().attitude(p_rel, v_rel, hover(), 0.0).setpoint.pitch_rad
+    assert law(kp_xy_attitude=0.9).attitude(p_rel, v_rel, hover(), 0.0).setpoint.pitch_rad > tilt
+
+
 def test_attitude_law_brakes_when_closing_inside_the_barrier() -> None:
     lw = law()
     fol = FollowerState(yaw_rad=0.0, v_ned_m_s=None, v_down_m_s=0.0, alt_rel_m=10.0)
