@@ -8,20 +8,20 @@ service must not fly, 5 no service answers on the status socket (``status``, ``s
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
 
 from companion import __version__
+from companion.commands import autolabel, bench, config_cmd, detector, replay, run, sim, status
 from companion.kernel.cli import describe_commands
 from companion.kernel.errors import CompanionError
 
 log = logging.getLogger("companion")
 
-#: Command modules under companion.commands, in --help order.
-COMMAND_MODULES = ("run", "status", "config_cmd", "sim", "bench", "detector", "replay", "autolabel")
+#: The command modules, in --help order (each imports its heavy parts only when it runs).
+COMMAND_MODULES = (run, status, config_cmd, sim, bench, detector, replay, autolabel)
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -46,8 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="least severe log level shown (overrides the config)",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMAND_MODULES:
-        importlib.import_module(f"companion.commands.{name}").register(sub)
+    for module in COMMAND_MODULES:
+        module.register(sub)
     describe_commands(parser)
     return parser
 

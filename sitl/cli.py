@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -15,24 +14,43 @@ from companion.kernel.errors import CompanionError
 Handler = Callable[[argparse.Namespace], int]
 
 
-def _lazy(module: str, func: str, what: str) -> Handler:
-    """A handler that imports ``module`` only when the command runs (keeps ``sitl --help`` light).
+# Each command imports its module only when it runs: `sitl --help` stays light (no JSBSim, no renderer).
 
-    Until the module exists the command says plainly that it is not built yet (exit 2).
-    """
 
-    def handler(args: argparse.Namespace) -> int:
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
-            print(f"sitl {what}: not built yet", file=sys.stderr)
-            return 2
-        result: int = getattr(mod, func)(args)
-        return result
+def _serve(args: argparse.Namespace) -> int:
+    from sitl.serve import main  # noqa: PLC0415
 
-    return handler
+    return main(args)
+
+
+def _dataset(args: argparse.Namespace) -> int:
+    from sitl.dataset import main_dataset  # noqa: PLC0415
+
+    return main_dataset(args)
+
+
+def _dataset_merge(args: argparse.Namespace) -> int:
+    from sitl.dataset import main_merge  # noqa: PLC0415
+
+    return main_merge(args)
+
+
+def _contact_sheet(args: argparse.Namespace) -> int:
+    from sitl.dataset import main_contact_sheet  # noqa: PLC0415
+
+    return main_contact_sheet(args)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from sitl.bench import main  # noqa: PLC0415
+
+    return main(args)
+
+
+def _bench_render(args: argparse.Namespace) -> int:
+    from sitl.render.bench import main  # noqa: PLC0415
+
+    return main(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -87,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MODULE:CALLABLE",
         help="run an in-process async component (e.g. the camera server); repeatable",
     )
-    s.set_defaults(handler=_lazy("sitl.serve", "main", "serve"))
+    s.set_defaults(handler=_serve)
 
     d = sub.add_parser("dataset", help="render a detector dataset with YOLO labels and COCO json")
     d.add_argument("--out", type=Path, required=True, help="new dataset folder")
@@ -102,14 +120,14 @@ def build_parser() -> argparse.ArgumentParser:
         "clutter: that view with a tree or building behind the leader; near: the formation view at 5-12 m, "
         "mostly with a structure behind the leader",
     )
-    d.set_defaults(handler=_lazy("sitl.dataset", "main_dataset", "dataset"))
+    d.set_defaults(handler=_dataset)
 
     m = sub.add_parser(
         "dataset-merge", help="join `sitl dataset` folders into one by symbolic links (splits kept)"
     )
     m.add_argument("--out", type=Path, required=True, help="new merged dataset folder")
     m.add_argument("sources", type=Path, nargs="+", help="dataset folders (their names must differ)")
-    m.set_defaults(handler=_lazy("sitl.dataset", "main_merge", "dataset-merge"))
+    m.set_defaults(handler=_dataset_merge)
 
     c = sub.add_parser(
         "contact-sheet", help="PNG of 16 random dataset frames with boxes and false-colour depth"
@@ -118,18 +136,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", type=Path, default=Path("runs/contact-sheet.png"), help="PNG to write")
     c.add_argument("--seed", type=int, default=0, help="which random frames (default 0)")
     c.add_argument("--tile-px", type=int, default=320, help="width of each colour/depth tile")
-    c.set_defaults(handler=_lazy("sitl.dataset", "main_contact_sheet", "contact-sheet"))
+    c.set_defaults(handler=_contact_sheet)
 
     b = sub.add_parser("bench", help="lockstep real-time factor for 2 vehicles, without rendering")
     b.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     b.add_argument("--sim-s", type=float, default=60.0, help="sim seconds per run (default 60)")
     b.add_argument("--repeats", type=int, default=3, help="runs; the median is reported (default 3)")
-    b.set_defaults(handler=_lazy("sitl.bench", "main", "bench"))
+    b.set_defaults(handler=_bench)
 
     r = sub.add_parser("bench-render", help="rendered RGB-D frames per second at 640x480 with noise")
     r.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     r.add_argument("--frames", type=int, default=300, help="frames to render (default 300)")
-    r.set_defaults(handler=_lazy("sitl.render.bench", "main", "bench-render"))
+    r.set_defaults(handler=_bench_render)
     describe_commands(parser)
     return parser
 

@@ -9,8 +9,7 @@ preprocess to filter (the camera path). A ``+window`` runtime is the same networ
 tracked leader (:mod:`companion.perception.detector.roi`), focused on each frame's leader as the tracker
 would be. The pose and filter stages come from the caller (``companion bench`` hands in the estimation's
 :class:`~companion.estimation.pipeline.PerceptionPipeline`; perception does not import estimation); without
-them, and for any stage whose code is not in this build, the stage is reported as "not built yet", never
-with a number.
+them, such a stage is reported as "not measured", never with a number.
 """
 
 from __future__ import annotations
@@ -33,7 +32,7 @@ log = logging.getLogger(__name__)
 
 STAGES = ("decode", "preprocess", "inference", "postprocess", "pose", "filter")
 CAMERA_STAGES = STAGES[1:]
-NOT_BUILT = "not built yet"
+NOT_MEASURED = "not measured"
 
 
 def percentiles_ms(samples_ms: list[float]) -> dict[str, float]:
@@ -114,7 +113,7 @@ def run_bench(
     """Time every detector (name -> FrameDetector) and the perception stages over ``frames``.
 
     ``pose_filter`` builds a fresh pose and filter stage for each runtime (each keeps its own track); None:
-    those stages are reported as not built.
+    those stages are reported as not measured.
     """
     import cv2  # noqa: PLC0415
 
@@ -176,7 +175,7 @@ def run_bench(
     for name, r in runs.items():
         stages: dict[str, Any] = {}
         for s in (*STAGES, "total"):
-            stages[s] = percentiles_ms(r.samples[s]) if r.samples[s] else NOT_BUILT
+            stages[s] = percentiles_ms(r.samples[s]) if r.samples[s] else NOT_MEASURED
         stages["detector"] = percentiles_ms(
             [
                 a + b + c

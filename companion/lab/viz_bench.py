@@ -117,7 +117,7 @@ async def bench(block_s: float, blocks: int, out: Path) -> dict[str, Any]:
     frames = synthetic_frames(60)
     health = HealthBoard(clock)
     PerceptionLoop.register(health)
-    perception: PerceptionLoop[Any] = PerceptionLoop(
+    perception: PerceptionLoop = PerceptionLoop(
         _PacedFrames(frames, clock, FPS),
         _truth_boxes,
         process,

@@ -25,7 +25,7 @@ class Parts:
 
     mission: MissionPort
     gcs: GcsPort | None = None
-    perception: PerceptionLoop[Any] | None = None
+    perception: PerceptionLoop | None = None
     #: Where leader positions received on MQTT go (``leader.shared_position = "mqtt"``).
     on_leader_position: Callable[[LeaderPositionMsg], None] | None = None
     #: Where the other followers' poses received on MQTT go (formations: ``formation.plan``).

@@ -17,7 +17,6 @@ import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Generic, TypeVar
 
 from companion.kernel import compat
 from companion.kernel.camera import RgbdFrame
@@ -29,8 +28,6 @@ from companion.service.mailbox import Latest, MailboxClosedError
 
 log = logging.getLogger(__name__)
 
-T = TypeVar("T")
-
 CAMERA = "camera"
 PERCEPTION = "perception"
 
@@ -41,14 +38,14 @@ class _Arrival:
     arrived_s: float
 
 
-class PerceptionLoop(Generic[T]):
-    """Runs a frame source and a detector, and publishes ``process(frame, result)`` to :attr:`estimates`.
+class PerceptionLoop:
+    """Runs a frame source and a detector, and hands each frame and its detections to ``process``.
 
     Args:
         source: an opened frame source (the caller owns its context).
         detect: the detector on one frame (usually ``lambda f: detector.detect(f.rgb)``); only ever
             called from one worker thread, one frame at a time.
-        process: pose + tracker for one frame (on the loop); its result goes to :attr:`estimates`.
+        process: pose, tracker and mission for one frame (on the loop, after the detector).
         clock: the service clock (latency, health).
         latency: per-stage latency sink (``queue``, ``detect``, ``preprocess``, ``inference``,
             ``postprocess``, ``track``, ``end_to_end``; ms).
@@ -59,7 +56,7 @@ class PerceptionLoop(Generic[T]):
         self,
         source: FrameSource,
         detect: Callable[[RgbdFrame], DetectorResult],
-        process: Callable[[RgbdFrame, DetectorResult], T],
+        process: Callable[[RgbdFrame, DetectorResult], object],
         *,
         clock: Clock,
         latency: LatencyStats,
@@ -73,7 +70,6 @@ class PerceptionLoop(Generic[T]):
         self._health = health
         self._frames: Latest[_Arrival] | None = None
         self._dropped_before = 0
-        self.estimates: Latest[T] = Latest()
         # One thread for the loop's whole life, across restarts: the detector never runs twice at once.
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="companion-detector")
         self.frames_received = 0
@@ -134,9 +130,8 @@ class PerceptionLoop(Generic[T]):
             self._latency.record("queue", (t0 - arrival.arrived_s) * 1e3)
             result = await loop.run_in_executor(self._executor, self._detect, arrival.frame)
             t1 = self._clock.now_s()
-            estimate = self._process(arrival.frame, result)
+            self._process(arrival.frame, result)
             t2 = self._clock.now_s()
-            self.estimates.put(estimate)
             self.frames_processed += 1
             self._latency.record("detect", (t1 - t0) * 1e3)
             if result.timing is not None:
@@ -146,4 +141,3 @@ class PerceptionLoop(Generic[T]):
             self._latency.record("track", (t2 - t1) * 1e3)
             self._latency.record("end_to_end", (t2 - arrival.arrived_s) * 1e3)
             self._health.beat(PERCEPTION, detail=f"{len(result.detections)} detection(s)")
-            log.debug("frame %d: %d detections", arrival.frame.seq, len(result.detections))

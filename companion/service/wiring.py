@@ -336,7 +336,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
                 on_frame(frame, result, track, (time.perf_counter() - t0_s) * 1e3)
             return track
 
-        perception: PerceptionLoop[Any] = PerceptionLoop(
+        perception: PerceptionLoop = PerceptionLoop(
             source, stage.detect, process, clock=ctx.clock, latency=ctx.latency, health=ctx.health
         )
         return Parts(

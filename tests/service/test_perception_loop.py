@@ -101,7 +101,6 @@ async def test_one_inference_in_flight_and_stale_frames_dropped() -> None:
     assert c["processed"] + c["dropped"] == c["received"]
     assert seen == sorted(seen)
     assert seen[-1] == 59  # the newest frame is always the one processed last
-    assert loop.estimates.peek() == 59
     s = latency.summary()
     assert s["detect"]["p50_ms"] >= 25
     assert set(s) >= {"queue", "detect", "inference", "track", "end_to_end"}
