@@ -15,7 +15,8 @@ class FormationConfig(Section):
     #: Desired leader position in the camera frame at level flight (x right, y down, z forward), m.
     offset_cam_m: tuple[float, float, float] = (0.0, 0.0, 5.0)
     #: Tuned on the circle (15 m, 3 m/s) against the simulator's PX4-like velocity loop, whose tracking
-    #: error varies once per revolution: kp 0.9 / ki 0.05 left 0.27 m RMSE, these 0.13 m.
+    #: error varies once per revolution: kp 0.9 / ki 0.05 left 0.27 m RMSE, these 0.13 m. 2.5 trails an
+    #: accelerating leader less under socket timing but is not the default (docs/flight.md, "Time").
     kp_xy: float = 1.8
     #: The range gain of the GPS-lost attitude law, 1/s: its outer loop feeds its own relative-velocity
     #: loop (``FormationLaw.KV_XY_1_S``), not PX4's, and is kept apart from ``kp_xy`` so that each is

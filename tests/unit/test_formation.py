@@ -315,11 +315,11 @@ def test_attitude_law_respects_tilt_and_thrust_bounds(
 def test_each_law_has_its_own_range_gain() -> None:
     """``kp_xy`` tunes the velocity law; the attitude law, with its own inner loop, has ``kp_xy_attitude``."""
     p_rel, v_rel = np.array([5.4, 0.0, 0.0]), np.zeros(3)  # 0.4 m behind the slot: no limit reached
-    base = law(leader_velocity_ff=0.0).velocity(p_rel, v_rel, hover(), 0.0).v_ned_m_s[0]
+    base = law(leader_velocity_ff=0.0, kp_xy=1.8).velocity(p_rel, v_rel, hover(), 0.0).v_ned_m_s[0]
     stiff = law(leader_velocity_ff=0.0, kp_xy=2.5).velocity(p_rel, v_rel, hover(), 0.0).v_ned_m_s[0]
     assert stiff > base > 0.0
     tilt = law(kp_xy=2.5).attitude(p_rel, v_rel, hover(), 0.0).setpoint.pitch_rad
-    assert tilt == law().attitude(p_rel, v_rel, hover(), 0.0).setpoint.pitch_rad
+    assert tilt == law(kp_xy=1.8).attitude(p_rel, v_rel, hover(), 0.0).setpoint.pitch_rad
     assert law(kp_xy_attitude=0.9).attitude(p_rel, v_rel, hover(), 0.0).setpoint.pitch_rad > tilt
 
 
