@@ -24,7 +24,7 @@ import contextlib
 import gc
 import logging
 import random
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,7 @@ from companion.kernel.clock import Clock
 from companion.service.ground_station import GroundStation
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
+from companion.service.operator import parse_command
 from companion.service.parts import Parts, PartsContext, PartsFactory
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import FlightSnapshot, MissionPort, StateChange
@@ -260,22 +261,13 @@ class FollowerService:
             reply = await self._parts.mission.operator_start()
         return self._answered("start", reply)
 
-    async def _operator_command(self, args: list[str]) -> dict[str, Any]:
-        """``command land|hold|set_offset X Y Z`` from the CLI: through the mission machine's checks."""
+    async def _operator_command(self, req: Mapping[str, Any]) -> dict[str, Any]:
+        """A command from the status socket (operator.py's JSON): through the mission machine's checks."""
         assert self._parts is not None  # noqa: S101
-        if not args:
-            return {"ok": False, "detail": "command refused: name one of land, hold, set_offset"}
-        name, rest = args[0], args[1:]
-        offset: tuple[float, float, float] | None = None
-        if name == "set_offset":
-            try:
-                x, y, z = (float(a) for a in rest)
-            except ValueError:
-                return {"ok": False, "detail": "set_offset refused: it needs three numbers X Y Z (m)"}
-            offset = (x, y, z)
-        elif rest:
-            return {"ok": False, "detail": f"{name} refused: it takes no arguments"}
-        return self._answered(name, await self._parts.mission.request_command(name, offset))
+        cmd = parse_command(req)
+        if isinstance(cmd, str):
+            return {"ok": False, "detail": cmd}
+        return self._answered(cmd.name, await self._parts.mission.request_command(cmd.name, cmd.offset_cam_m))
 
     def _answered(self, name: str, reply: str) -> dict[str, Any]:
         """The status socket's answer to an operator, also on MQTT's ``events`` as an MQTT command's is."""

@@ -11,6 +11,7 @@ from typing import Any
 
 from companion.commands._common import add_config_arg, config_path, load
 from companion.kernel.errors import CompanionError
+from companion.service.operator import OPERATOR_COMMANDS, command_request
 
 #: Exit codes of the commands that ask the running service (``status``, ``start``, ``command``).
 EXIT_DONE = 0
@@ -24,7 +25,7 @@ EXIT_CODES = (
 #: Seconds between rounds of ``companion health --wait``.
 HEALTH_RETRY_S = 2.0
 #: Operator commands and how many numbers each takes.
-COMMAND_ARGS = {"land": 0, "hold": 0, "set_offset": 3}
+COMMAND_ARGS = {name: 3 if takes_offset else 0 for name, takes_offset in OPERATOR_COMMANDS.items()}
 
 
 def register(sub: Any) -> None:
@@ -101,8 +102,11 @@ def _command(args: argparse.Namespace) -> int:
             f"{args.name} takes {'no numbers' if need == 0 else f'{need} numbers X Y Z (m)'}, "
             f"got {len(args.offset_cam_m)}"
         )
-    words = [args.name, *(repr(float(v)) for v in args.offset_cam_m)]
-    return _ask(args, "command " + " ".join(words))
+    offset: tuple[float, float, float] | None = None
+    if need:
+        x, y, z = (float(v) for v in args.offset_cam_m)
+        offset = (x, y, z)
+    return _ask(args, json.dumps(command_request(args.name, offset)))
 
 
 def _status(args: argparse.Namespace) -> int:

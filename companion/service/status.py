@@ -1,8 +1,10 @@
 """The local status endpoint: a Unix socket (mode 0660) that answers one JSON line per request.
 
-Protocol: the client sends one request and a newline (``status``, ``health``, ``start``, or ``command`` with
-its words, e.g. ``command set_offset 0 0 6``); the server answers with one JSON object and a newline, then
-closes. ``start`` and ``command`` are answered once the mission has acted on them (``{"ok", "detail"}``).
+Protocol: the client sends one request and a newline: a word (``status``, ``health``, ``start``) or a JSON
+object naming its request, ``{"request": "command", "name": "set_offset", "offset_cam_m": [0, 0, 6]}``
+(commands come only so: their numbers stay numbers); the server answers with one JSON object and a
+newline, then closes. ``start`` and ``command`` are answered once the mission has acted on them
+(``{"ok", "detail"}``).
 The socket's mode and its directory's group decide who may ask (the unit makes ``/run/wingman`` owned by
 the service's group).
 """
@@ -35,8 +37,8 @@ _REQUEST_TIMEOUT_S = 2.0
 #: A request's answer, or (an operator's request) a coroutine that answers once the mission has acted.
 Reply = Mapping[str, Any] | Awaitable[Mapping[str, Any]]
 Handler = Callable[[], Reply]
-#: A request with words after its name (``command set_offset 0 0 6``): gets those words.
-CommandHandler = Callable[[list[str]], Reply]
+#: A request sent as a JSON object (``{"request": "command", ...}``): gets the whole object.
+CommandHandler = Callable[[Mapping[str, Any]], Reply]
 
 
 #: Exit code of a client command (``status``, ``start``, ``command``) that found no service to answer it.
@@ -99,19 +101,20 @@ class StatusServer:
         try:
             async with compat.timeout(_REQUEST_TIMEOUT_S):
                 line = await reader.readline()
-            words = line[:_MAX_REQUEST_BYTES].decode("utf-8", "replace").split() or ["status"]
-            request, args = words[0], words[1:]
-            handler = self._handlers.get(request) if not args else None
-            command = self._commands.get(request)
+            text = line[:_MAX_REQUEST_BYTES].decode("utf-8", "replace").strip() or "status"
+            obj = _json_request(text)
+            handler = self._handlers.get(text)
+            command = self._commands.get(str(obj.get("request"))) if obj is not None else None
             reply: Reply
             if handler is not None:
                 reply = handler()
-            elif command is not None:
-                reply = command(args)
+            elif command is not None and obj is not None:
+                reply = command(obj)
             else:
                 reply = {
-                    "error": f"unknown request {' '.join(words)!r}",
-                    "known": sorted([*self._handlers, *self._commands]),
+                    "error": f"unknown request {text!r}",
+                    "known": sorted(self._handlers),
+                    "commands": 'a JSON object, e.g. {"request": "command", "name": "hold"}',
                 }
             if inspect.isawaitable(reply):
                 reply = await reply
@@ -126,6 +129,21 @@ class StatusServer:
             with contextlib.suppress(TimeoutError, ConnectionError):
                 async with compat.timeout(1.0):
                     await writer.wait_closed()
+
+
+def _json_request(text: str) -> dict[str, Any] | None:
+    """A request sent as a JSON object (numbers must be finite), or None."""
+    if not text.startswith("{"):
+        return None
+    try:
+        obj = json.loads(text, parse_constant=_no_constant)
+    except ValueError:
+        return None
+    return obj if isinstance(obj, dict) else None
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number here")
 
 
 def _json_default(obj: object) -> object:

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import socket
 import stat
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from companion.service.operator import command_request
 from companion.service.status import (
     ServiceNotRunningError,
     StatusServer,
@@ -77,19 +81,27 @@ async def test_status_server_roundtrip_mode_and_cleanup(tmp_path: Path) -> None:
         query_status(path)
 
 
-async def test_status_server_passes_a_commands_words_to_its_handler(tmp_path: Path) -> None:
+async def test_status_server_hands_a_command_its_json_object(tmp_path: Path) -> None:
+    """Commands travel as JSON objects (numbers stay numbers); words are for the plain requests only."""
     path = tmp_path / "s.sock"
-    seen: list[list[str]] = []
+    seen: list[Mapping[str, Any]] = []
 
-    def command(args: list[str]) -> dict[str, object]:
-        seen.append(args)
+    def command(req: Mapping[str, Any]) -> dict[str, object]:
+        seen.append(req)
         return {"ok": True}
 
+    request = json.dumps(command_request("set_offset", (0.0, 0.0, 6.0)))
     async with StatusServer(path, {"status": lambda: {"ok": True}}, commands={"command": command}):
-        assert (await asyncio.to_thread(query_status, path, "command set_offset 0 0 6"))["ok"] is True
-        unknown = await asyncio.to_thread(query_status, path, "status now")
-        assert unknown["error"] == "unknown request 'status now'"
-    assert seen == [["set_offset", "0", "0", "6"]]
+        assert (await asyncio.to_thread(query_status, path, request))["ok"] is True
+        for bad in (
+            "status now",
+            "command set_offset 0 0 6",
+            '{"request": "command", "x": NaN}',
+            "{not json",
+        ):
+            unknown = await asyncio.to_thread(query_status, path, bad)
+            assert unknown["error"] == f"unknown request {bad!r}", bad
+    assert seen == [{"request": "command", "name": "set_offset", "offset_cam_m": [0.0, 0.0, 6.0]}]
 
 
 async def test_status_server_replaces_a_dead_socket(tmp_path: Path) -> None:
