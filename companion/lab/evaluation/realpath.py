@@ -102,6 +102,25 @@ def score(observer: RunObserver, truth: TruthTrack, scorer: RunScorer, end_s: fl
             )
 
 
+class _ControlSteps:
+    """The run's observer, on the flight core's control steps (a ``FlightObserver``).
+
+    Frames reach the run's observer from the parts factory instead, with their processing time.
+    """
+
+    def __init__(self, observer: RunObserver) -> None:
+        self._observer = observer
+
+    def on_frame(self, frame: Any, result: Any, track: Any) -> None:
+        pass
+
+    def on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
+        self._observer.on_step(inputs, out)
+
+    def on_transition(self, tr: Any) -> None:
+        pass
+
+
 @dataclass(frozen=True, slots=True)
 class RealOptions:
     """Knobs of the real-path run."""
@@ -217,14 +236,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
         async def open_parts(stack: contextlib.AsyncExitStack, ctx: Any) -> Any:
             parts = await factory(stack, ctx)
             flight = cast(FlightAdapter, parts.mission)
-            own = flight.runner.on_step
-
-            def on_step(inputs: MissionInputs, out: StepOutput) -> None:
-                if own is not None:
-                    own(inputs, out)
-                observer.on_step(inputs, out)
-
-            flight.runner.on_step = on_step
+            flight.core.observers.append(_ControlSteps(observer))
             if options.mcap_path is not None:
                 recorder = attach_run_log(
                     service_cfg,
