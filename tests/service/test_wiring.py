@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import math
 import time
 from dataclasses import replace
@@ -27,6 +28,7 @@ from companion.kernel.clock import MonotonicClock
 from companion.kernel.flight import NEVER_S, FlightMode, LandedState, VehicleState
 from companion.mission.types import CommandKind
 from companion.perception.transform import CameraGeometry
+from companion.service.operator import command_request
 from companion.service.status import query_status
 from companion.service.systemd import NotifyConfig, SystemdNotifier
 from companion.service.wiring import FlightAdapter, LinkGcs, vehicle_summary
@@ -85,7 +87,8 @@ class LandingAutopilot(FakeAutopilot):
 
 
 #: Over the status socket, in order: hold, hold again, start (follow again), start again.
-ASK_HOLD_THEN_START = ("command hold", "command hold", "start", "start")
+HOLD = json.dumps(command_request("hold"))
+ASK_HOLD_THEN_START = (HOLD, HOLD, "start", "start")
 
 
 async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -> None:
