@@ -31,6 +31,7 @@ from typing import Any
 from companion.config import Config
 from companion.kernel import compat
 from companion.kernel.clock import Clock
+from companion.mission.types import OperatorCommand, OperatorRequest
 from companion.service.ground_station import GroundStation
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
@@ -258,7 +259,7 @@ class FollowerService:
         if self.stopping:
             reply = f"start refused: the service is stopping ({self._stop_reason})"
         else:
-            reply = await self._parts.mission.operator_start()
+            reply = await self._parts.mission.command(OperatorRequest(OperatorCommand.START))
         return self._answered("start", reply)
 
     async def _operator_command(self, req: Mapping[str, Any]) -> dict[str, Any]:
@@ -267,7 +268,7 @@ class FollowerService:
         cmd = parse_command(req)
         if isinstance(cmd, str):
             return {"ok": False, "detail": cmd}
-        return self._answered(cmd.name, await self._parts.mission.request_command(cmd.name, cmd.offset_cam_m))
+        return self._answered(cmd.command.value, await self._parts.mission.command(cmd))
 
     def _answered(self, name: str, reply: str) -> dict[str, Any]:
         """The status socket's answer to an operator, also on MQTT's ``events`` as an MQTT command's is."""
@@ -467,7 +468,8 @@ class FollowerService:
     async def _on_command(self, cmd: Command) -> str:
         """An MQTT operator command: through the mission machine's checks, like the CLI's."""
         assert self._parts is not None  # noqa: S101
-        return await self._parts.mission.request_command(cmd.name.value, cmd.offset_cam_m)
+        req = OperatorRequest(OperatorCommand(cmd.name.value), cmd.offset_cam_m)
+        return await self._parts.mission.command(req)
 
     def _state_msg(self) -> StateMsg:
         assert self._parts is not None  # noqa: S101

@@ -1,7 +1,7 @@
 """What the live view and the flight log cost the flight loop: ``python -m companion.lab.viz_bench``.
 
 The service's per-frame path (:class:`~companion.service.perception_loop.PerceptionLoop`: camera task,
-detector thread, then the :class:`~companion.service.flight_core.FlightCore` on the event loop) runs on
+detector thread, then the :class:`~companion.service.flight.FlightService` on the event loop) runs on
 640x480 RGB-D frames paced at 30 frames/s, with a 20 Hz control tick beside it. Blocks of ``--block-s``
 alternate between the recorder off and on (the live view with a Foxglove client subscribed to every channel
 in another process, and an MCAP log, both at the shipped ``[viz]`` rates), so a machine's changing load hits
@@ -32,7 +32,7 @@ from companion.kernel.flight import FlightMode, VehicleState
 from companion.lab.bench import synthetic_frames
 from companion.mission.types import MissionInputs
 from companion.perception.types import Detection, DetectorResult, DetectStage
-from companion.service.flight_core import FlightCore
+from companion.service.flight import FlightService
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.perception_loop import PerceptionLoop
@@ -85,7 +85,7 @@ async def bench(block_s: float, blocks: int, out: Path) -> dict[str, Any]:
     """Alternate off/on blocks; the figures of each mode."""
     cfg = Config()
     clock = MonotonicClock()
-    core = FlightCore(cfg, cast(Any, None), clock, DetectStage(_truth_boxes))
+    core = FlightService(cfg, cast(Any, None), clock, DetectStage(_truth_boxes))
     viz = cfg.viz.model_copy(update={"live": True, "port": 0, "log": True})
     rec = build_recorder(
         VizConfig.model_validate(viz.model_dump()),

@@ -53,6 +53,7 @@ from companion.mission.types import (
     MissionInputs,
     MissionState,
     OperatorCommand,
+    OperatorRequest,
     Reason,
     StepOutput,
     Transition,
@@ -91,18 +92,24 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
                 self._ego.push(min(veh.velocity_stamp_s, now_s), np.array(veh.v_ned_m_s))
         else:
             self._ego.clear()
+        # An operator's request is checked once, here, on the tick that acts on it: the verdict is the answer.
+        req = inp.operator
+        refused = None if req is None else self._operator_verdict(req, veh)
+        taken = req.command if req is not None and refused is None else None
+        start = inp.start_requested or taken == OperatorCommand.START
+        takeover = inp.takeover_requested or taken == OperatorCommand.START
         # A start is kept until a state can act on it; where none can, it is dropped (never kept for later).
-        if inp.start_requested and not self._prev_start and self.state not in START_IGNORED:
+        if start and not self._prev_start and self.state not in START_IGNORED:
             self._start_latched = True
-        self._prev_start = inp.start_requested
-        if inp.takeover_requested and not self._prev_takeover and self.state not in START_IGNORED:
+        self._prev_start = start
+        if takeover and not self._prev_takeover and self.state not in START_IGNORED:
             self._takeover_latched = True
-        self._prev_takeover = inp.takeover_requested
+        self._prev_takeover = takeover
         if inp.leader is not None and inp.leader.usable and self._fresh(inp.leader):
             self._last_leader = inp.leader
         self._update_neighbours(inp)
 
-        self._global_checks(inp)
+        self._global_checks(inp, taken if taken in (OperatorCommand.LAND, OperatorCommand.HOLD) else None)
         setpoint: Setpoint | None = None
         ext: ExternalPosition | None = None
         err: Vec3 | None = None
@@ -123,6 +130,7 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
             ready_to_exit=ready,
             vision_mode=self.vision_mode if self.state == MissionState.FOLLOW_VISION else None,
             formation_error_ned_m=None if err is None else (float(err[0]), float(err[1]), float(err[2])),
+            operator_refused=refused,
         )
 
     @property
@@ -143,7 +151,7 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
             self._home_hover_thrust_seeded = True
 
     # ------------------------------------------------------------------ global checks
-    def _global_checks(self, inp: MissionInputs) -> None:
+    def _global_checks(self, inp: MissionInputs, land_or_hold: OperatorCommand | None) -> None:
         veh = inp.vehicle
         st = self.state
         self.link.watch_age(veh, self._now_s)
@@ -157,7 +165,7 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
             self._shutting_down = True
             self._on_shutdown(veh)
             return
-        if inp.operator is not None and self._on_operator(inp.operator, veh):
+        if land_or_hold is not None and self._on_operator(land_or_hold, veh):
             return
         if (
             st in OFFBOARD_STATES
@@ -211,6 +219,15 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
             self._go_px4(MissionState.PX4_HOLD, Reason.OPERATOR_HOLD)
             return True
         return False  # hold without GPS is impossible on PX4: refused (the runner says so)
+
+    def _operator_verdict(self, req: OperatorRequest, veh: VehicleState) -> str | None:
+        """Why this tick refuses ``req`` (None: taken; a new slot is applied here)."""
+        cmd = req.command
+        if cmd == OperatorCommand.START:
+            return self.start_refusal(veh)
+        if cmd == OperatorCommand.SET_OFFSET:
+            return "it needs offset_cam_m" if req.offset_cam_m is None else self.set_slot(req.offset_cam_m)
+        return self.operator_refusal(cmd)
 
     def operator_refusal(self, cmd: OperatorCommand) -> str | None:
         """Why the machine would refuse an operator's land or hold now (None: it will act on it)."""

@@ -73,10 +73,22 @@ class CommandResult:
 
 
 class OperatorCommand(StrEnum):
-    """What an operator may ask for in flight (over MQTT or the status socket)."""
+    """What an operator may ask for (over MQTT or the status socket)."""
 
+    #: From the ground: arm, take off and follow; in the air: take the vehicle back and follow again.
+    START = "start"
     LAND = "land"
     HOLD = "hold"
+    #: A new formation slot (``OperatorRequest.offset_cam_m``).
+    SET_OFFSET = "set_offset"
+
+
+@dataclass(frozen=True, slots=True)
+class OperatorRequest:
+    """One operator command as the mission takes it; ``offset_cam_m`` (camera frame, m) for SET_OFFSET."""
+
+    command: OperatorCommand
+    offset_cam_m: Vec3T | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,8 +112,9 @@ class MissionInputs:
     takeover_requested: bool = False
     shutdown_requested: bool = False
     command_results: tuple[CommandResult, ...] = ()
-    #: A one-shot operator request, delivered on one step only.
-    operator: OperatorCommand | None = None
+    #: A one-shot operator request, delivered on one step only; the step checks it and answers it
+    #: (``StepOutput.operator_refused``).
+    operator: OperatorRequest | None = None
 
 
 class MissionState(StrEnum):
@@ -251,4 +264,6 @@ class StepOutput:
     vision_mode: VisionMode | None = None
     #: Formation error (leader relative position minus the slot) in NED when the law ran, m.
     formation_error_ned_m: Vec3T | None = None
+    #: Why this step refused the operator's request (None: no request, or it was taken).
+    operator_refused: str | None = None
     notes: dict[str, float] = field(default_factory=dict)

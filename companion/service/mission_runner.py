@@ -27,6 +27,7 @@ from companion.mission.types import (
     MissionInputs,
     MissionState,
     OperatorCommand,
+    OperatorRequest,
     SharedLeaderPosition,
     SharedNeighbour,
     StepOutput,
@@ -92,9 +93,9 @@ class MissionRunner:
         self._results: list[CommandResult] = []
         self._last_setpoint: Setpoint | None = None
         self._setpoint_failures = 0
-        self._operator: OperatorCommand | None = None
-        #: Operators waiting for the answer to a start, land or hold: (name, future of the answer).
-        self._waiting: list[tuple[str, asyncio.Future[str]]] = []
+        self._operator: OperatorRequest | None = None
+        #: The operator waiting for the answer to the request in ``_operator`` (one at a time).
+        self._waiting: tuple[OperatorRequest, asyncio.Future[str]] | None = None
         self.last_transition: Transition | None = None
 
     # ------------------------------------------------------------------ inputs
@@ -127,76 +128,51 @@ class MissionRunner:
         """Ask for the configured safe action; :meth:`run` returns once it is under way."""
         self._shutdown = True
 
-    async def operator_start(self, timeout_s: float = ANSWER_TIMEOUT_S) -> str:
-        """An operator's start: what the mission did with it, or why it refused, in one line.
+    async def command(self, req: OperatorRequest, timeout_s: float = ANSWER_TIMEOUT_S) -> str:
+        """An operator's request: what the next tick did with it, or why it refused, in one line.
 
-        From the ground it arms (once preflight passes); in the air, after a hold or a mode change by a pilot
-        or a failsafe, it takes the vehicle back and acquires the leader again.
+        The machine checks the request once, on the tick that takes it (``StepOutput.operator_refused``), so
+        the answer is the verdict the mission acted on. A start, land or hold is answered with the
+        transitions it caused; a start from the ground arms once preflight passes, one in the air takes the
+        vehicle back. A new slot applies from that tick.
         """
-        why = self.machine.start_refusal(self.link.snapshot())
-        if why is not None:
-            return f"start refused: {why}"
-        self.request_start()
-        return await self._answer("start", timeout_s)
-
-    async def request_command(
-        self,
-        name: str,
-        offset_cam_m: tuple[float, float, float] | None = None,
-        timeout_s: float = ANSWER_TIMEOUT_S,
-    ) -> str:
-        """An operator command: ``land``, ``hold`` or ``set_offset``; what was done or why not, in one line.
-
-        A new offset applies at once if it is a safe slot. Land and hold are answered after the control
-        tick that took them, with the transition they caused (or why none happened).
-        """
-        if name == "set_offset":
-            if offset_cam_m is None:
-                return "set_offset refused: it needs offset_cam_m"
-            why = self.machine.set_slot(offset_cam_m)
-            if why is not None:
-                return f"set_offset refused: {why}"
-            log.info("mission: operator set the slot to %s (camera frame, m)", offset_cam_m)
-            return f"slot set to {tuple(round(c, 2) for c in offset_cam_m)}"
-        try:
-            cmd = OperatorCommand(name)
-        except ValueError:
-            return f"{name} refused: unknown command"
-        why = self.machine.operator_refusal(cmd)
-        if why is not None:
-            return f"{cmd.value} refused: {why}"
-        self._operator = cmd
-        return await self._answer(cmd.value, timeout_s)
-
-    async def _answer(self, name: str, timeout_s: float) -> str:
-        """The outcome of the request just made, once the next tick has taken it."""
+        name = req.command.value
+        if self._operator is not None or self._waiting is not None:
+            return f"{name} refused: another command is waiting for the control tick"
+        self._operator = req
         answer: asyncio.Future[str] = asyncio.get_running_loop().create_future()
-        self._waiting.append((name, answer))
+        self._waiting = (req, answer)
         try:
             async with compat.timeout(timeout_s):
                 return await answer
         except TimeoutError:
             # Withdrawn, so that it cannot act later behind the operator's back.
-            self._waiting = [(n, f) for n, f in self._waiting if f is not answer]
-            self._start = self._takeover = False
+            if self._waiting is not None and self._waiting[1] is answer:
+                self._waiting = None
             self._operator = None
             self.machine.withdraw_start()
             return f"{name} refused: the mission loop did not step within {timeout_s:g} s (nothing done)"
 
-    def _settle(self, waiting: list[tuple[str, asyncio.Future[str]]], out: StepOutput) -> None:
-        """Answer the requests this tick took: the transitions they caused, or that nothing happened."""
-        for name, answer in waiting:
-            if answer.done():
-                continue
-            if out.transitions:
-                moves = "; ".join(
-                    f"{t.from_state.value} -> {t.to_state.value} ({t.reason.value}"
-                    + (f": {t.detail})" if t.detail else ")")
-                    for t in out.transitions
-                )
-                answer.set_result(f"{name}: {moves}")
-                continue
-            if name == "start":
+    def _settle(self, waiting: tuple[OperatorRequest, asyncio.Future[str]], out: StepOutput) -> None:
+        """Answer the request this tick took: the machine's refusal, the transitions it caused, or none."""
+        req, answer = waiting
+        if answer.done():
+            return
+        name = req.command.value
+        if out.operator_refused is not None:
+            answer.set_result(f"{name} refused: {out.operator_refused}")
+        elif req.command == OperatorCommand.SET_OFFSET and req.offset_cam_m is not None:
+            log.info("mission: operator set the slot to %s (camera frame, m)", req.offset_cam_m)
+            answer.set_result(f"slot set to {tuple(round(c, 2) for c in req.offset_cam_m)}")
+        elif out.transitions:
+            moves = "; ".join(
+                f"{t.from_state.value} -> {t.to_state.value} ({t.reason.value}"
+                + (f": {t.detail})" if t.detail else ")")
+                for t in out.transitions
+            )
+            answer.set_result(f"{name}: {moves}")
+        else:
+            if req.command == OperatorCommand.START:
                 self.machine.withdraw_start()  # never kept to act later
             answer.set_result(f"{name} refused: nothing to do in state {out.state.value}")
 
@@ -232,7 +208,7 @@ class MissionRunner:
         now_s = self.clock.now_s()
         results, self._results = tuple(self._results), []
         operator, self._operator = self._operator, None
-        waiting, self._waiting = self._waiting, []
+        waiting, self._waiting = self._waiting, None
         start, takeover, self._start, self._takeover = self._start, self._takeover, False, False
         inputs = MissionInputs(
             vehicle=self.link.snapshot(),
@@ -248,7 +224,8 @@ class MissionRunner:
         )
         out = self.machine.step(inputs, now_s)
         self.last_output = out
-        self._settle(waiting, out)
+        if waiting is not None:
+            self._settle(waiting, out)
         for tr in out.transitions:
             self._report(tr)
         if out.setpoint is not None:

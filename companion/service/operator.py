@@ -1,26 +1,21 @@
-"""An operator's command as the status socket carries it: one JSON object, checked before the mission sees it.
+"""An operator's command as the status socket carries it: one JSON object, read into an ``OperatorRequest``.
 
 ``{"request": "command", "name": "set_offset", "offset_cam_m": [0.0, 0.0, 6.0]}``: numbers travel as
-numbers, never as words parsed back. Pure: no I/O.
+numbers, never as words parsed back. Only the form is checked here (name, three finite numbers); what the
+mission makes of it is decided once, on its control tick. Pure: no I/O.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
-#: Commands and whether each takes the slot offset (camera frame, m: right, down, forward).
+from companion.mission.types import OperatorCommand, OperatorRequest
+
+#: Commands and whether each takes the slot offset (camera frame, m: right, down, forward). A start has
+#: its own request (``{"request": "start"}``).
 OPERATOR_COMMANDS = {"land": False, "hold": False, "set_offset": True}
-
-
-@dataclass(frozen=True, slots=True)
-class OperatorCommand:
-    """A checked command: its name and, for ``set_offset``, the slot in the camera frame (m)."""
-
-    name: str
-    offset_cam_m: tuple[float, float, float] | None = None
 
 
 def command_request(name: str, offset_cam_m: tuple[float, float, float] | None = None) -> dict[str, Any]:
@@ -31,14 +26,18 @@ def command_request(name: str, offset_cam_m: tuple[float, float, float] | None =
     return req
 
 
-def parse_command(req: Mapping[str, Any]) -> OperatorCommand | str:
-    """The command in ``req``, or the one line that says why it is refused."""
+def parse_command(req: Mapping[str, Any]) -> OperatorRequest | str:
+    """The command in ``req`` (well formed: the mission still judges it), or the line saying why not."""
     name = req.get("name")
     if name not in OPERATOR_COMMANDS:
         return f"command refused: name one of {', '.join(OPERATOR_COMMANDS)}"
     offset = req.get("offset_cam_m")
     if not OPERATOR_COMMANDS[name]:
-        return f"{name} refused: it takes no offset" if offset is not None else OperatorCommand(name)
+        return (
+            f"{name} refused: it takes no offset"
+            if offset is not None
+            else OperatorRequest(OperatorCommand(name))
+        )
     if not (
         isinstance(offset, list)
         and len(offset) == 3
@@ -46,4 +45,4 @@ def parse_command(req: Mapping[str, Any]) -> OperatorCommand | str:
     ):
         return f"{name} refused: offset_cam_m must be three finite numbers X Y Z (m)"
     x, y, z = (float(v) for v in offset)
-    return OperatorCommand(name, (x, y, z))
+    return OperatorRequest(OperatorCommand(name), (x, y, z))

@@ -1,8 +1,8 @@
 """What the service needs from the flight side, as small protocols and plain snapshot types.
 
-The flight part (vehicle link, mission machine and its runner) is adapted to these in
-:mod:`companion.service.wiring`; the service itself (status endpoint, MQTT, systemd, GCS reports) depends
-only on this module, so it can be built and tested on its own.
+The flight part (:class:`companion.service.flight.FlightService`) meets these; the service itself (status
+endpoint, MQTT, systemd, GCS reports) depends only on this module, so it can be built and tested on its
+own.
 """
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
+
+from companion.mission.types import OperatorRequest
 
 Vec3T = tuple[float, float, float]
 
@@ -113,21 +115,15 @@ class MissionPort(Protocol):
         """
         ...
 
-    async def operator_start(self) -> str:
-        """An operator's start: from the ground, arm and take off; in the air, take the vehicle back.
-
-        Returns what the mission did or why it refused, in one line (a refusal contains `` refused: ``).
-        """
-        ...
-
     def request_shutdown(self) -> None:
         """Perform the configured safe action (``mission.shutdown_action``), then let :meth:`run` return."""
         ...
 
-    async def request_command(self, name: str, offset_cam_m: Vec3T | None = None) -> str:
-        """An operator command (``land``, ``hold``, ``set_offset``) through the mission machine's checks.
+    async def command(self, req: OperatorRequest) -> str:
+        """An operator's ``start``, ``land``, ``hold`` or ``set_offset``, checked by the mission on its tick.
 
-        Returns what was done or why it was refused, in one line (a refusal contains `` refused: ``).
+        From the ground a start arms and takes off; in the air it takes the vehicle back. Returns what the
+        mission did or why it refused, in one line (a refusal contains `` refused: ``).
         """
         ...
 

@@ -1,8 +1,8 @@
-"""Builds the real parts (vehicle link, frame source, detector, flight core) for the service.
+"""Builds the real parts (vehicle link, frame source, detector, the flight) for the service.
 
-With :mod:`companion.service.flight_core` (the glue from a frame to a setpoint, shared with the lockstep
-harness) this is where the service meets the flight and perception packages; it adapts them to
-:mod:`companion.service.ports`. The CLI imports it when the service starts, not before.
+With :mod:`companion.service.flight` (the one object from a frame to a setpoint, shared with the
+harnesses) this is where the service meets the vehicle link, the camera and the detector. The CLI
+imports it when the service starts, not before.
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 import os
 import time
 from collections.abc import Callable
@@ -23,242 +22,23 @@ from companion.kernel import compat
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock, MonotonicClock
 from companion.kernel.errors import CompanionError, ConfigError, first_companion_error
-from companion.kernel.flight import NEVER_S, Severity, VehicleState
-from companion.mission.types import (
-    MissionInputs,
-    SharedLeaderPosition,
-    SharedNeighbour,
-    StepOutput,
-    Transition,
-)
+from companion.kernel.flight import NEVER_S, Severity
 from companion.perception.sources import open_source
 from companion.perception.truth_detector import TruthDetector
 from companion.perception.types import DetectorResult, DetectStage
-from companion.service.flight_core import FlightCore
+from companion.service.flight import FlightService
 from companion.service.health_checks import CheckResult
 from companion.service.latency import TickAges
 from companion.service.parts import Parts, PartsContext, PartsFactory
 from companion.service.perception_loop import PerceptionLoop
 from companion.service.ports import (
-    FlightSnapshot,
-    LeaderSummary,
     OnboardComputerStatus,
-    StateChange,
-    VehicleSummary,
 )
 from companion.service.stamps import ServiceClockSource
-from companion.telemetry.leader import OriginTracker
-from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 from companion.vehicle import failsafe
 from companion.vehicle.external_vision import ev_position_bits_for
-from companion.vehicle.link import VehicleLink
 
 log = logging.getLogger(__name__)
-
-#: How often the follower's attitude is copied from telemetry into the perception's history.
-_ATTITUDE_POLL_S = 0.01
-
-
-def _finite(x: float) -> float | None:
-    return x if math.isfinite(x) else None
-
-
-def vehicle_summary(v: VehicleState, now_s: float, system_id: int | None = None) -> VehicleSummary:
-    """The link's snapshot as the status endpoint shows it."""
-    has_local = v.local_position_stamp_s > NEVER_S
-    has_global = v.global_position_stamp_s > NEVER_S
-    return VehicleSummary(
-        connected=v.connected,
-        heartbeat_age_s=None if v.heartbeat_stamp_s == NEVER_S else max(0.0, now_s - v.heartbeat_stamp_s),
-        armed=v.armed,
-        in_air=v.in_air,
-        flight_mode=v.flight_mode.value,
-        offboard_loss_failsafe=None
-        if v.offboard_loss_param is None
-        else failsafe.describe(v.offboard_loss_param),
-        gps_fix_type=v.gps_fix_type,
-        gps_satellites=v.gps_satellites,
-        position_valid=v.position_valid,
-        p_ned_m=v.p_ned_m if has_local else None,
-        v_ned_m_s=v.v_ned_m_s if v.velocity_stamp_s > NEVER_S else None,
-        yaw_deg=math.degrees(v.yaw_rad) if v.attitude_stamp_s > NEVER_S else None,
-        lat_deg=_finite(v.lat_deg) if has_global else None,
-        lon_deg=_finite(v.lon_deg) if has_global else None,
-        alt_amsl_m=_finite(v.alt_amsl_m) if has_global else None,
-        system_id=system_id,
-        battery_remaining_frac=_finite(v.battery_remaining_frac),
-        battery_voltage_v=_finite(v.battery_voltage_v),
-    )
-
-
-class FlightAdapter:
-    """The :class:`FlightCore` (mission, runner, perception glue) behind the service's ``MissionPort``."""
-
-    def __init__(
-        self,
-        cfg: Config,
-        link: VehicleLink,
-        clock: Clock,
-        stage: DetectStage | None = None,
-        wall_time_s: Callable[[], float] = time.time,
-    ) -> None:
-        self.cfg = cfg
-        self.link = link
-        self.clock = clock
-        self._wall_time_s = wall_time_s
-        self.core = FlightCore(
-            cfg,
-            link,
-            clock,
-            stage if stage is not None else DetectStage(_no_detection),
-            on_transition=self._on_transition,
-            on_step=self._on_step,
-        )
-        self.machine = self.core.machine
-        self.runner = self.core.runner
-        self._on_change: Callable[[StateChange], None] | None = None
-        self._last: Transition | None = None
-        self._entered_s = clock.now_s()
-        self._last_step_s: float | None = None
-        self._last_output: StepOutput | None = None
-        self._origin = OriginTracker()
-        self.leader_positions_used = 0
-
-    # ---- MissionPort ----------------------------------------------------------------------------------
-
-    def set_on_change(self, callback: Callable[[StateChange], None]) -> None:
-        self._on_change = callback
-
-    def snapshot(self) -> FlightSnapshot:
-        now_s = self.clock.now_s()
-        v = self.link.snapshot()
-        tr = self._last
-        leader = None
-        track = self.core.track
-        if track is not None and track.estimate is not None:
-            est = track.estimate
-            cov = est.cov_ned_m2
-            leader = LeaderSummary(
-                status=track.status.value,
-                p_rel_ned_m=(float(est.p_ned_rel_m[0]), float(est.p_ned_rel_m[1]), float(est.p_ned_rel_m[2])),
-                v_rel_ned_m_s=(
-                    float(est.v_ned_rel_m_s[0]),
-                    float(est.v_ned_rel_m_s[1]),
-                    float(est.v_ned_rel_m_s[2]),
-                ),
-                cov_ned_m2=tuple(tuple(round(float(c), 5) for c in row) for row in cov),  # type: ignore[arg-type]
-                age_s=max(0.0, now_s - track.last_measurement_s)
-                if track.last_measurement_s is not None
-                else None,
-                range_m=float(est.range_m),
-            )
-        out = self._last_output
-        return FlightSnapshot(
-            state=self.machine.state.value,
-            reason=tr.reason.value if tr is not None else "starting",
-            detail=tr.detail if tr is not None else "",
-            state_age_s=now_s - self._entered_s,
-            last_step_s=self._last_step_s,
-            vehicle=vehicle_summary(v, now_s, getattr(self.link, "system_id", None)),
-            leader=leader,
-            formation_error_ned_m=out.formation_error_ned_m if out is not None else None,
-            preflight_problems=self.machine.preflight_problems(v),
-        )
-
-    async def run(self) -> None:
-        await self.core.run()
-
-    def request_start(self, *, takeover: bool = True) -> None:
-        self.core.request_start(takeover=takeover)
-
-    def request_shutdown(self) -> None:
-        self.core.request_shutdown()
-
-    async def operator_start(self) -> str:
-        """An operator's start through the mission machine's checks; what it did, in one line."""
-        reply = await self.core.operator_start()
-        (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
-        return reply
-
-    async def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        """Land, hold or set_offset through the mission machine's checks; what it did, in one line."""
-        reply = await self.core.request_command(name, offset_cam_m)
-        (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
-        return reply
-
-    # ---- inputs from the other parts ------------------------------------------------------------------
-
-    def on_frame(self, frame: RgbdFrame, result: DetectorResult) -> Any:
-        """Every detector result: to the tracker and the mission (the flight core); the track state."""
-        return self.core.on_frame(frame, result)
-
-    def on_leader_position(self, msg: LeaderPositionMsg) -> None:
-        """A leader position from MQTT, placed in the follower's local NED frame."""
-        v = self.link.snapshot()
-        self._origin.update(
-            v.gps_fix_type, _finite(v.lat_deg), _finite(v.lon_deg), _finite(v.alt_amsl_m), v.p_ned_m
-        )
-        origin = self._origin.origin
-        if origin is None:
-            return  # no GPS fix seen yet: the frame is unknown
-        age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
-        p = origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m)
-        self.core.submit_leader_shared(
-            SharedLeaderPosition(
-                stamp_s=self.clock.now_s() - age_s,
-                p_ned_m=p,
-                yaw_rad=None if msg.yaw_deg is None else math.radians(msg.yaw_deg),
-                v_ned_m_s=msg.v_ned_m_s,
-                yaw_rate_rad_s=None if msg.yaw_rate_deg_s is None else math.radians(msg.yaw_rate_deg_s),
-            )
-        )
-        self.leader_positions_used += 1
-
-    def on_neighbour_pose(self, name: str, msg: PoseMsg) -> None:
-        """Another follower's pose from MQTT (formations), placed in this follower's local NED frame."""
-        origin = self._origin.origin
-        if origin is None or msg.time_unix_s is None or msg.p_ned_m is None:
-            return  # our frame is unknown yet, or the neighbour's own position is not valid
-        if msg.lat_deg is None or msg.lon_deg is None or msg.alt_amsl_m is None:
-            return
-        age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
-        p = origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m)
-        v = msg.v_ned_m_s if msg.v_ned_m_s is not None else (0.0, 0.0, 0.0)
-        self.core.submit_neighbour(SharedNeighbour(name, self.clock.now_s() - age_s, p, v))
-
-    # ---- internals ------------------------------------------------------------------------------------
-
-    def _on_transition(self, tr: Transition) -> None:
-        if tr.to_state != tr.from_state:
-            self._entered_s = self.clock.now_s()
-        self._last = tr
-        if self._on_change is not None:
-            self._on_change(
-                StateChange(
-                    stamp_s=tr.stamp_s,
-                    from_state=tr.from_state.value,
-                    to_state=tr.to_state.value,
-                    reason=tr.reason.value,
-                    reason_code=tr.reason.name,
-                    severity=tr.severity.value,
-                    detail=tr.detail,
-                    statustext=tr.statustext(),
-                )
-            )
-
-    def _on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
-        self._last_step_s = self.clock.now_s()
-        self._last_output = out
-
-    async def feed_telemetry(self) -> None:
-        """The follower's attitude and velocity into perception's histories, polled on the link's clock."""
-        while True:
-            self.core.feed_telemetry()
-            await asyncio.sleep(_ATTITUDE_POLL_S)
-
-
-def _no_detection(frame: RgbdFrame) -> DetectorResult:
-    raise AssertionError("this flight adapter was built without a detector")  # pragma: no cover
 
 
 class LinkGcs:
@@ -288,11 +68,22 @@ class LinkGcs:
 FrameObserver = Callable[[RgbdFrame, DetectorResult, Any, float], None]
 
 
-def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | None = None) -> PartsFactory:
+#: Called once the flight is built, with the service's exit stack and context (a harness adds observers).
+FlightHook = Callable[[FlightService, contextlib.AsyncExitStack, PartsContext], None]
+
+
+def make_parts_factory(
+    cfg: Config,
+    clock: Clock,
+    *,
+    on_frame: FrameObserver | None = None,
+    on_flight: FlightHook | None = None,
+) -> PartsFactory:
     """The factory ``FollowerService`` calls to open the parts on its exit stack.
 
     ``on_frame`` (optional, for ``companion sim``'s scoring) sees every processed frame after the mission
-    got its estimate; it must not block and never feeds anything back.
+    got its estimate, with its processing time; ``on_flight`` sees the flight once it is built (to add
+    observers). Neither may block, and neither feeds anything back.
     """
 
     async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
@@ -323,9 +114,11 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
                 ev_position_bits=ev_position_bits_for(cfg.mission.gps_loss_policy),
             )
         )
-        flight = FlightAdapter(cfg, link, clock, stage)
-        flight.core.observers.append(TickAges(ctx.latency, clock))
-        recorder = open_recorder(cfg, flight.core, clock, ctx, stack)
+        flight = FlightService(cfg, link, clock, stage)
+        flight.observers.append(TickAges(ctx.latency, clock))
+        recorder = open_recorder(cfg, flight, clock, ctx, stack)
+        if on_flight is not None:
+            on_flight(flight, stack, ctx)
         if recorder is not None:
             extra_status["viz"] = recorder.counters
 
@@ -348,7 +141,7 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
             background={
                 **background,
                 "companion.vehicle": link.run,
-                "companion.attitude": flight.feed_telemetry,
+                "companion.attitude": flight.poll_telemetry,
             },
             extra_status=extra_status,
             link_ready=link.wait_ready,
@@ -358,9 +151,9 @@ def make_parts_factory(cfg: Config, clock: Clock, *, on_frame: FrameObserver | N
 
 
 def open_recorder(
-    cfg: Config, core: FlightCore, clock: Clock, ctx: PartsContext, stack: contextlib.AsyncExitStack
+    cfg: Config, flight: FlightService, clock: Clock, ctx: PartsContext, stack: contextlib.AsyncExitStack
 ) -> Any:
-    """The live view and the flight log (``[viz]``) observing ``core``, entered on ``stack``; None when off.
+    """The live view and the flight log (``[viz]``) observing ``flight``, entered on ``stack``; None when off.
 
     The log goes to ``viz.log_dir`` (default ``flights/`` in the state folder), one file set per start, its
     times on the wall clock.
@@ -381,7 +174,7 @@ def open_recorder(
         place = LogPlace(folder, flight_stem(cfg.vehicle_id), {"vehicle_id": cfg.vehicle_id})
     recorder = build_recorder(
         cfg.viz,
-        core.pipeline.camera,
+        flight.pipeline.camera,
         clock,
         log_place=place,
         server_name=f"wingman {cfg.vehicle_id}",
@@ -390,7 +183,7 @@ def open_recorder(
     )
     if recorder is not None:
         stack.enter_context(recorder)
-        core.observers.append(recorder)
+        flight.observers.append(recorder)
     return recorder
 
 

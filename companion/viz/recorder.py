@@ -81,7 +81,7 @@ class _Output:
 
 
 class FlightRecorder:
-    """A :class:`~companion.service.flight_core.FlightObserver` that feeds a live view and a flight log.
+    """A :class:`~companion.service.flight.FlightObserver` that feeds a live view and a flight log.
 
     Args:
         geometry: the camera's mount (the camera frame in the 3D scene).

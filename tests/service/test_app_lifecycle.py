@@ -21,6 +21,7 @@ from companion.config import Config
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.kernel.errors import LinkLostError
+from companion.mission.types import OperatorCommand, OperatorRequest
 from companion.service.ports import (
     FlightSnapshot,
     LeaderSummary,
@@ -115,18 +116,16 @@ class ScriptedMission:
     def request_start(self, *, takeover: bool = True) -> None:
         self.started = True
 
-    async def operator_start(self) -> str:
-        self.started = True
-        await asyncio.sleep(0.05)  # answered after the next step, as the real runner does
-        return f"start: {self.state} -> {self.state} (scripted)"
-
     def request_shutdown(self) -> None:
         self.shutdown = True
 
-    async def request_command(self, name: str, offset_cam_m: tuple[float, float, float] | None = None) -> str:
-        self.commands.append(name)
-        await asyncio.sleep(0.05)
-        return f"{name} done"
+    async def command(self, req: OperatorRequest) -> str:
+        await asyncio.sleep(0.05)  # answered after the next step, as the real runner does
+        if req.command == OperatorCommand.START:
+            self.started = True
+            return f"start: {self.state} -> {self.state} (scripted)"
+        self.commands.append(req.command.value)
+        return f"{req.command.value} done"
 
 
 class RecordingGcs:

@@ -26,12 +26,13 @@ from companion.kernel import compat
 from companion.kernel.camera import MountConfig
 from companion.kernel.clock import MonotonicClock
 from companion.kernel.flight import NEVER_S, FlightMode, LandedState, VehicleState
-from companion.mission.types import CommandKind
+from companion.mission.types import CommandKind, OperatorCommand, OperatorRequest
 from companion.perception.transform import CameraGeometry
+from companion.service.flight import FlightService, vehicle_summary
 from companion.service.operator import command_request
 from companion.service.status import query_status
 from companion.service.systemd import NotifyConfig, SystemdNotifier
-from companion.service.wiring import FlightAdapter, LinkGcs, vehicle_summary
+from companion.service.wiring import LinkGcs
 from companion.telemetry.leader import GeoOrigin
 from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 from tests.unit.mission_harness import FakeAutopilot, leader
@@ -102,7 +103,7 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
     )
     ap = LandingAutopilot()
     link = RecordingLink(ap, clock)
-    flight = FlightAdapter(cfg, link, clock)  # type: ignore[arg-type]
+    flight = FlightService(cfg, link, clock)  # type: ignore[arg-type]
     sock = Path(cfg.status.socket_path)
 
     async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
@@ -123,12 +124,12 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
                     break
                 await asyncio.sleep(0.05)
             snap: dict[str, Any] = await asyncio.to_thread(query_status, Path(cfg.status.socket_path))
-            assert (await flight.request_command("set_offset", (0.0, 0.0, 1.0))).startswith(
-                "set_offset refused"
-            )
-            assert (await flight.request_command("set_offset", (0.5, 0.0, 6.0))).startswith(
-                "slot set to (0.5, 0.0, 6.0)"
-            )
+            assert (
+                await flight.command(OperatorRequest(OperatorCommand.SET_OFFSET, (0.0, 0.0, 1.0)))
+            ).startswith("set_offset refused")
+            assert (
+                await flight.command(OperatorRequest(OperatorCommand.SET_OFFSET, (0.5, 0.0, 6.0)))
+            ).startswith("slot set to (0.5, 0.0, 6.0)")
             # An operator's hold, then start: each answered over the socket with what the mission did.
             answers = [await asyncio.to_thread(query_status, sock, r) for r in ASK_HOLD_THEN_START]
             after = flight.snapshot().state
@@ -161,10 +162,10 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
 ORIGIN = GeoOrigin(47.0, 8.0, 500.0)
 
 
-def _flight_with_a_fix(clock: MonotonicClock) -> FlightAdapter:
-    """A flight adapter whose autopilot reports a geodetic fix 10 m north of ``ORIGIN``."""
+def _flight_with_a_fix(clock: MonotonicClock) -> FlightService:
+    """A flight whose autopilot reports a geodetic fix 10 m north of ``ORIGIN``."""
     ap = FakeAutopilot()
-    flight = FlightAdapter(Config(), RecordingLink(ap, clock), clock)  # type: ignore[arg-type]
+    flight = FlightService(Config(), RecordingLink(ap, clock), clock)  # type: ignore[arg-type]
     ap.p_ned_m = (10.0, 0.0, -5.0)
     lat, lon, alt = ORIGIN.to_geodetic(ap.p_ned_m)
     real_state = ap.state

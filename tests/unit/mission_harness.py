@@ -22,6 +22,7 @@ from companion.mission.types import (
     MissionInputs,
     MissionState,
     OperatorCommand,
+    OperatorRequest,
     Reason,
     SharedLeaderPosition,
     StepOutput,
@@ -221,7 +222,7 @@ class Harness:
             takeover_requested=self.takeover,
             shutdown_requested=self.shutdown,
             command_results=tuple(self.results),
-            operator=self.operator,
+            operator=None if self.operator is None else OperatorRequest(self.operator),
         )
         self.results = []
         self.operator = None

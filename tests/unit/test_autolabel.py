@@ -220,7 +220,7 @@ async def test_a_folder_it_may_not_write_turns_labels_off_not_the_flight(
 ) -> None:
     from companion.config import Config
     from companion.kernel.clock import ManualClock
-    from companion.service.flight_core import FlightCore
+    from companion.service.flight import FlightService
 
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")  # the labels' folder would have to be inside a file
@@ -230,7 +230,7 @@ async def test_a_folder_it_may_not_write_turns_labels_off_not_the_flight(
         def after_track(self, _track: object) -> None:
             pass
 
-    core = FlightCore(cfg, object(), ManualClock(0.0), _Stage())  # type: ignore[arg-type]
+    core = FlightService(cfg, object(), ManualClock(0.0), _Stage())  # type: ignore[arg-type]
     ran: list[bool] = []
 
     async def mission() -> None:

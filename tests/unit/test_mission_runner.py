@@ -12,9 +12,23 @@ from companion.config import Config, MissionConfig
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.kernel.errors import CommandRejectedError
-from companion.kernel.flight import ExternalPosition, Setpoint, Severity, VehicleState
+from companion.kernel.flight import (
+    ExternalPosition,
+    FlightMode,
+    LandedState,
+    Setpoint,
+    Severity,
+    VehicleState,
+)
 from companion.mission.machine import MissionMachine
-from companion.mission.types import Command, CommandKind, MissionState, Transition
+from companion.mission.types import (
+    Command,
+    CommandKind,
+    MissionState,
+    OperatorCommand,
+    OperatorRequest,
+    Transition,
+)
 from companion.service.mission_runner import MissionRunner
 
 from .mission_harness import FakeAutopilot, leader
@@ -173,27 +187,75 @@ async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
         await feeder
 
 
-async def test_request_command_replies() -> None:
+def _req(name: str, offset_cam_m: tuple[float, float, float] | None = None) -> OperatorRequest:
+    return OperatorRequest(OperatorCommand(name), offset_cam_m)
+
+
+async def _ask(runner: MissionRunner, req: OperatorRequest) -> str:
+    """``req`` as an operator sends it, answered by the next control tick."""
+    answer = asyncio.ensure_future(runner.command(req))
+    await asyncio.sleep(0)
+    await runner.tick()
+    return await answer
+
+
+async def test_operator_commands_are_answered_with_the_ticks_verdict() -> None:
     clock = MonotonicClock()
     runner = MissionRunner(RecordingLink(FakeAutopilot(), clock), MissionMachine(Config()), clock)
     # On the ground the companion flies nothing: land and hold are the autopilot's, not ours.
-    assert await runner.request_command("land") == (
+    assert await _ask(runner, _req("land")) == (
         "land refused: the companion is not flying the vehicle (state wait_link)"
     )
-    assert await runner.operator_start() == "start refused: no link to the autopilot (state wait_link)"
+    runner.machine.state = MissionState.WAIT_LINK
+    assert await _ask(runner, _req("start")) == "start refused: no link to the autopilot (state wait_link)"
     runner.machine.state = MissionState.FOLLOW
     # No control loop is stepping: the request is withdrawn, never left to act later.
-    assert await runner.request_command("land", timeout_s=0.1) == (
+    assert await runner.command(_req("land"), timeout_s=0.1) == (
         "land refused: the mission loop did not step within 0.1 s (nothing done)"
     )
     assert runner._operator is None
-    assert (await runner.request_command("hold")).startswith("hold refused: hold needs GPS")
-    assert await runner.request_command("dance") == "dance refused: unknown command"
-    assert await runner.request_command("set_offset", (0.0, 0.0, 6.0)) == "slot set to (0.0, 0.0, 6.0)"
-    assert (await runner.request_command("set_offset", (0.0, 0.0, 1.0))).startswith(
+    assert (await _ask(runner, _req("hold"))).startswith("hold refused: hold needs GPS")
+    runner.machine.state = MissionState.FOLLOW
+    assert await _ask(runner, _req("set_offset", (0.0, 0.0, 6.0))) == "slot set to (0.0, 0.0, 6.0)"
+    assert runner.machine.law.slot.forward_m == 6.0
+    assert (await _ask(runner, _req("set_offset", (0.0, 0.0, 1.0)))).startswith(
         "set_offset refused: slot 1.0 m"
     )
-    assert (await runner.request_command("set_offset")).startswith("set_offset refused:")
+    assert runner.machine.law.slot.forward_m == 6.0
+    assert (await _ask(runner, _req("set_offset"))).startswith("set_offset refused:")
+
+
+async def test_one_command_at_a_time() -> None:
+    clock = MonotonicClock()
+    runner = MissionRunner(RecordingLink(FakeAutopilot(), clock), MissionMachine(Config()), clock)
+    first = asyncio.ensure_future(runner.command(_req("land")))
+    await asyncio.sleep(0)
+    assert (
+        await runner.command(_req("hold")) == "hold refused: another command is waiting for the control tick"
+    )
+    await runner.tick()
+    assert (await first).startswith("land refused: the companion is not flying the vehicle")
+
+
+async def test_a_command_refused_at_the_tick_is_answered_as_refused() -> None:
+    """A hold that was possible when asked (GPS good) but not on the tick that takes it: PX4 lost position."""
+    clock = MonotonicClock()
+    ap = FakeAutopilot()
+    runner = MissionRunner(
+        RecordingLink(ap, clock), MissionMachine(Config(mission=MissionConfig(gps_restore_s=0.0))), clock
+    )
+    await runner.tick()
+    assert runner.machine.gps_ok
+    runner.machine.state = MissionState.FOLLOW
+    ap.armed, ap.landed, ap.mode = True, LandedState.IN_AIR, FlightMode.OFFBOARD
+    assert runner.machine.operator_refusal(OperatorCommand.HOLD) is None  # what a check on asking would say
+    answer = asyncio.ensure_future(runner.command(_req("hold")))
+    await asyncio.sleep(0)
+    ap.position_valid = False
+    await runner.tick()
+    assert await answer == "hold refused: hold needs GPS (PX4 cannot hold without a position); land instead"
+    assert CommandKind.HOLD not in {c.kind for c in ap.sent}
+    assert runner.state != MissionState.PX4_HOLD
 
 
 async def test_an_operator_start_is_answered_with_what_the_mission_did() -> None:
@@ -204,8 +266,10 @@ async def test_an_operator_start_is_answered_with_what_the_mission_did() -> None
         await runner.tick()
         await asyncio.sleep(0.01)
     assert runner.state == MissionState.PREFLIGHT
-    answer = asyncio.ensure_future(runner.operator_start())
+    answer = asyncio.ensure_future(runner.command(_req("start")))
     await asyncio.sleep(0)
     await runner.tick()
     assert await answer == "start: preflight -> arming (preflight checks passed)"
-    assert await runner.operator_start() == "start refused: the mission is already under way (state arming)"
+    assert (
+        await _ask(runner, _req("start")) == "start refused: the mission is already under way (state arming)"
+    )

@@ -7,13 +7,14 @@ import math
 
 import pytest
 
-from companion.service.operator import OperatorCommand, command_request, parse_command
+from companion.mission.types import OperatorCommand, OperatorRequest
+from companion.service.operator import command_request, parse_command
 
 
 def test_what_the_cli_sends_is_what_the_service_reads() -> None:
     for name, offset in (("land", None), ("hold", None), ("set_offset", (0.5, -0.25, 6.0))):
         wire = json.loads(json.dumps(command_request(name, offset)))
-        assert parse_command(wire) == OperatorCommand(name, offset)
+        assert parse_command(wire) == OperatorRequest(OperatorCommand(name), offset)
 
 
 @pytest.mark.parametrize(

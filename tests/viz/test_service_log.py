@@ -18,8 +18,9 @@ from companion.config import Config
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.perception.sources.mcap_file import protobuf_class
+from companion.service.flight import FlightService
 from companion.service.systemd import NotifyConfig, SystemdNotifier
-from companion.service.wiring import FlightAdapter, open_recorder
+from companion.service.wiring import open_recorder
 from tests.service.test_wiring import LandingAutopilot
 from tests.unit.mission_harness import leader
 from tests.unit.test_mission_runner import RecordingLink
@@ -42,10 +43,10 @@ async def test_the_service_logs_its_flight_and_flies_on_without_a_live_view_it_c
         }
     )
     link = RecordingLink(LandingAutopilot(), clock)
-    flight = FlightAdapter(cfg, link, clock)  # type: ignore[arg-type]
+    flight = FlightService(cfg, link, clock)  # type: ignore[arg-type]
 
     async def open_parts(stack: contextlib.AsyncExitStack, ctx: PartsContext) -> Parts:
-        rec = open_recorder(cfg, flight.core, clock, ctx, stack)
+        rec = open_recorder(cfg, flight, clock, ctx, stack)
         return Parts(mission=flight, extra_status={"viz": rec.counters})
 
     async def feed() -> None:

@@ -2,7 +2,7 @@
 
 Fast and repeatable (Monte Carlo): a :class:`sitl.world.World` steps the physics and the PX4-like autopilots;
 an in-process :class:`sitl.render.renderer.Renderer` draws the follower's camera; the *same* detector and
-the service's own :class:`~companion.service.flight_core.FlightCore` (pose, tracker, mission machine and
+the service's own :class:`~companion.service.flight.FlightService` (pose, tracker, mission machine and
 runner, and the glue between them) fly the follower through a
 :class:`~companion.vehicle.message_link.MessageVehicleLink` that speaks MAVLink messages to
 ``world.link("follower")``. Everything runs on sim time (a :class:`ManualClock` set from the world).
@@ -46,7 +46,7 @@ from companion.lab.evaluation.trace import RunObserver
 from companion.mission.types import MissionInputs, SharedLeaderPosition, StepOutput, Transition
 from companion.perception.autolabel import AutoLabelConfig
 from companion.perception.types import DetectorResult, DetectStage
-from companion.service.flight_core import FlightCore
+from companion.service.flight import Callbacks, FlightService
 from companion.vehicle.external_vision import ev_position_bits_for
 from companion.vehicle.message_link import MessageVehicleLink
 
@@ -131,9 +131,8 @@ class LockstepRun:
             follower.sysid,
             ev_position_bits=ev_position_bits_for(cfg.mission.gps_loss_policy),
         )
-        self.core = FlightCore(
-            cfg, self.link, self.clock, stage, on_transition=self._on_transition, on_step=self._on_step
-        )
+        self.core = FlightService(cfg, self.link, self.clock, stage)
+        self.core.observers.append(Callbacks(step=self._on_step, transition=self._on_transition))
         self.machine = self.core.machine
         self.runner = self.core.runner
         self.pipeline = self.core.pipeline

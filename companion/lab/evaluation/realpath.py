@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from companion.config import Config
 from companion.lab.evaluation.lockstep import LEADER_SHARE_HZ, RunResult
@@ -48,7 +48,8 @@ from companion.lab.evaluation.sitl_components import RUN_ENV
 from companion.lab.evaluation.tomlw import toml_value
 from companion.lab.evaluation.trace import RunObserver, TraceFrame
 from companion.lab.evaluation.truthlog import TruthTrack, follower_of, leader_of
-from companion.mission.types import MissionInputs, StepOutput
+from companion.service.flight import Callbacks, FlightService
+from companion.service.parts import PartsContext
 from companion.viz.setup import health_flags
 
 log = logging.getLogger(__name__)
@@ -102,25 +103,6 @@ def score(observer: RunObserver, truth: TruthTrack, scorer: RunScorer, end_s: fl
             )
 
 
-class _ControlSteps:
-    """The run's observer, on the flight core's control steps (a ``FlightObserver``).
-
-    Frames reach the run's observer from the parts factory instead, with their processing time.
-    """
-
-    def __init__(self, observer: RunObserver) -> None:
-        self._observer = observer
-
-    def on_frame(self, frame: Any, result: Any, track: Any) -> None:
-        pass
-
-    def on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
-        self._observer.on_step(inputs, out)
-
-    def on_transition(self, tr: Any) -> None:
-        pass
-
-
 @dataclass(frozen=True, slots=True)
 class RealOptions:
     """Knobs of the real-path run."""
@@ -146,7 +128,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     """Fly ``scenario`` through the real service against ``sitl serve``; logs go to ``work_dir``."""
     from companion.app import FollowerService  # noqa: PLC0415 (the service's imports are heavy)
     from companion.service.systemd import NotifyConfig, SystemdNotifier  # noqa: PLC0415
-    from companion.service.wiring import FlightAdapter, make_parts_factory  # noqa: PLC0415
+    from companion.service.wiring import make_parts_factory  # noqa: PLC0415
     from sitl.config import load_sitl_config  # noqa: PLC0415
 
     work_dir.mkdir(parents=True, exist_ok=True)  # noqa: ASYNC240 (once, before anything runs)
@@ -231,16 +213,14 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
             independent=options.autopilot == "px4",
         )
         observer = RunObserver(sim_clock, snapshot_times(window, options.snapshots))
-        factory = make_parts_factory(service_cfg, sim_clock, on_frame=observer.on_frame)
 
-        async def open_parts(stack: contextlib.AsyncExitStack, ctx: Any) -> Any:
-            parts = await factory(stack, ctx)
-            flight = cast(FlightAdapter, parts.mission)
-            flight.core.observers.append(_ControlSteps(observer))
+        def on_flight(flight: FlightService, stack: contextlib.AsyncExitStack, ctx: PartsContext) -> None:
+            # Frames reach the run's observer through the factory's on_frame, with their processing time.
+            flight.observers.append(Callbacks(step=observer.on_step))
             if options.mcap_path is not None:
                 recorder = attach_run_log(
                     service_cfg,
-                    flight.core,
+                    flight,
                     sim_clock,
                     options.mcap_path,
                     synchronous=False,
@@ -253,7 +233,10 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
                 )
                 if recorder is not None:
                     stack.enter_context(recorder)
-            return parts
+
+        open_parts = make_parts_factory(
+            service_cfg, sim_clock, on_frame=observer.on_frame, on_flight=on_flight
+        )
 
         with SystemdNotifier(NotifyConfig()) as notifier:
             service = FollowerService(

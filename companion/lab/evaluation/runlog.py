@@ -1,7 +1,7 @@
 """A simulator run's MCAP log (``flight.mcap`` beside ``report.json``): the service's recorder, lab settings.
 
 Every harness logs through the service's own :class:`~companion.viz.recorder.FlightRecorder` observing the
-service's :class:`~companion.service.flight_core.FlightCore`, so a run's log has the channels a flight's has.
+service's :class:`~companion.service.flight.FlightService`, so a run's log has the channels a flight's has.
 Lockstep runs record synchronously (every frame and step, the same file on every run); the real path
 records as the service does, on its worker. Times are sim seconds (the log starts at 1970-01-01 00:00:00).
 A formation's followers share one file, each under its vehicle id (``/follower2/camera/image``) and placed
@@ -18,7 +18,7 @@ from typing import Any
 
 from companion.config import Config
 from companion.kernel.clock import Clock
-from companion.service.flight_core import FlightCore
+from companion.service.flight import FlightService
 from companion.viz.channels import Topic
 from companion.viz.messages import Namespace
 from companion.viz.recorder import FlightRecorder
@@ -49,7 +49,7 @@ def run_sink(path: Path, topics: Sequence[Topic], metadata: dict[str, str] | Non
 
 def recorder_for(
     cfg: Config,
-    core: FlightCore,
+    core: FlightService,
     clock: Clock,
     *,
     synchronous: bool,
@@ -66,7 +66,7 @@ def recorder_for(
 
 def attach_run_log(
     cfg: Config,
-    core: FlightCore,
+    core: FlightService,
     clock: Clock,
     path: Path,
     *,

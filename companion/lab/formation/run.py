@@ -1,6 +1,6 @@
 """One leader and N followers in lockstep: one simulator, one camera and one service core per follower.
 
-Each follower runs the service's own :class:`~companion.service.flight_core.FlightCore` (its config from the
+Each follower runs the service's own :class:`~companion.service.flight.FlightService` (its config from the
 formation plan: its slot, the neighbours' slots), its own detector stage and a camera that renders every
 other vehicle with the leader's airframe. The vehicles share their own estimates as MQTT would
 (:mod:`companion.lab.formation.shares`): the leader's position, velocity and heading, and each follower's
@@ -39,7 +39,7 @@ from companion.mission.types import (
     Transition,
 )
 from companion.perception.types import DetectorResult, DetectStage
-from companion.service.flight_core import FlightCore
+from companion.service.flight import Callbacks, FlightService
 from companion.vehicle.external_vision import ev_position_bits_for
 from companion.vehicle.message_link import MessageVehicleLink
 from companion.viz.messages import Namespace
@@ -75,7 +75,7 @@ class FollowerRun:
     name: str
     cfg: Config
     link: MessageVehicleLink
-    core: FlightCore
+    core: FlightService
     stage: DetectStage
     renderer: Any
     scorer: RunScorer
@@ -172,7 +172,8 @@ class FormationRun:
                 None if est is None or not est.usable else est.p_ned_rel_m,
             )
 
-        core = FlightCore(cfg, link, self.clock, stage, on_transition=on_transition, on_step=on_step)
+        core = FlightService(cfg, link, self.clock, stage)
+        core.observers.append(Callbacks(step=on_step, transition=on_transition))
         timing = CameraTiming(self.scenario.timing, self.world.seed, stream=len(self.followers))
         return FollowerRun(name, cfg, link, core, stage, renderer, scorer, score, timing)
 
