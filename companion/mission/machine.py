@@ -22,9 +22,10 @@ Rules that hold in every state:
   hands-off (PX4_IN_CONTROL) and never fights it.
 * Every transition carries a :class:`~companion.mission.types.Reason`; the runner logs it once and emits it.
 
-This module holds the tick and the rules above; the health checks are in :mod:`companion.mission.monitors`,
-the command and offboard bookkeeping in :mod:`companion.mission.offboard`, and the state handlers, by
-flight phase, in :mod:`companion.mission.states`.
+This module holds the tick, the rules above and the operator's checks; the health checks are in
+:mod:`companion.mission.monitors`, the command and offboard bookkeeping in :mod:`companion.mission.offboard`,
+and the state handlers in :mod:`companion.mission.states`: one object per flight phase (launch, follow,
+recovery, landing), each working on the one shared :class:`~companion.mission.states.context.MissionContext`.
 """
 
 from __future__ import annotations
@@ -33,19 +34,24 @@ import math
 
 import numpy as np
 
+from companion.config import Config
 from companion.kernel.flight import ExternalPosition, FlightMode, Setpoint, VehicleState
 from companion.kernel.frames import Vec3
 from companion.mission.ego import HOLD_S as EGO_STALE_S
+from companion.mission.formation import FormationLaw
 from companion.mission.geometry import Slot
+from companion.mission.offboard import OffboardStream
+from companion.mission.safety import SafetyLimits
 from companion.mission.states import (
     AIRBORNE_STATES,
     NOT_IN_CONTROL,
     OFFBOARD_STATES,
     PX4_STATES,
-    FollowStates,
-    LandingStates,
-    LaunchStates,
-    RecoveryStates,
+    FollowPhase,
+    LandingPhase,
+    LaunchPhase,
+    MissionContext,
+    RecoveryPhase,
 )
 from companion.mission.types import (
     CommandKind,
@@ -57,6 +63,7 @@ from companion.mission.types import (
     Reason,
     StepOutput,
     Transition,
+    VisionMode,
 )
 
 __all__ = ["AIRBORNE_STATES", "OFFBOARD_STATES", "PX4_STATES", "START_IGNORED", "MissionMachine"]
@@ -73,25 +80,61 @@ START_IGNORED = OFFBOARD_STATES | {
 }
 
 
-class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
-    """The follower's mission: ``step(inputs, now_s) -> StepOutput``. No I/O, no clock, no asyncio."""
+class MissionMachine:
+    """The follower's mission: ``step(inputs, now_s) -> StepOutput``. No I/O, no clock, no asyncio.
+
+    It owns the shared :class:`MissionContext` (``c``) and one object per flight phase, each working on that
+    context; this class holds the tick, the rules that hold in every state and the operator's checks.
+    """
+
+    def __init__(self, cfg: Config, law: FormationLaw | None = None) -> None:
+        self.c = MissionContext(cfg, law)
+        self.launch = LaunchPhase(self.c)
+        self.follow = FollowPhase(self.c)
+        self.recovery = RecoveryPhase(self.c)
+        self.landing = LandingPhase(self.c)
+
+    @property
+    def state(self) -> MissionState:
+        return self.c.state
+
+    @state.setter
+    def state(self, state: MissionState) -> None:
+        self.c.state = state
+
+    @property
+    def law(self) -> FormationLaw:
+        """The formation law (its slot is the operator's ``set_offset``)."""
+        return self.c.law
+
+    @property
+    def limits(self) -> SafetyLimits:
+        return self.c.limits
+
+    @property
+    def vision_mode(self) -> VisionMode | None:
+        return self.c.vision_mode
+
+    @property
+    def offboard(self) -> OffboardStream:
+        return self.c.offboard
 
     # ------------------------------------------------------------------ public
     def step(self, inp: MissionInputs, now_s: float) -> StepOutput:
         """Advance the mission to ``now_s`` with this tick's inputs."""
-        self._now_s = now_s
-        self.ages.tick(now_s)
-        self.book.outgoing = []
-        self._transitions = []
+        self.c.now_s = now_s
+        self.c.ages.tick(now_s)
+        self.c.book.outgoing = []
+        self.c.transitions = []
         self._absorb(inp.command_results)
         veh = inp.vehicle
         self._seed_hover_thrust(veh)
-        self.gps.update(veh, now_s)
-        if self.gps.ok and veh.position_valid is not False:
+        self.c.gps.update(veh, now_s)
+        if self.c.gps.ok and veh.position_valid is not False:
             if now_s - veh.velocity_stamp_s <= EGO_STALE_S:
-                self._ego.push(min(veh.velocity_stamp_s, now_s), np.array(veh.v_ned_m_s))
+                self.c.ego.push(min(veh.velocity_stamp_s, now_s), np.array(veh.v_ned_m_s))
         else:
-            self._ego.clear()
+            self.c.ego.clear()
         # An operator's request is checked once, here, on the tick that acts on it: the verdict is the answer.
         req = inp.operator
         refused = None if req is None else self._operator_verdict(req, veh)
@@ -99,36 +142,36 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
         start = inp.start_requested or taken == OperatorCommand.START
         takeover = inp.takeover_requested or taken == OperatorCommand.START
         # A start is kept until a state can act on it; where none can, it is dropped (never kept for later).
-        if start and not self._prev_start and self.state not in START_IGNORED:
-            self._start_latched = True
-        self._prev_start = start
-        if takeover and not self._prev_takeover and self.state not in START_IGNORED:
-            self._takeover_latched = True
-        self._prev_takeover = takeover
-        if inp.leader is not None and inp.leader.usable and self._fresh(inp.leader):
-            self._last_leader = inp.leader
-        self._update_neighbours(inp)
+        if start and not self.c.prev_start and self.c.state not in START_IGNORED:
+            self.c.start_latched = True
+        self.c.prev_start = start
+        if takeover and not self.c.prev_takeover and self.c.state not in START_IGNORED:
+            self.c.takeover_latched = True
+        self.c.prev_takeover = takeover
+        if inp.leader is not None and inp.leader.usable and self.c.fresh(inp.leader):
+            self.c.last_leader = inp.leader
+        self.c.update_neighbours(inp)
 
         self._global_checks(inp, taken if taken in (OperatorCommand.LAND, OperatorCommand.HOLD) else None)
         setpoint: Setpoint | None = None
         ext: ExternalPosition | None = None
         err: Vec3 | None = None
         for _ in range(4):  # a transition re-runs the new state's handler in the same tick
-            before = self.state
+            before = self.c.state
             setpoint, ext, err = self._handle(inp)
-            if self.state == before:
+            if self.c.state == before:
                 break
         if self._manage_offboard(veh, setpoint is not None):
             setpoint, ext, err = None, None, None
         ready = self._ready_to_exit(veh)
         return StepOutput(
-            state=self.state,
+            state=self.c.state,
             setpoint=setpoint,
-            commands=tuple(self.book.outgoing),
+            commands=tuple(self.c.book.outgoing),
             external_position=ext,
-            transitions=tuple(self._transitions),
+            transitions=tuple(self.c.transitions),
             ready_to_exit=ready,
-            vision_mode=self.vision_mode if self.state == MissionState.FOLLOW_VISION else None,
+            vision_mode=self.c.vision_mode if self.c.state == MissionState.FOLLOW_VISION else None,
             formation_error_ned_m=None if err is None else (float(err[0]), float(err[1]), float(err[2])),
             operator_refused=refused,
         )
@@ -136,87 +179,87 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
     @property
     def gps_ok(self) -> bool:
         """The debounced GPS verdict the machine flies on."""
-        return self.gps.ok
+        return self.c.gps.ok
 
     # ------------------------------------------------------------------ plumbing
     def _absorb(self, results: tuple[CommandResult, ...]) -> None:
         for r in results:
-            self.book.absorb(r)
+            self.c.book.absorb(r)
             if r.kind == CommandKind.START_OFFBOARD and not r.ok:
-                self.offboard.last_try_s = self._now_s
+                self.c.offboard.last_try_s = self.c.now_s
 
     def _seed_hover_thrust(self, veh: VehicleState) -> None:
-        if not self._home_hover_thrust_seeded and veh.hover_thrust_norm is not None:
-            self.law.thrust.hover_thrust_norm = veh.hover_thrust_norm
-            self._home_hover_thrust_seeded = True
+        if not self.c.home_hover_thrust_seeded and veh.hover_thrust_norm is not None:
+            self.c.law.thrust.hover_thrust_norm = veh.hover_thrust_norm
+            self.c.home_hover_thrust_seeded = True
 
     # ------------------------------------------------------------------ global checks
     def _global_checks(self, inp: MissionInputs, land_or_hold: OperatorCommand | None) -> None:
         veh = inp.vehicle
-        st = self.state
-        self.link.watch_age(veh, self._now_s)
-        if st != MissionState.WAIT_LINK and not self._link_ok(veh):
+        st = self.c.state
+        self.c.link.watch_age(veh, self.c.now_s)
+        if st != MissionState.WAIT_LINK and not self.c.link_ok(veh):
             if st in AIRBORNE_STATES or st == MissionState.LANDED:
-                self._go(MissionState.LINK_LOST, Reason.LINK_LOST)
+                self.c.go(MissionState.LINK_LOST, Reason.LINK_LOST)
             elif st != MissionState.LINK_LOST:
-                self._go(MissionState.WAIT_LINK, Reason.LINK_LOST)
+                self.c.go(MissionState.WAIT_LINK, Reason.LINK_LOST)
             return
-        if inp.shutdown_requested and not self._shutting_down:
-            self._shutting_down = True
+        if inp.shutdown_requested and not self.c.shutting_down:
+            self.c.shutting_down = True
             self._on_shutdown(veh)
             return
         if land_or_hold is not None and self._on_operator(land_or_hold, veh):
             return
         if (
             st in OFFBOARD_STATES
-            and self.offboard.confirmed
+            and self.c.offboard.confirmed
             and veh.flight_mode not in (FlightMode.OFFBOARD, FlightMode.UNKNOWN)
-            and not self._in_flight(CommandKind.START_OFFBOARD)
+            and not self.c.in_flight(CommandKind.START_OFFBOARD)
         ):
-            self.offboard.release()  # never STOP_OFFBOARD: MAVSDK's stop() asks for Hold
+            self.c.offboard.release()  # never STOP_OFFBOARD: MAVSDK's stop() asks for Hold
             if veh.armed:
-                self._go(MissionState.PX4_IN_CONTROL, Reason.MODE_CHANGED_EXTERNALLY, veh.flight_mode.value)
+                self.c.go(MissionState.PX4_IN_CONTROL, Reason.MODE_CHANGED_EXTERNALLY, veh.flight_mode.value)
             else:
-                self._go(MissionState.DISARMED, Reason.DISARMED, "disarmed by the autopilot")
+                self.c.go(MissionState.DISARMED, Reason.DISARMED, "disarmed by the autopilot")
             return
-        if st in OFFBOARD_STATES and self.gps.ok and st != MissionState.CONTROLLED_LANDING:
+        if st in OFFBOARD_STATES and self.c.gps.ok and st != MissionState.CONTROLLED_LANDING:
             r = math.hypot(veh.p_ned_m[0], veh.p_ned_m[1])
-            if r > self.limits.geofence_radius_m:
-                self._go_px4(MissionState.PX4_RTL, Reason.GEOFENCE_BREACH, f"{r:.0f} m from home")
+            if r > self.c.limits.geofence_radius_m:
+                self.c.go_px4(MissionState.PX4_RTL, Reason.GEOFENCE_BREACH, f"{r:.0f} m from home")
 
     def _on_shutdown(self, veh: VehicleState) -> None:
-        st = self.state
+        st = self.c.state
         if st in NOT_IN_CONTROL:
-            self._transitions.append(Transition(self._now_s, st, st, Reason.SHUTDOWN_REQUESTED))
+            self.c.transitions.append(Transition(self.c.now_s, st, st, Reason.SHUTDOWN_REQUESTED))
             return
         if st in (MissionState.ARMING, MissionState.LANDED) or (veh.armed and not veh.in_air):
-            self._go(MissionState.LANDED, Reason.SHUTDOWN_REQUESTED)
+            self.c.go(MissionState.LANDED, Reason.SHUTDOWN_REQUESTED)
             return
         if st in PX4_STATES and st != MissionState.PX4_HOLD:
-            self._transitions.append(Transition(self._now_s, st, st, Reason.SHUTDOWN_REQUESTED))
+            self.c.transitions.append(Transition(self.c.now_s, st, st, Reason.SHUTDOWN_REQUESTED))
             return
-        action = self.m.shutdown_action
-        if not self.gps.ok or action == "land":
-            self._go_px4(MissionState.PX4_LAND, Reason.SHUTDOWN_REQUESTED, "" if self.gps.ok else "no GPS")
+        action = self.c.m.shutdown_action
+        if not self.c.gps.ok or action == "land":
+            self.c.go_px4(MissionState.PX4_LAND, Reason.SHUTDOWN_REQUESTED, "" if self.c.gps.ok else "no GPS")
         elif st == MissionState.PX4_HOLD:
-            self.entered_s = self._now_s  # the hold period starts now
-            self._transitions.append(Transition(self._now_s, st, st, Reason.SHUTDOWN_REQUESTED))
+            self.c.entered_s = self.c.now_s  # the hold period starts now
+            self.c.transitions.append(Transition(self.c.now_s, st, st, Reason.SHUTDOWN_REQUESTED))
         else:
-            self._go_px4(MissionState.PX4_HOLD, Reason.SHUTDOWN_REQUESTED, action)
+            self.c.go_px4(MissionState.PX4_HOLD, Reason.SHUTDOWN_REQUESTED, action)
 
     def _on_operator(self, cmd: OperatorCommand, veh: VehicleState) -> bool:
         """An operator's land or hold, in flight only. True when it changed the state."""
-        st = self.state
+        st = self.c.state
         if st not in AIRBORNE_STATES or not veh.in_air:
             return False
         if cmd == OperatorCommand.LAND:
-            if not self.gps.ok:
-                self._go(MissionState.CONTROLLED_LANDING, Reason.OPERATOR_LAND, "no GPS")
+            if not self.c.gps.ok:
+                self.c.go(MissionState.CONTROLLED_LANDING, Reason.OPERATOR_LAND, "no GPS")
             elif st != MissionState.PX4_LAND:
-                self._go_px4(MissionState.PX4_LAND, Reason.OPERATOR_LAND)
+                self.c.go_px4(MissionState.PX4_LAND, Reason.OPERATOR_LAND)
             return True
-        if cmd == OperatorCommand.HOLD and self.gps.ok and st != MissionState.PX4_HOLD:
-            self._go_px4(MissionState.PX4_HOLD, Reason.OPERATOR_HOLD)
+        if cmd == OperatorCommand.HOLD and self.c.gps.ok and st != MissionState.PX4_HOLD:
+            self.c.go_px4(MissionState.PX4_HOLD, Reason.OPERATOR_HOLD)
             return True
         return False  # hold without GPS is impossible on PX4: refused (the runner says so)
 
@@ -231,12 +274,12 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
 
     def operator_refusal(self, cmd: OperatorCommand) -> str | None:
         """Why the machine would refuse an operator's land or hold now (None: it will act on it)."""
-        st = self.state
+        st = self.c.state
         if st == MissionState.OBSERVE:
             return "the companion is only observing this vehicle (run companion start to take it)"
         if st not in AIRBORNE_STATES:
             return f"the companion is not flying the vehicle (state {st.value})"
-        if cmd == OperatorCommand.HOLD and not self.gps.ok:
+        if cmd == OperatorCommand.HOLD and not self.c.gps.ok:
             return "hold needs GPS (PX4 cannot hold without a position); land instead"
         if cmd == OperatorCommand.HOLD and st == MissionState.PX4_HOLD:
             return "already holding (PX4 Hold); companion start follows again"
@@ -250,9 +293,9 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
         The same verdict as :meth:`start_refusal` there (debounced GPS, home, on the ground); None in
         other states, where preflight does not apply.
         """
-        if self.state not in (MissionState.PREFLIGHT, MissionState.DISARMED) or (veh.armed and veh.in_air):
+        if self.c.state not in (MissionState.PREFLIGHT, MissionState.DISARMED) or (veh.armed and veh.in_air):
             return None
-        return tuple(self._preflight_problems(veh))
+        return tuple(self.launch.preflight_problems(veh))
 
     def start_refusal(self, veh: VehicleState) -> str | None:
         """Why an operator's start would do nothing now (None: the next step acts on it).
@@ -261,29 +304,29 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
         pilot's or failsafe's mode change) it takes the vehicle back and acquires the leader again, with
         GPS only (no GPS and no verdict yet in OBSERVE: refused; a confirmed loss there lands under control).
         """
-        st = self.state
-        if self._shutting_down:
+        st = self.c.state
+        if self.c.shutting_down:
             return "the service is stopping"
         if st in (MissionState.WAIT_LINK, MissionState.LINK_LOST):
             return f"no link to the autopilot (state {st.value})"
         if st in (MissionState.PREFLIGHT, MissionState.DISARMED):
             if st == MissionState.PREFLIGHT and veh.armed and veh.in_air:
                 return None  # found flying: the start takes it (OBSERVE's rules)
-            problems = self._preflight_problems(veh)
+            problems = self.launch.preflight_problems(veh)
             return f"preflight: {', '.join(problems)}" if problems else None
         if st == MissionState.OBSERVE:
-            if self.gps.ok or self.gps.loss_confirmed(veh, self._now_s):
+            if self.c.gps.ok or self.c.gps.loss_confirmed(veh, self.c.now_s):
                 return None
             return "no GPS verdict yet (a fix, or a confirmed loss); try again in a few seconds"
         if st in (MissionState.PX4_HOLD, MissionState.PX4_IN_CONTROL):
             if not (veh.armed and veh.in_air):
                 return f"the vehicle is not flying (state {st.value})"
-            if not self.gps.ok:
+            if not self.c.gps.ok:
                 return "no GPS: the companion takes the vehicle back only with a position (land instead)"
             return None
         if st in (MissionState.PX4_LAND, MissionState.PX4_RTL):
             return f"PX4 is {'landing' if st == MissionState.PX4_LAND else 'returning'} the vehicle: " + (
-                "companion command hold first, then start" if self.gps.ok else "no GPS to hold it"
+                "companion command hold first, then start" if self.c.gps.ok else "no GPS to hold it"
             )
         if st == MissionState.CONTROLLED_LANDING:
             return "the companion is landing the vehicle (no GPS)"
@@ -293,8 +336,8 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
 
     def withdraw_start(self) -> None:
         """Forget a start that was not acted on (the operator was told it was refused)."""
-        self._start_latched = False
-        self._takeover_latched = False
+        self.c.start_latched = False
+        self.c.takeover_latched = False
 
     def set_slot(self, offset_cam_m: tuple[float, float, float]) -> str | None:
         """Change the formation slot in flight. Returns why it is refused, or None when applied.
@@ -308,23 +351,23 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
         if slot.forward_m <= 0.0:
             return "the leader must be ahead of the camera (z > 0)"
         dist = math.sqrt(slot.forward_m**2 + slot.right_m**2 + slot.down_m**2)
-        if dist < self.limits.min_separation_m + 1.0:
+        if dist < self.c.limits.min_separation_m + 1.0:
             return f"slot {dist:.1f} m from the leader: closer than min_separation_m + 1 m"
         if abs(slot.bearing_offset_rad) > math.radians(30.0):
             return "the leader would leave the image (more than 30 deg off the axis)"
-        self.law.slot = slot
+        self.c.law.slot = slot
         return None
 
     def _ready_to_exit(self, veh: VehicleState) -> bool:
-        if not self._shutting_down:
+        if not self.c.shutting_down:
             return False
-        st = self.state
+        st = self.c.state
         if st in NOT_IN_CONTROL:
-            return not self.offboard.streaming
+            return not self.c.offboard.streaming
         if st == MissionState.PX4_LAND:
             return veh.flight_mode == FlightMode.LAND or not veh.armed
         if st == MissionState.PX4_HOLD:
-            return self.m.shutdown_action == "hold" and veh.flight_mode == FlightMode.HOLD
+            return self.c.m.shutdown_action == "hold" and veh.flight_mode == FlightMode.HOLD
         return st in (MissionState.PX4_RTL, MissionState.PX4_IN_CONTROL)
 
     # ------------------------------------------------------------------ offboard
@@ -333,56 +376,56 @@ class MissionMachine(LaunchStates, FollowStates, RecoveryStates, LandingStates):
 
         Returns True when offboard could not be started and the machine gave up (drop this tick's setpoint).
         """
-        detail = self.offboard.manage(veh, wants, self._now_s)
+        detail = self.c.offboard.manage(veh, wants, self.c.now_s)
         if detail is None:
             return False
-        if self.gps.ok:
-            self._abort(Reason.OFFBOARD_REJECTED, detail)
+        if self.c.gps.ok:
+            self.c.abort(Reason.OFFBOARD_REJECTED, detail)
         else:
-            self._go_px4(MissionState.PX4_LAND, Reason.OFFBOARD_REJECTED, detail)
+            self.c.go_px4(MissionState.PX4_LAND, Reason.OFFBOARD_REJECTED, detail)
         return True
 
     # ------------------------------------------------------------------ states
     def _handle(self, inp: MissionInputs) -> tuple[Setpoint | None, ExternalPosition | None, Vec3 | None]:
-        st = self.state
+        st = self.c.state
         veh = inp.vehicle
         if st == MissionState.WAIT_LINK:
-            self._wait_link(veh)
+            self.launch.wait_link(veh)
             return None, None, None
         if st == MissionState.PREFLIGHT:
-            self._preflight(inp)
+            self.launch.preflight(inp)
             return None, None, None
         if st == MissionState.OBSERVE:
-            self._observe(inp)
+            self.launch.observe(inp)
             return None, None, None
         if st == MissionState.ARMING:
-            self._arming(veh)
+            self.launch.arming(veh)
             return None, None, None
         if st == MissionState.TAKEOFF:
-            self._takeoff(inp)
+            self.launch.takeoff(inp)
             return None, None, None
         if st == MissionState.ACQUIRE:
-            self._acquire(inp)
+            self.launch.acquire(inp)
             return None, None, None
         if st == MissionState.FOLLOW:
-            return self._follow(inp)
+            return self.follow.follow(inp)
         if st == MissionState.FOLLOW_VISION:
-            return self._follow_vision(inp)
+            return self.follow.follow_vision(inp)
         if st == MissionState.REACQUIRE:
-            return self._reacquire(inp), None, None
+            return self.recovery.reacquire(inp), None, None
         if st == MissionState.HOVER:
-            return self._hover(inp), None, None
+            return self.recovery.hover(inp), None, None
         if st == MissionState.CONTROLLED_LANDING:
-            return self._controlled_landing(inp), None, None
+            return self.landing.controlled_landing(inp), None, None
         if st in PX4_STATES:
-            self._px4(inp)
+            self.landing.px4(inp)
             return None, None, None
         if st == MissionState.LINK_LOST:
-            self._link_lost(veh)
+            self.launch.link_lost(veh)
             return None, None, None
         if st == MissionState.LANDED:
-            return self._landed(veh), None, None
+            return self.landing.landed(veh), None, None
         if st == MissionState.DISARMED:
-            self._disarmed(veh)
+            self.launch.disarmed(veh)
             return None, None, None
         raise AssertionError(f"unhandled state {st}")  # pragma: no cover

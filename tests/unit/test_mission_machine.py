@@ -718,7 +718,7 @@ def test_controlled_landing_with_gps_uses_velocity() -> None:
     ap.fly()
     h = Harness(ap=ap)
     h.run(6.0)
-    h.machine._go(S.CONTROLLED_LANDING, R.STALL_TIMEOUT)  # reached with GPS only through a PX4 mode refusal
+    h.machine.c.go(S.CONTROLLED_LANDING, R.STALL_TIMEOUT)  # reached with GPS only through a PX4 mode refusal
     out = h.step()
     assert out.setpoint == VelocityNedSetpoint((0.0, 0.0, h.cfg.mission.landing_speed_m_s), 0.0)
 
@@ -1029,8 +1029,8 @@ def test_a_start_says_why_it_would_do_nothing() -> None:
     _operator_start(h)  # a start while following is dropped, never kept for later
     h.run(1.0)
     assert h.state == S.FOLLOW
-    assert not h.machine._start_latched
-    assert not h.machine._takeover_latched
+    assert not h.machine.c.start_latched
+    assert not h.machine.c.takeover_latched
     h.operator = OperatorCommand.LAND
     h.step()
     veh = h.ap.state(h.now_s)
@@ -1144,6 +1144,6 @@ def test_latency_compensation_brings_the_estimate_to_the_tick_and_can_be_turned_
         h = Harness(cfg=Config(formation=FormationConfig(latency_compensation=on)))
         h.to_follow()
         est = leader(h.now_s - 0.2, p=(5.0, 0.0, 0.0), v=(2.0, 0.0, 0.0))
-        p_rel, v_rel = h.machine._relative_now(est)
+        p_rel, v_rel = h.machine.follow.relative_now(est)
         assert p_rel[0] == pytest.approx(expect_n_m, abs=1e-6)
         assert v_rel[0] == pytest.approx(2.0, abs=1e-6)

@@ -13,7 +13,7 @@ import numpy as np
 from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.kernel.flight import ExternalPosition, Setpoint
 from companion.kernel.frames import Vec3
-from companion.mission.states.base import MachineBase
+from companion.mission.states.context import MissionContext
 from companion.mission.types import MissionInputs, MissionState, Reason, VisionMode
 
 #: PX4 must report a valid estimate this long before velocity setpoints ride on an external fix, s.
@@ -22,39 +22,42 @@ EXTERNAL_PROBATION_S = 1.0
 SHARED_STALE_S = 1.0
 
 
-class FollowStates(MachineBase):
+class FollowPhase:
     """The handlers of FOLLOW and FOLLOW_VISION."""
+
+    def __init__(self, ctx: MissionContext) -> None:
+        self.c = ctx
 
     def _leader_or_transition(self, inp: MissionInputs) -> LeaderEstimate | None:
         """The estimate to fly on, or None after going to HOVER (stale) or REACQUIRE (lost)."""
         est = inp.leader
-        if est is None or not self._fresh(est):
-            self._enter_hover(inp)
+        if est is None or not self.c.fresh(est):
+            self.c.enter_hover(inp)
             return None
         if not est.usable:
-            self._enter_reacquire(inp, est.status.value)
+            self.c.enter_reacquire(inp, est.status.value)
             return None
         return est
 
-    def _follow(self, inp: MissionInputs) -> tuple[Setpoint | None, ExternalPosition | None, Vec3 | None]:
+    def follow(self, inp: MissionInputs) -> tuple[Setpoint | None, ExternalPosition | None, Vec3 | None]:
         veh = inp.vehicle
-        if not self.gps.ok:
-            self._on_gps_lost(inp)
+        if not self.c.gps.ok:
+            self.c.on_gps_lost(inp)
             return None, None, None
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
-        p_rel, v_rel = self._relative_now(est)
-        cmd = self.law.velocity(
+        p_rel, v_rel = self.relative_now(est)
+        cmd = self.c.law.velocity(
             p_rel,
             v_rel,
-            self._follower(veh, velocity_valid=True),
-            self._now_s,
+            self.c.follower(veh, velocity_valid=True),
+            self.c.now_s,
             a_leader_ned_m_s2=est.a_ned_leader_m_s2,
-            obstacle_ned_m=self._obstacle_now(inp),
+            obstacle_ned_m=self.c.obstacle_now(inp),
             slew_m_s2=self._slew(est),
             coasting=est.status == TrackStatus.COASTING,
-            slot_target=self._slot_target(inp),
+            slot_target=self.c.slot_target(inp),
             v_leader_ned_m_s=self._shared_leader_velocity(inp),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
@@ -62,37 +65,37 @@ class FollowStates(MachineBase):
     def _shared_leader_velocity(self, inp: MissionInputs) -> Vec3 | None:
         """Formations: the leader's own shared velocity while fresh (None: the law uses the estimate's)."""
         sh = inp.leader_shared
-        if self._slot_turner is None or sh is None or sh.v_ned_m_s is None:
+        if self.c.slot_turner is None or sh is None or sh.v_ned_m_s is None:
             return None
-        if not 0.0 <= self.ages.age_s(sh.stamp_s, self._now_s) <= SHARED_STALE_S:
+        if not 0.0 <= self.c.ages.age_s(sh.stamp_s, self.c.now_s) <= SHARED_STALE_S:
             return None
         return np.asarray(sh.v_ned_m_s, dtype=np.float64)
 
     def _slew(self, est: LeaderEstimate) -> float:
         """The command slew, m/s^2: the faster one only while the leader is seen steadily on a clean link."""
-        f = self.cfg.formation
+        f = self.c.cfg.formation
         steady = est.status == TrackStatus.CONFIRMED and est.recent_hit_ratio >= f.steady_hit_ratio
-        clean = self.link.clean(self._now_s)
+        clean = self.c.link.clean(self.c.now_s)
         return f.command_slew_steady_m_s2 if steady and clean else f.command_slew_m_s2
 
-    def _relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
+    def relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
         """The estimate brought from its frame's capture instant to now (see :mod:`companion.mission.ego`)."""
-        if not self.cfg.formation.latency_compensation:
+        if not self.c.cfg.formation.latency_compensation:
             return np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s)
         a_leader = (
-            self.law.leader_accel_ned_m_s2
+            self.c.law.leader_accel_ned_m_s2
             if est.a_ned_leader_m_s2 is None
             else np.array(est.a_ned_leader_m_s2)
         )
-        rel = self._ego.predict(
-            est.stamp_s, np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s), self._now_s, a_leader
+        rel = self.c.ego.predict(
+            est.stamp_s, np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s), self.c.now_s, a_leader
         )
         return rel.p_ned_rel_m, rel.v_ned_rel_m_s
 
     def _external_fix(self, inp: MissionInputs) -> ExternalPosition | None:
         """The follower's position for PX4: the leader's shared position minus the seen relative vector."""
         est, shared = inp.leader, inp.leader_shared
-        if est is None or shared is None or self.ages.age_s(shared.stamp_s, self._now_s) > SHARED_STALE_S:
+        if est is None or shared is None or self.c.ages.age_s(shared.stamp_s, self.c.now_s) > SHARED_STALE_S:
             return None
         p = np.array(shared.p_ned_m) - np.array(est.p_ned_rel_m)
         var = np.array(shared.variance_m2) + np.array(est.var_ned_rel_m2)
@@ -104,84 +107,83 @@ class FollowStates(MachineBase):
             yaw_rad=veh.yaw_rad,
             roll_rad=veh.roll_rad,
             pitch_rad=veh.pitch_rad,
-            reset_counter=self._ext_reset_counter,
+            reset_counter=self.c.ext_reset_counter,
         )
 
-    def _follow_vision(
+    def follow_vision(
         self, inp: MissionInputs
     ) -> tuple[Setpoint | None, ExternalPosition | None, Vec3 | None]:
         veh = inp.vehicle
-        if self.gps.ok:
-            self._go(MissionState.FOLLOW, Reason.GPS_RESTORED)
-            self.law.seed_velocity(np.array(veh.v_ned_m_s))
+        if self.c.gps.ok:
+            self.c.go(MissionState.FOLLOW, Reason.GPS_RESTORED)
+            self.c.law.seed_velocity(np.array(veh.v_ned_m_s))
             return None, None, None
-        if not self.link.attitude_available(veh, self._now_s):
-            self._go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
+        if not self.c.link.attitude_available(veh, self.c.now_s):
+            self.c.go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
             return None, None, None
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
-        p_rel, v_rel = self._relative_now(est)
-        ext = self._external_fix(inp) if self.m.gps_loss_policy == "vision_external_position" else None
+        p_rel, v_rel = self.relative_now(est)
+        ext = self._external_fix(inp) if self.c.m.gps_loss_policy == "vision_external_position" else None
 
-        if self.vision_mode == VisionMode.EXTERNAL_POSITION:
+        if self.c.vision_mode == VisionMode.EXTERNAL_POSITION:
             if ext is None or veh.position_valid is not True:
                 why = "shared leader position stale" if ext is None else "PX4 rejected the external fix"
-                self.vision_mode = VisionMode.ATTITUDE
-                self._reset_external()
-                self.law.reset()
-                self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
+                self.c.vision_mode = VisionMode.ATTITUDE
+                self.c.reset_external()
+                self.c.law.reset()
+                self.c.go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
             else:
-                vcmd = self.law.velocity(
+                vcmd = self.c.law.velocity(
                     p_rel,
                     v_rel,
-                    self._follower(veh, velocity_valid=True),
-                    self._now_s,
+                    self.c.follower(veh, velocity_valid=True),
+                    self.c.now_s,
                     a_leader_ned_m_s2=est.a_ned_leader_m_s2,
-                    obstacle_ned_m=self._obstacle_now(inp),
+                    obstacle_ned_m=self.c.obstacle_now(inp),
                 )
                 return vcmd.setpoint, ext, vcmd.error.error_ned_m
-        elif ext is not None and not self._ext_gave_up:
+        elif ext is not None and not self.c.ext_gave_up:
             # Attitude mode while PX4 digests the external fix; switch once it has been valid a while.
-            if self._ext_since is None:
-                self._ext_since = self._now_s
+            if self.c.ext_since is None:
+                self.c.ext_since = self.c.now_s
             if veh.position_valid is True:
-                if self._ext_valid_since is None:
-                    self._ext_valid_since = self._now_s
-                if self._now_s - self._ext_valid_since >= EXTERNAL_PROBATION_S:
-                    self.vision_mode = VisionMode.EXTERNAL_POSITION
-                    self.law.reset()
-                    self.law.seed_velocity(np.array(veh.v_ned_m_s))
-                    self._go(
+                if self.c.ext_valid_since is None:
+                    self.c.ext_valid_since = self.c.now_s
+                if self.c.now_s - self.c.ext_valid_since >= EXTERNAL_PROBATION_S:
+                    self.c.vision_mode = VisionMode.EXTERNAL_POSITION
+                    self.c.law.reset()
+                    self.c.law.seed_velocity(np.array(veh.v_ned_m_s))
+                    self.c.go(
                         MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, "external position accepted"
                     )
-                    vcmd = self.law.velocity(
+                    vcmd = self.c.law.velocity(
                         p_rel,
                         v_rel,
-                        self._follower(veh, velocity_valid=True),
-                        self._now_s,
+                        self.c.follower(veh, velocity_valid=True),
+                        self.c.now_s,
                         a_leader_ned_m_s2=est.a_ned_leader_m_s2,
-                        obstacle_ned_m=self._obstacle_now(inp),
+                        obstacle_ned_m=self.c.obstacle_now(inp),
                     )
                     return vcmd.setpoint, ext, vcmd.error.error_ned_m
             else:
-                self._ext_valid_since = None
-                if self._now_s - self._ext_since > self.m.external_position_accept_s:
+                self.c.ext_valid_since = None
+                if self.c.now_s - self.c.ext_since > self.c.m.external_position_accept_s:
                     # PX4 does not take the fix: stop sending it and stay on attitude (said once).
-                    self._ext_gave_up = True
-                    why = (
-                        f"attitude: external position not accepted in {self.m.external_position_accept_s:g} s"
-                    )
-                    self._go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, why)
+                    self.c.ext_gave_up = True
+                    accept_s = self.c.m.external_position_accept_s
+                    why = f"attitude: external position not accepted in {accept_s:g} s"
+                    self.c.go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, why)
                     ext = None
-        elif self._ext_gave_up:
+        elif self.c.ext_gave_up:
             ext = None
-        acmd = self.law.attitude(
+        acmd = self.c.law.attitude(
             p_rel,
             v_rel,
-            self._follower(veh, velocity_valid=False),
-            self._now_s,
-            slot_target=self._slot_target(inp),
+            self.c.follower(veh, velocity_valid=False),
+            self.c.now_s,
+            slot_target=self.c.slot_target(inp),
         )
         err = acmd.error.error_ned_m if acmd.error is not None else None
         return acmd.setpoint, ext, err

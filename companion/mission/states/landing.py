@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from companion.kernel.flight import AttitudeSetpoint, LandedState, Setpoint, VehicleState, VelocityNedSetpoint
-from companion.mission.states.base import ARM_RETRY_S, MachineBase
+from companion.mission.states.context import ARM_RETRY_S, MissionContext
 from companion.mission.types import CommandKind, MissionInputs, MissionState, Reason
 
 DISARM_RETRY_S = 2.0
@@ -22,91 +22,94 @@ TOUCHDOWN_V_M_S = 0.15
 TOUCHDOWN_CONFIRM_S = 1.0
 
 
-class LandingStates(MachineBase):
+class LandingPhase:
     """The handlers of CONTROLLED_LANDING, LANDED and the PX4 modes."""
 
-    def _controlled_landing(self, inp: MissionInputs) -> Setpoint | None:
+    def __init__(self, ctx: MissionContext) -> None:
+        self.c = ctx
+
+    def controlled_landing(self, inp: MissionInputs) -> Setpoint | None:
         veh = inp.vehicle
         if self._touched_down(veh):
-            self._go(MissionState.LANDED, Reason.TOUCHDOWN)
+            self.c.go(MissionState.LANDED, Reason.TOUCHDOWN)
             return None
-        v_land = self.m.landing_speed_m_s
-        if self.gps.ok:
+        v_land = self.c.m.landing_speed_m_s
+        if self.c.gps.ok:
             return VelocityNedSetpoint(v_ned_m_s=(0.0, 0.0, v_land), yaw_rad=veh.yaw_rad)
-        est = inp.leader if self._tracked(inp) else None
-        fol = self._follower(veh, velocity_valid=False)
+        est = inp.leader if self.c.tracked(inp) else None
+        fol = self.c.follower(veh, velocity_valid=False)
         p_rel = None if est is None else np.array(est.p_ned_rel_m)
         v_rel = None if est is None else np.array(est.v_ned_rel_m_s)
-        return self.law.hover_attitude(
-            fol, v_land, self._now_s, p_ned_rel_m=p_rel, v_ned_rel_m_s=v_rel
+        return self.c.law.hover_attitude(
+            fol, v_land, self.c.now_s, p_ned_rel_m=p_rel, v_ned_rel_m_s=v_rel
         ).setpoint
 
     def _touched_down(self, veh: VehicleState) -> bool:
         """PX4's land detector, or no vertical motion for a while although we command a descent."""
-        if veh.landed_state == LandedState.ON_GROUND and self._t_in_state() > 1.0:
+        if veh.landed_state == LandedState.ON_GROUND and self.c.t_in_state() > 1.0:
             return True
-        still = abs(veh.v_ned_m_s[2]) < TOUCHDOWN_V_M_S and self._t_in_state() > 2.0
+        still = abs(veh.v_ned_m_s[2]) < TOUCHDOWN_V_M_S and self.c.t_in_state() > 2.0
         low = not math.isfinite(veh.alt_rel_m) or veh.alt_rel_m < 3.0
         if not (still and low):
-            self._touchdown_since = None
+            self.c.touchdown_since = None
             return False
-        if self._touchdown_since is None:
-            self._touchdown_since = self._now_s
-        return self._now_s - self._touchdown_since >= TOUCHDOWN_CONFIRM_S
+        if self.c.touchdown_since is None:
+            self.c.touchdown_since = self.c.now_s
+        return self.c.now_s - self.c.touchdown_since >= TOUCHDOWN_CONFIRM_S
 
-    def _landed(self, veh: VehicleState) -> Setpoint | None:
+    def landed(self, veh: VehicleState) -> Setpoint | None:
         """On the ground and armed: idle thrust (when streaming) and disarm."""
         if not veh.armed:
-            self._go(MissionState.DISARMED, Reason.DISARMED)
+            self.c.go(MissionState.DISARMED, Reason.DISARMED)
             return None
         # PX4 refuses to disarm before its land detector agrees; give it a moment before insisting.
-        on_ground = veh.landed_state == LandedState.ON_GROUND or self._t_in_state() > DISARM_RETRY_S
+        on_ground = veh.landed_state == LandedState.ON_GROUND or self.c.t_in_state() > DISARM_RETRY_S
         if (
             on_ground
-            and not self._in_flight(CommandKind.DISARM)
-            and self._now_s - self._last_attempt_s >= DISARM_RETRY_S
+            and not self.c.in_flight(CommandKind.DISARM)
+            and self.c.now_s - self.c.last_attempt_s >= DISARM_RETRY_S
         ):
-            self._last_attempt_s = self._now_s
-            self._send(CommandKind.DISARM)
-        if self.offboard.streaming:
+            self.c.last_attempt_s = self.c.now_s
+            self.c.send(CommandKind.DISARM)
+        if self.c.offboard.streaming:
             # Motors to idle while PX4 disarms: a fresh zero-thrust setpoint, never the last descent one.
             return AttitudeSetpoint(0.0, 0.0, veh.yaw_rad, 0.0)
         return None
 
-    def _px4(self, inp: MissionInputs) -> None:
+    def px4(self, inp: MissionInputs) -> None:
         veh = inp.vehicle
-        st = self.state
-        if not veh.armed and self._t_in_state() > 0.5:
-            self._go(MissionState.DISARMED, Reason.DISARMED)
+        st = self.c.state
+        if not veh.armed and self.c.t_in_state() > 0.5:
+            self.c.go(MissionState.DISARMED, Reason.DISARMED)
             return
-        if veh.landed_state == LandedState.ON_GROUND and self._t_in_state() > 1.0 and veh.armed:
-            self._go(MissionState.LANDED, Reason.TOUCHDOWN)
+        if veh.landed_state == LandedState.ON_GROUND and self.c.t_in_state() > 1.0 and veh.armed:
+            self.c.go(MissionState.LANDED, Reason.TOUCHDOWN)
             return
-        if st in (MissionState.PX4_HOLD, MissionState.PX4_RTL) and not self.gps.ok:
+        if st in (MissionState.PX4_HOLD, MissionState.PX4_RTL) and not self.c.gps.ok:
             # PX4 would fall to Descend in these modes; land under our own control instead.
-            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, f"in {st.value}")
+            self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, f"in {st.value}")
             return
-        if st in (MissionState.PX4_HOLD, MissionState.PX4_IN_CONTROL) and self._takeover_latched:
+        if st in (MissionState.PX4_HOLD, MissionState.PX4_IN_CONTROL) and self.c.takeover_latched:
             # An operator's start: take the vehicle back and find the leader again (GPS is good here).
-            self._start_latched = False
-            self._takeover_latched = False
-            if veh.armed and veh.in_air and self.gps.ok and not self._shutting_down:
-                self._go(MissionState.ACQUIRE, Reason.OPERATOR_START, f"from {st.value}")
+            self.c.start_latched = False
+            self.c.takeover_latched = False
+            if veh.armed and veh.in_air and self.c.gps.ok and not self.c.shutting_down:
+                self.c.go(MissionState.ACQUIRE, Reason.OPERATOR_START, f"from {st.value}")
                 return
         kind = {MissionState.PX4_HOLD: CommandKind.HOLD, MissionState.PX4_RTL: CommandKind.RTL}.get(st)
-        failed = self._failed(kind) if kind is not None else None
+        failed = self.c.failed(kind) if kind is not None else None
         if failed is not None:
-            self._go_px4(MissionState.PX4_LAND, Reason.PX4_MODE_REFUSED, f"{st.value}: {failed.detail}")
+            self.c.go_px4(MissionState.PX4_LAND, Reason.PX4_MODE_REFUSED, f"{st.value}: {failed.detail}")
             return
-        if st == MissionState.PX4_LAND and self._failed(CommandKind.LAND) is not None and veh.in_air:
-            if not self._in_flight(CommandKind.LAND) and self._now_s - self._last_attempt_s >= ARM_RETRY_S:
-                self._last_attempt_s = self._now_s
-                self._send(CommandKind.LAND)
+        if st == MissionState.PX4_LAND and self.c.failed(CommandKind.LAND) is not None and veh.in_air:
+            if not self.c.in_flight(CommandKind.LAND) and self.c.now_s - self.c.last_attempt_s >= ARM_RETRY_S:
+                self.c.last_attempt_s = self.c.now_s
+                self.c.send(CommandKind.LAND)
             return
         if (
             st == MissionState.PX4_HOLD
-            and self._shutting_down
-            and self.m.shutdown_action == "hold_then_land"
-            and self._t_in_state() >= self.m.shutdown_hold_s
+            and self.c.shutting_down
+            and self.c.m.shutdown_action == "hold_then_land"
+            and self.c.t_in_state() >= self.c.m.shutdown_hold_s
         ):
-            self._go_px4(MissionState.PX4_LAND, Reason.HOLD_TIMEOUT)
+            self.c.go_px4(MissionState.PX4_LAND, Reason.HOLD_TIMEOUT)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 from companion.kernel.flight import FlightMode, LandedState, VehicleState
-from companion.mission.states.base import ARM_RETRY_S, MachineBase
+from companion.mission.states.context import ARM_RETRY_S, MissionContext
 from companion.mission.types import CommandKind, MissionInputs, MissionState, Reason
 
 ARM_ATTEMPTS = 3
@@ -19,16 +19,19 @@ ARM_ATTEMPTS = 3
 TAKEOFF_DONE_FRAC = 0.9
 
 
-class LaunchStates(MachineBase):
+class LaunchPhase:
     """The handlers from WAIT_LINK to ACQUIRE, and of DISARMED and LINK_LOST."""
 
-    def _wait_link(self, veh: VehicleState) -> None:
-        if self._link_ok(veh):
-            self._go(MissionState.PREFLIGHT, Reason.LINK_UP)
+    def __init__(self, ctx: MissionContext) -> None:
+        self.c = ctx
 
-    def _preflight_problems(self, veh: VehicleState) -> list[str]:
+    def wait_link(self, veh: VehicleState) -> None:
+        if self.c.link_ok(veh):
+            self.c.go(MissionState.PREFLIGHT, Reason.LINK_UP)
+
+    def preflight_problems(self, veh: VehicleState) -> list[str]:
         problems = []
-        if not self.gps.ok:
+        if not self.c.gps.ok:
             problems.append("no GPS")
         if not veh.home_position_ok:
             problems.append("no home")
@@ -36,107 +39,107 @@ class LaunchStates(MachineBase):
             problems.append("in air")
         return problems
 
-    def _preflight(self, inp: MissionInputs) -> None:
+    def preflight(self, inp: MissionInputs) -> None:
         veh = inp.vehicle
         if veh.armed and veh.in_air:
             # A companion (re)started in flight: PX4 flies on its own meanwhile. Take it only when told.
-            if self.m.resume_in_air or self._takeover_latched:
+            if self.c.m.resume_in_air or self.c.takeover_latched:
                 self._take_over(veh)
             else:
-                self._go(MissionState.OBSERVE, Reason.AIRBORNE_NOT_STARTED, veh.flight_mode.value)
+                self.c.go(MissionState.OBSERVE, Reason.AIRBORNE_NOT_STARTED, veh.flight_mode.value)
             return
-        if self._start_latched and not self._shutting_down and not self._preflight_problems(veh):
-            self._start_latched = False
-            self._takeover_latched = False
-            self._go(MissionState.ARMING, Reason.PREFLIGHT_OK)
+        if self.c.start_latched and not self.c.shutting_down and not self.preflight_problems(veh):
+            self.c.start_latched = False
+            self.c.takeover_latched = False
+            self.c.go(MissionState.ARMING, Reason.PREFLIGHT_OK)
 
-    def _observe(self, inp: MissionInputs) -> None:
+    def observe(self, inp: MissionInputs) -> None:
         """Airborne, not ours: report, and take over on an operator's start once GPS gives a verdict."""
         veh = inp.vehicle
         if not (veh.armed and veh.in_air):
-            self._start_latched = False
-            self._takeover_latched = False
-            self._go(MissionState.PREFLIGHT, Reason.LANDED_WHILE_OBSERVED)
+            self.c.start_latched = False
+            self.c.takeover_latched = False
+            self.c.go(MissionState.PREFLIGHT, Reason.LANDED_WHILE_OBSERVED)
             return
-        if self._takeover_latched and not self._shutting_down:
+        if self.c.takeover_latched and not self.c.shutting_down:
             self._take_over(veh)
 
     def _take_over(self, veh: VehicleState) -> None:
         """Into the formation from the air (a start once GPS is good), or down without GPS."""
-        if self.gps.ok:
-            self._start_latched = False
-            self._takeover_latched = False
-            self._go(MissionState.ACQUIRE, Reason.ALREADY_FLYING)
-        elif self.gps.loss_confirmed(veh, self._now_s):
-            self._start_latched = False
-            self._takeover_latched = False
-            self._go(MissionState.CONTROLLED_LANDING, Reason.ALREADY_FLYING, "no GPS")
+        if self.c.gps.ok:
+            self.c.start_latched = False
+            self.c.takeover_latched = False
+            self.c.go(MissionState.ACQUIRE, Reason.ALREADY_FLYING)
+        elif self.c.gps.loss_confirmed(veh, self.c.now_s):
+            self.c.start_latched = False
+            self.c.takeover_latched = False
+            self.c.go(MissionState.CONTROLLED_LANDING, Reason.ALREADY_FLYING, "no GPS")
 
-    def _arming(self, veh: VehicleState) -> None:
+    def arming(self, veh: VehicleState) -> None:
         if veh.armed:
-            self._go(MissionState.TAKEOFF, Reason.ARMED)
+            self.c.go(MissionState.TAKEOFF, Reason.ARMED)
             return
-        if self._in_flight(CommandKind.ARM) or self._now_s - self._last_attempt_s < ARM_RETRY_S:
+        if self.c.in_flight(CommandKind.ARM) or self.c.now_s - self.c.last_attempt_s < ARM_RETRY_S:
             return
-        if self._attempts >= ARM_ATTEMPTS:
-            failed = self._failed(CommandKind.ARM)
-            self._go(MissionState.DISARMED, Reason.ARM_FAILED, failed.detail if failed else "still disarmed")
+        if self.c.attempts >= ARM_ATTEMPTS:
+            failed = self.c.failed(CommandKind.ARM)
+            self.c.go(MissionState.DISARMED, Reason.ARM_FAILED, failed.detail if failed else "still disarmed")
             return
-        self._attempts += 1
-        self._last_attempt_s = self._now_s
-        self._send(CommandKind.ARM)
+        self.c.attempts += 1
+        self.c.last_attempt_s = self.c.now_s
+        self.c.send(CommandKind.ARM)
 
-    def _takeoff(self, inp: MissionInputs) -> None:
+    def takeoff(self, inp: MissionInputs) -> None:
         veh = inp.vehicle
-        target = self.m.takeoff_altitude_m
+        target = self.c.m.takeoff_altitude_m
         if not veh.armed:
-            self._go(MissionState.DISARMED, Reason.DISARMED, "disarmed during takeoff")
+            self.c.go(MissionState.DISARMED, Reason.DISARMED, "disarmed during takeoff")
             return
-        if not self.gps.ok:
+        if not self.c.gps.ok:
             if veh.in_air:
-                self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "during takeoff")
+                self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "during takeoff")
             else:
-                self._go(MissionState.LANDED, Reason.GPS_LOST, "before takeoff")
+                self.c.go(MissionState.LANDED, Reason.GPS_LOST, "before takeoff")
             return
-        if self._attempts == 0:
-            self._attempts = 1
-            self._send(CommandKind.TAKEOFF, target)
+        if self.c.attempts == 0:
+            self.c.attempts = 1
+            self.c.send(CommandKind.TAKEOFF, target)
             return
-        failed = self._failed(CommandKind.TAKEOFF)
+        failed = self.c.failed(CommandKind.TAKEOFF)
         if failed is not None and not veh.in_air:
-            self._go(MissionState.LANDED, Reason.TAKEOFF_FAILED, failed.detail)
+            self.c.go(MissionState.LANDED, Reason.TAKEOFF_FAILED, failed.detail)
             return
         reached = math.isfinite(veh.alt_rel_m) and veh.alt_rel_m >= TAKEOFF_DONE_FRAC * target
-        settled = veh.in_air and veh.flight_mode == FlightMode.HOLD and self._t_in_state() > 3.0
+        settled = veh.in_air and veh.flight_mode == FlightMode.HOLD and self.c.t_in_state() > 3.0
         if reached or (settled and veh.alt_rel_m > 1.0):
-            self._go(MissionState.ACQUIRE, Reason.TAKEOFF_DONE, f"{veh.alt_rel_m:.1f} m")
-        elif self._t_in_state() > self.m.takeoff_timeout_s:
+            self.c.go(MissionState.ACQUIRE, Reason.TAKEOFF_DONE, f"{veh.alt_rel_m:.1f} m")
+        elif self.c.t_in_state() > self.c.m.takeoff_timeout_s:
             if veh.in_air:
-                self._go_px4(MissionState.PX4_LAND, Reason.TAKEOFF_FAILED, "timeout")
+                self.c.go_px4(MissionState.PX4_LAND, Reason.TAKEOFF_FAILED, "timeout")
             else:
-                self._go(MissionState.LANDED, Reason.TAKEOFF_FAILED, "timeout")
+                self.c.go(MissionState.LANDED, Reason.TAKEOFF_FAILED, "timeout")
 
-    def _acquire(self, inp: MissionInputs) -> None:
-        if not self.gps.ok:
-            self._on_gps_lost(inp)
-        elif self._tracked(inp, confirmed_only=True):
-            self._enter_follow(inp, Reason.LEADER_ACQUIRED)
-        elif self._t_in_state() > self.m.acquire_timeout_s:
-            self._abort(Reason.ACQUIRE_TIMEOUT)
-        elif inp.vehicle.landed_state == LandedState.ON_GROUND and self._t_in_state() > 1.0:
-            self._go(MissionState.LANDED, Reason.TOUCHDOWN, "landed while acquiring")
+    def acquire(self, inp: MissionInputs) -> None:
+        if not self.c.gps.ok:
+            self.c.on_gps_lost(inp)
+        elif self.c.tracked(inp, confirmed_only=True):
+            self.c.enter_follow(inp, Reason.LEADER_ACQUIRED)
+        elif self.c.t_in_state() > self.c.m.acquire_timeout_s:
+            self.c.abort(Reason.ACQUIRE_TIMEOUT)
+        elif inp.vehicle.landed_state == LandedState.ON_GROUND and self.c.t_in_state() > 1.0:
+            self.c.go(MissionState.LANDED, Reason.TOUCHDOWN, "landed while acquiring")
 
-    def _disarmed(self, veh: VehicleState) -> None:
-        if self._start_latched and not self._shutting_down and self._link_ok(veh):
-            self._start_latched = False
-            self._go(MissionState.PREFLIGHT, Reason.START_REQUESTED)
+    def disarmed(self, veh: VehicleState) -> None:
+        if self.c.start_latched and not self.c.shutting_down and self.c.link_ok(veh):
+            self.c.start_latched = False
+            self.c.go(MissionState.PREFLIGHT, Reason.START_REQUESTED)
 
-    def _link_lost(self, veh: VehicleState) -> None:
-        if not self._link_ok(veh):
+    def link_lost(self, veh: VehicleState) -> None:
+        if not self.c.link_ok(veh):
             return
         if not veh.armed:
-            self._go(MissionState.DISARMED, Reason.LINK_RESTORED, "disarmed")
+            self.c.go(MissionState.DISARMED, Reason.LINK_RESTORED, "disarmed")
         elif not veh.in_air:
-            self._go(MissionState.LANDED, Reason.LINK_RESTORED, "on the ground")
+            self.c.go(MissionState.LANDED, Reason.LINK_RESTORED, "on the ground")
         else:
-            self._go(MissionState.PX4_IN_CONTROL, Reason.LINK_RESTORED, veh.flight_mode.value)
+            self.c.go(MissionState.PX4_IN_CONTROL, Reason.LINK_RESTORED, veh.flight_mode.value)

@@ -15,83 +15,90 @@ import numpy as np
 from companion.estimation.leader import TrackStatus
 from companion.kernel.flight import Setpoint, VehicleState
 from companion.kernel.frames import Vec3, wrap_pi
-from companion.mission.states.base import MachineBase
+from companion.mission.states.context import MissionContext
 from companion.mission.types import MissionInputs, MissionState, Reason
 
 #: Altitude-hold gain of the attitude hover (1/s).
 ALT_HOLD_KP_1_S = 0.8
 
 
-class RecoveryStates(MachineBase):
+class RecoveryPhase:
     """The handlers of REACQUIRE and HOVER."""
 
-    def _reacquire(self, inp: MissionInputs) -> Setpoint | None:
+    def __init__(self, ctx: MissionContext) -> None:
+        self.c = ctx
+
+    def reacquire(self, inp: MissionInputs) -> Setpoint | None:
         veh = inp.vehicle
-        if self._tracked(inp, confirmed_only=True) and self.track.steady(inp.leader):
-            self._enter_follow(inp, Reason.LEADER_REACQUIRED)
+        if self.c.tracked(inp, confirmed_only=True) and self.c.track.steady(inp.leader):
+            self.c.enter_follow(inp, Reason.LEADER_REACQUIRED)
             return None
-        if not self._attitude_kind and not self.gps.ok:
-            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while re-acquiring")
+        if not self.c.attitude_kind and not self.c.gps.ok:
+            self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while re-acquiring")
             return None
-        t = self._t_in_state()
-        if t > self.m.reacquire_coast_s + self.m.reacquire_scan_s:
-            self._abort(Reason.REACQUIRE_TIMEOUT)
+        t = self.c.t_in_state()
+        if t > self.c.m.reacquire_coast_s + self.c.m.reacquire_scan_s:
+            self.c.abort(Reason.REACQUIRE_TIMEOUT)
             return None
-        scanning = t > self.m.reacquire_coast_s
-        scan_rate = self._scan_sign * math.radians(self.m.scan_yaw_rate_deg_s) if scanning else 0.0
-        candidate = self.track.candidate_rel(inp.leader, self._now_s)
+        scanning = t > self.c.m.reacquire_coast_s
+        scan_rate = self.c.scan_sign * math.radians(self.c.m.scan_yaw_rate_deg_s) if scanning else 0.0
+        candidate = self.c.track.candidate_rel(inp.leader, self.c.now_s)
         if candidate is not None and scanning:
             # Look at what the tracker has found, not yet steady, so it stays in view while it proves
             # itself; never fly toward it (a phantom must not pull the follower).
             scan_rate = self._look_rate(candidate, veh.yaw_rad)
-        if self._attitude_kind:
-            fol = self._follower(veh, velocity_valid=False)
+        if self.c.attitude_kind:
+            fol = self.c.follower(veh, velocity_valid=False)
             v_down = self._alt_hold_v_down(veh)
-            return self.law.hover_attitude(fol, v_down, self._now_s, yaw_rate_rad_s=scan_rate).setpoint
-        if not scanning and self._leader_lost_p_ned_m is not None and self._leader_lost_v_ned_m_s is not None:
+            return self.c.law.hover_attitude(fol, v_down, self.c.now_s, yaw_rate_rad_s=scan_rate).setpoint
+        if (
+            not scanning
+            and self.c.leader_lost_p_ned_m is not None
+            and self.c.leader_lost_v_ned_m_s is not None
+        ):
             # Coast: the leader's last velocity, looking where it dead-reckons to (GPS is healthy), without
             # closing on that guess (see FormationLaw.coast_velocity); looking at a candidate instead
             # when there is one, which the separation barrier then also holds off.
-            p_leader = self._leader_lost_p_ned_m + self._leader_lost_v_ned_m_s * t
+            p_leader = self.c.leader_lost_p_ned_m + self.c.leader_lost_v_ned_m_s * t
             p_rel = p_leader - np.array(veh.p_ned_m) if candidate is None else candidate
-            return self.law.coast_velocity(
-                self._leader_lost_v_ned_m_s,
+            return self.c.law.coast_velocity(
+                self.c.leader_lost_v_ned_m_s,
                 p_rel,
-                self._follower(veh, velocity_valid=True),
-                self._obstacle_now(inp),
+                self.c.follower(veh, velocity_valid=True),
+                self.c.obstacle_now(inp),
             )
-        return self.law.hover_velocity(yaw_rate_rad_s=scan_rate)
+        return self.c.law.hover_velocity(yaw_rate_rad_s=scan_rate)
 
     def _look_rate(self, p_rel_ned_m: Vec3, yaw_rad: float) -> float:
         """A yaw rate that turns the camera onto a relative position, bounded by the scan rate, rad/s."""
         bearing = math.atan2(p_rel_ned_m[1], p_rel_ned_m[0])
-        max_rate = math.radians(self.m.scan_yaw_rate_deg_s)
-        return float(np.clip(self.cfg.formation.kp_yaw * wrap_pi(bearing - yaw_rad), -max_rate, max_rate))
+        max_rate = math.radians(self.c.m.scan_yaw_rate_deg_s)
+        return float(np.clip(self.c.cfg.formation.kp_yaw * wrap_pi(bearing - yaw_rad), -max_rate, max_rate))
 
     def _alt_hold_v_down(self, veh: VehicleState) -> float:
-        if not math.isfinite(self._alt_hold_m):
-            self._alt_hold_m = veh.alt_rel_m
-        v = ALT_HOLD_KP_1_S * (veh.alt_rel_m - self._alt_hold_m)
-        lim = self.limits.max_vertical_speed_m_s
+        if not math.isfinite(self.c.alt_hold_m):
+            self.c.alt_hold_m = veh.alt_rel_m
+        v = ALT_HOLD_KP_1_S * (veh.alt_rel_m - self.c.alt_hold_m)
+        lim = self.c.limits.max_vertical_speed_m_s
         return float(np.clip(v, -lim, lim))
 
-    def _hover(self, inp: MissionInputs) -> Setpoint | None:
+    def hover(self, inp: MissionInputs) -> Setpoint | None:
         veh = inp.vehicle
         est = inp.leader
-        if self._fresh(est) and est is not None:
+        if self.c.fresh(est) and est is not None:
             if est.usable:
-                self._enter_follow(inp, Reason.PERCEPTION_RESUMED)
+                self.c.enter_follow(inp, Reason.PERCEPTION_RESUMED)
                 return None
             if est.status == TrackStatus.LOST:
-                self._enter_reacquire(inp, "after stall")
+                self.c.enter_reacquire(inp, "after stall")
                 return None
-        if not self._attitude_kind and not self.gps.ok:
-            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while hovering")
+        if not self.c.attitude_kind and not self.c.gps.ok:
+            self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while hovering")
             return None
-        if self._t_in_state() > self.m.stall_hover_s:
-            self._abort(Reason.STALL_TIMEOUT)
+        if self.c.t_in_state() > self.c.m.stall_hover_s:
+            self.c.abort(Reason.STALL_TIMEOUT)
             return None
-        if self._attitude_kind:
-            fol = self._follower(veh, velocity_valid=False)
-            return self.law.hover_attitude(fol, self._alt_hold_v_down(veh), self._now_s).setpoint
-        return self.law.hover_velocity()
+        if self.c.attitude_kind:
+            fol = self.c.follower(veh, velocity_valid=False)
+            return self.c.law.hover_attitude(fol, self._alt_hold_v_down(veh), self.c.now_s).setpoint
+        return self.c.law.hover_velocity()

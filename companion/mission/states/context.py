@@ -1,10 +1,10 @@
-"""What every state handler of the mission machine shares: its memory, transitions and the abort ladder.
+"""The context every phase of the mission machine works on: its memory, the transitions and the abort ladder.
 
-:class:`MachineBase` holds the machine's state (the monitors, the command book, the offboard stream, and
-each state's memory) and the moves between states that more than one handler makes: into FOLLOW or
-FOLLOW_VISION, into HOVER or REACQUIRE, down to a PX4 mode or the controlled landing. The handlers
-themselves are grouped by flight phase in the sibling modules; :class:`~companion.mission.machine.
-MissionMachine` puts them together.
+:class:`MissionContext` holds the machine's state (the monitors, the command book, the offboard stream, the
+memory a state is entered with) and the moves between states that more than one phase makes: into FOLLOW
+or FOLLOW_VISION, into HOVER or REACQUIRE, down to a PX4 mode or the controlled landing. Each phase
+(:mod:`~companion.mission.states.launch`, ``follow``, ``recovery``, ``landing``) is an object holding
+this context; :class:`~companion.mission.machine.MissionMachine` owns the context and the phases.
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ OBSTACLE_STALE_S = 0.5
 STALL_TICKS = 4
 
 
-class MachineBase:
-    """The mission machine's memory and the transitions its state handlers share."""
+class MissionContext:
+    """The mission machine's memory and the transitions its phases share (no I/O, time passed in)."""
 
     def __init__(self, cfg: Config, law: FormationLaw | None = None) -> None:
         self.cfg = cfg
@@ -89,77 +89,77 @@ class MachineBase:
         self.entered_s = 0.0
         self.vision_mode: VisionMode | None = None
         # Per-step scratch.
-        self._now_s = 0.0
-        self._transitions: list[Transition] = []
+        self.now_s = 0.0
+        self.transitions: list[Transition] = []
         # Commands of this tick, in flight, and the last result of each kind; the offboard stream.
         self.book = CommandBook()
         self.offboard = OffboardStream(self.book)
-        self._attempts = 0
-        self._last_attempt_s = -math.inf
+        self.attempts = 0
+        self.last_attempt_s = -math.inf
         # Health checks.
         self.ages = StallAwareAge(STALL_TICKS / cfg.link.setpoint_rate_hz)
         self.gps = GpsMonitor(cfg.mission, self.ages)
         self.link = LinkMonitor(cfg.link, cfg.formation, self.ages)
         self.track = TrackMonitor(cfg.mission, self.ages)
         # Per-state memory.
-        self._attitude_kind = False
-        self._last_leader: LeaderEstimate | None = None
+        self.attitude_kind = False
+        self.last_leader: LeaderEstimate | None = None
         #: The follower's own velocity history, to bring camera-time estimates to the control instant.
-        self._ego = EgoMotion()
-        self._leader_lost_p_ned_m: Vec3 | None = None
-        self._leader_lost_v_ned_m_s: Vec3 | None = None
-        self._scan_sign = 1.0
-        self._alt_hold_m = math.nan
-        self._ext_valid_since: float | None = None
-        self._ext_since: float | None = None
-        self._ext_gave_up = False
-        self._ext_reset_counter = 0
-        self._touchdown_since: float | None = None
-        self._shutting_down = False
-        self._start_latched = False
-        self._prev_start = False
-        self._takeover_latched = False
-        self._prev_takeover = False
-        self._home_hover_thrust_seeded = False
+        self.ego = EgoMotion()
+        self.leader_lost_p_ned_m: Vec3 | None = None
+        self.leader_lost_v_ned_m_s: Vec3 | None = None
+        self.scan_sign = 1.0
+        self.alt_hold_m = math.nan
+        self.ext_valid_since: float | None = None
+        self.ext_since: float | None = None
+        self.ext_gave_up = False
+        self.ext_reset_counter = 0
+        self.touchdown_since: float | None = None
+        self.shutting_down = False
+        self.start_latched = False
+        self.prev_start = False
+        self.takeover_latched = False
+        self.prev_takeover = False
+        self.home_hover_thrust_seeded = False
         #: A formation plan's slot, turned with the leader's shared heading (None: a lone follower).
         slot = cfg.formation.slot_leader_m
-        self._slot_turner = SlotTurner(slot) if slot is not None else None
+        self.slot_turner = SlotTurner(slot) if slot is not None else None
 
     # ------------------------------------------------------------------ plumbing
-    def _go(self, state: MissionState, reason: Reason, detail: str = "") -> None:
+    def go(self, state: MissionState, reason: Reason, detail: str = "") -> None:
         if state == self.state and reason != Reason.VISION_MODE_CHANGED:
             return
-        self._transitions.append(Transition(self._now_s, self.state, state, reason, detail))
+        self.transitions.append(Transition(self.now_s, self.state, state, reason, detail))
         if state != self.state:
             self.state = state
-            self.entered_s = self._now_s
-            self._attempts = 0
-            self._last_attempt_s = -math.inf
-            self._touchdown_since = None
+            self.entered_s = self.now_s
+            self.attempts = 0
+            self.last_attempt_s = -math.inf
+            self.touchdown_since = None
             self.law.reset()
 
-    def _t_in_state(self) -> float:
-        return self._now_s - self.entered_s
+    def t_in_state(self) -> float:
+        return self.now_s - self.entered_s
 
-    def _send(self, kind: CommandKind, altitude_m: float | None = None) -> None:
-        self.book.send(kind, self._now_s, altitude_m)
+    def send(self, kind: CommandKind, altitude_m: float | None = None) -> None:
+        self.book.send(kind, self.now_s, altitude_m)
 
-    def _in_flight(self, kind: CommandKind) -> bool:
-        return self.book.in_flight(kind, self._now_s)
+    def in_flight(self, kind: CommandKind) -> bool:
+        return self.book.in_flight(kind, self.now_s)
 
-    def _failed(self, kind: CommandKind) -> CommandResult | None:
+    def failed(self, kind: CommandKind) -> CommandResult | None:
         return self.book.failed(kind)
 
-    def _link_ok(self, veh: VehicleState) -> bool:
-        return self.link.ok(veh, self._now_s)
+    def link_ok(self, veh: VehicleState) -> bool:
+        return self.link.ok(veh, self.now_s)
 
-    def _fresh(self, est: LeaderEstimate | None) -> bool:
-        return self.track.fresh(est, self._now_s)
+    def fresh(self, est: LeaderEstimate | None) -> bool:
+        return self.track.fresh(est, self.now_s)
 
-    def _tracked(self, inp: MissionInputs, *, confirmed_only: bool = False) -> bool:
-        return self.track.tracked(inp.leader, self._now_s, confirmed_only=confirmed_only)
+    def tracked(self, inp: MissionInputs, *, confirmed_only: bool = False) -> bool:
+        return self.track.tracked(inp.leader, self.now_s, confirmed_only=confirmed_only)
 
-    def _follower(self, veh: VehicleState, *, velocity_valid: bool) -> FollowerState:
+    def follower(self, veh: VehicleState, *, velocity_valid: bool) -> FollowerState:
         return FollowerState(
             yaw_rad=veh.yaw_rad,
             v_ned_m_s=np.array(veh.v_ned_m_s) if velocity_valid else None,
@@ -170,13 +170,13 @@ class MachineBase:
             pitch_rad=veh.pitch_rad,
         )
 
-    def _slot_target(self, inp: MissionInputs) -> SlotTarget | None:
+    def slot_target(self, inp: MissionInputs) -> SlotTarget | None:
         """The plan's slot now (None without a plan or a fresh shared heading of the leader)."""
-        if self._slot_turner is None:
+        if self.slot_turner is None:
             return None
-        return self._slot_turner.update(inp.leader_shared, self._now_s)
+        return self.slot_turner.update(inp.leader_shared, self.now_s)
 
-    def _update_neighbours(self, inp: MissionInputs) -> None:
+    def update_neighbours(self, inp: MissionInputs) -> None:
         """The other followers relative to this one now, for the law's separation barrier."""
         if not inp.neighbours:
             if self.law.neighbours:
@@ -184,10 +184,10 @@ class MachineBase:
             return
         veh = inp.vehicle
         own_ok = self.gps.ok and veh.position_valid is True
-        est = self._last_leader
+        est = self.last_leader
         self.law.neighbours = neighbours_now(
             inp.neighbours,
-            self._now_s,
+            self.now_s,
             p_own_ned_m=np.array(veh.p_ned_m) if own_ok else None,
             v_own_ned_m_s=np.array(veh.v_ned_m_s) if own_ok else None,
             leader_shared=inp.leader_shared,
@@ -195,100 +195,98 @@ class MachineBase:
             v_ned_rel_leader_m_s=None if est is None else np.array(est.v_ned_rel_m_s),
         )
 
-    def _obstacle_now(self, inp: MissionInputs) -> Vec3 | None:
+    def obstacle_now(self, inp: MissionInputs) -> Vec3 | None:
         """The depth guard's obstacle relative to the follower now (static: shifted by our own motion)."""
         ob = inp.obstacle
-        if ob is None or not 0.0 <= self.ages.age_s(ob.stamp_s, self._now_s) <= OBSTACLE_STALE_S:
+        if ob is None or not 0.0 <= self.ages.age_s(ob.stamp_s, self.now_s) <= OBSTACLE_STALE_S:
             return None
         p = np.array(ob.p_ned_rel_m)
-        disp = self._ego.displacement(ob.stamp_s, self._now_s)
+        disp = self.ego.displacement(ob.stamp_s, self.now_s)
         return p if disp is None else p - disp
 
     # ------------------------------------------------------------------ shared transitions
-    def _go_px4(self, state: MissionState, reason: Reason, detail: str = "") -> None:
+    def go_px4(self, state: MissionState, reason: Reason, detail: str = "") -> None:
         """Hand the vehicle to one of PX4's own modes (Hold, Land, RTL); the stream stops the same tick."""
-        self._go(state, reason, detail)
+        self.go(state, reason, detail)
         kind = {
             MissionState.PX4_HOLD: CommandKind.HOLD,
             MissionState.PX4_LAND: CommandKind.LAND,
             MissionState.PX4_RTL: CommandKind.RTL,
         }[state]
-        self._send(kind)
+        self.send(kind)
 
-    def _abort(self, reason: Reason, detail: str = "") -> None:
+    def abort(self, reason: Reason, detail: str = "") -> None:
         """The configured abort: a PX4 mode while GPS is healthy, our controlled landing when it is not."""
         if not self.gps.ok:
-            self._go(MissionState.CONTROLLED_LANDING, reason, detail or "no GPS")
+            self.go(MissionState.CONTROLLED_LANDING, reason, detail or "no GPS")
             return
         target = {
             "hold": MissionState.PX4_HOLD,
             "land": MissionState.PX4_LAND,
             "rtl": MissionState.PX4_RTL,
         }[self.cfg.mission.leader_lost_action]
-        self._go_px4(target, reason, detail)
+        self.go_px4(target, reason, detail)
 
-    def _flying_attitude(self) -> bool:
+    def flying_attitude(self) -> bool:
         """Whether the current flight uses attitude setpoints (no GPS, or vision on attitude)."""
         if not self.gps.ok:
             return True
         return self.state == MissionState.FOLLOW_VISION and self.vision_mode == VisionMode.ATTITUDE
 
-    def _enter_follow(self, inp: MissionInputs, reason: Reason, detail: str = "") -> None:
+    def enter_follow(self, inp: MissionInputs, reason: Reason, detail: str = "") -> None:
         """Go to FOLLOW or FOLLOW_VISION, whichever the GPS allows."""
         if self.gps.ok:
-            self._go(MissionState.FOLLOW, reason, detail)
+            self.go(MissionState.FOLLOW, reason, detail)
             self.law.seed_velocity(np.array(inp.vehicle.v_ned_m_s))
         elif self.m.gps_loss_policy == "land":
-            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
+            self.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
         else:
             self.vision_mode = VisionMode.ATTITUDE
-            self._reset_external()
-            self._go(MissionState.FOLLOW_VISION, reason, detail or f"policy {self.m.gps_loss_policy}")
+            self.reset_external()
+            self.go(MissionState.FOLLOW_VISION, reason, detail or f"policy {self.m.gps_loss_policy}")
 
-    def _on_gps_lost(self, inp: MissionInputs) -> None:
+    def on_gps_lost(self, inp: MissionInputs) -> None:
         """GPS went bad in flight: vision formation if the policy and the leader allow it, else land."""
         veh = inp.vehicle
         if self.m.gps_loss_policy == "land":
-            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
-        elif not self._tracked(inp):
-            self._go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "leader not tracked")
-        elif not self.link.attitude_available(veh, self._now_s):
-            self._go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
+            self.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
+        elif not self.tracked(inp):
+            self.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "leader not tracked")
+        elif not self.link.attitude_available(veh, self.now_s):
+            self.go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
         else:
             self.vision_mode = VisionMode.ATTITUDE
-            self._reset_external()
-            self._go(MissionState.FOLLOW_VISION, Reason.GPS_LOST, f"policy {self.m.gps_loss_policy}")
+            self.reset_external()
+            self.go(MissionState.FOLLOW_VISION, Reason.GPS_LOST, f"policy {self.m.gps_loss_policy}")
 
-    def _reset_external(self) -> None:
-        self._ext_valid_since = None
-        self._ext_since = None
-        self._ext_gave_up = False
+    def reset_external(self) -> None:
+        self.ext_valid_since = None
+        self.ext_since = None
+        self.ext_gave_up = False
 
-    def _enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
+    def enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
         """Leader lost: remember where it was going (coast) and which way to scan, then REACQUIRE."""
         veh = inp.vehicle
-        self._attitude_kind = self._flying_attitude()
-        last = self._last_leader
+        self.attitude_kind = self.flying_attitude()
+        last = self.last_leader
         if last is not None:
             p_rel, v_rel = np.array(last.p_ned_rel_m), np.array(last.v_ned_rel_m_s)
-            age = max(0.0, self._now_s - last.stamp_s)
-            self._leader_lost_p_ned_m = (
-                np.array(veh.p_ned_m) + p_rel + (np.array(veh.v_ned_m_s) + v_rel) * age
-            )
-            self._leader_lost_v_ned_m_s = np.array(veh.v_ned_m_s) + v_rel
+            age = max(0.0, self.now_s - last.stamp_s)
+            self.leader_lost_p_ned_m = np.array(veh.p_ned_m) + p_rel + (np.array(veh.v_ned_m_s) + v_rel) * age
+            self.leader_lost_v_ned_m_s = np.array(veh.v_ned_m_s) + v_rel
             bearing = math.atan2(p_rel[1], p_rel[0])
-            self._scan_sign = 1.0 if wrap_pi(bearing - veh.yaw_rad) >= 0.0 else -1.0
+            self.scan_sign = 1.0 if wrap_pi(bearing - veh.yaw_rad) >= 0.0 else -1.0
         else:
-            self._leader_lost_p_ned_m = None
-            self._leader_lost_v_ned_m_s = None
-            self._scan_sign = 1.0
-        self._alt_hold_m = veh.alt_rel_m
-        self._go(MissionState.REACQUIRE, Reason.LEADER_LOST, detail)
+            self.leader_lost_p_ned_m = None
+            self.leader_lost_v_ned_m_s = None
+            self.scan_sign = 1.0
+        self.alt_hold_m = veh.alt_rel_m
+        self.go(MissionState.REACQUIRE, Reason.LEADER_LOST, detail)
 
-    def _enter_hover(self, inp: MissionInputs) -> None:
+    def enter_hover(self, inp: MissionInputs) -> None:
         """The estimate went stale: hover on the vehicle's own telemetry (HOVER)."""
-        self._attitude_kind = self._flying_attitude()
-        self._alt_hold_m = inp.vehicle.alt_rel_m
+        self.attitude_kind = self.flying_attitude()
+        self.alt_hold_m = inp.vehicle.alt_rel_m
         est = inp.leader
-        age = "never" if est is None else f"{self._now_s - est.stamp_s:.2f} s old"
-        self._go(MissionState.HOVER, Reason.PERCEPTION_STALL, age)
+        age = "never" if est is None else f"{self.now_s - est.stamp_s:.2f} s old"
+        self.go(MissionState.HOVER, Reason.PERCEPTION_STALL, age)
