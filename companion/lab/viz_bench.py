@@ -5,7 +5,7 @@ detector thread, then the :class:`~companion.service.flight.FlightService` on th
 640x480 RGB-D frames paced at 30 frames/s, with a 20 Hz control tick beside it. Blocks of ``--block-s``
 alternate between the recorder off and on (the live view with a Foxglove client subscribed to every channel
 in another process, and an MCAP log, both at the shipped ``[viz]`` rates), so a machine's changing load hits
-both alike. Per frame: the flight core's time on the loop (pose, tracker, observers) and the end-to-end
+both alike. Per frame: the flight's time on the loop (pose, tracker, observers) and the end-to-end
 latency (arrival to estimate); per tick: how late the control tick woke; per block: frames the perception
 loop dropped. The detector is the frames' own boxes, so the figures are the loop's, not the network's.
 """

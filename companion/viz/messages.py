@@ -1,4 +1,4 @@
-"""From what the flight core saw to encoded messages of :mod:`companion.viz.channels` (on the worker thread).
+"""From what the flight saw to encoded messages of :mod:`companion.viz.channels` (on the worker thread).
 
 Every builder returns ``(topic, log_time_ns, bytes)`` records. Times are the service clock's seconds plus a
 fixed offset (``time_offset_s``: the wall clock's epoch in the service, 0 in the simulator, whose logs start

@@ -1,4 +1,4 @@
-"""``FlightRecorder``: observes the flight core and feeds the live view and the flight log from a worker.
+"""``FlightRecorder``: observes the flight and feeds the live view and the flight log from a worker.
 
 On the flight loop (:meth:`on_frame`, :meth:`on_step`, :meth:`on_transition`) it only appends references
 to bounded deques and sets an event: no copy, no encoding, no I/O, no lock held for long. The worker thread
@@ -85,7 +85,7 @@ class FlightRecorder:
 
     Args:
         geometry: the camera's mount (the camera frame in the 3D scene).
-        clock: the flight core's clock (step times, health).
+        clock: the flight's clock (step times, health).
         time_offset_s: added to clock stamps for the logs' time (the wall clock's epoch in the service).
         namespace: topic and frame prefix and the origin in the shared world (formations).
         health: the service's health flags, sampled once a second on the worker (None: none).

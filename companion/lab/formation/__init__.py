@@ -1,1 +1,1 @@
-"""Formations in lockstep: one leader, N followers, one service core per follower, scored per follower."""
+"""Formations in lockstep: one leader, N followers, one flight per follower, scored per follower."""
