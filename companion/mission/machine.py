@@ -288,12 +288,19 @@ class MissionMachine:
         return None
 
     def preflight_problems(self, veh: VehicleState) -> tuple[str, ...] | None:
-        """On the ground before a start (PREFLIGHT or DISARMED): what a start would be refused for now.
+        """Before a start on the ground: what a start would be refused for now (``companion health``).
 
-        The same verdict as :meth:`start_refusal` there (debounced GPS, home, on the ground); None in
-        other states, where preflight does not apply.
+        In PREFLIGHT and DISARMED the same verdict as :meth:`start_refusal` (debounced GPS, home, on the
+        ground); in WAIT_LINK and LINK_LOST on the ground, the link the mission does not trust yet (a
+        heartbeat alone is not enough: telemetry must be fresh). None in the other states, where preflight
+        does not apply.
         """
-        if self.c.state not in (MissionState.PREFLIGHT, MissionState.DISARMED) or (veh.armed and veh.in_air):
+        st = self.c.state
+        if veh.armed and veh.in_air:
+            return None
+        if st in (MissionState.WAIT_LINK, MissionState.LINK_LOST):
+            return (f"no link to the autopilot (state {st.value})",)
+        if st not in (MissionState.PREFLIGHT, MissionState.DISARMED):
             return None
         return tuple(self.launch.preflight_problems(veh))
 

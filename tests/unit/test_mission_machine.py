@@ -1002,6 +1002,11 @@ def test_a_start_after_an_operators_hold_follows_again() -> None:
 
 def test_preflight_problems_are_what_a_start_would_be_refused_for() -> None:
     h = Harness()
+    veh = h.ap.state(h.now_s)
+    assert h.machine.state == S.WAIT_LINK
+    # A heartbeat is not yet a link the mission trusts: health must not call a start possible.
+    assert h.machine.preflight_problems(veh) == ("no link to the autopilot (state wait_link)",)
+    assert h.machine.start_refusal(veh) == "no link to the autopilot (state wait_link)"
     h.ap.gps_fix = 1
     h.ap.home_ok = False
     h.run(1.0)
