@@ -1,9 +1,9 @@
 """The lockstep closed loop: the simulator, the camera and the service's cores on one clock, no sockets.
 
-Fast and repeatable (Monte Carlo): a :class:`sitl.world.World` steps the physics and the PX4-like autopilots;
-an in-process :class:`sitl.render.renderer.Renderer` draws the follower's camera; the *same* detector and
-the service's own :class:`~companion.service.flight_core.FlightCore` (pose, tracker, mission machine and
-runner, and the glue between them) fly the follower through a
+Fast and repeatable (Monte Carlo): a :class:`sitl.world.lockstep.World` steps the physics and the PX4-like
+autopilots; an in-process :class:`sitl.render.renderer.Renderer` draws the follower's camera; the *same*
+detector and the service's own :class:`~companion.service.flight_core.FlightCore` (pose, tracker, mission
+machine and runner, and the glue between them) fly the follower through a
 :class:`~companion.vehicle.message_link.MessageVehicleLink` that speaks MAVLink messages to
 ``world.link("follower")``. Everything runs on sim time (a :class:`ManualClock` set from the world).
 
@@ -105,7 +105,7 @@ class LockstepRun:
     """One scenario flown in lockstep. ``await run()`` returns the :class:`RunResult`.
 
     Args:
-        world: the simulation (``sitl.world.World``) with the scenario loaded; nothing stepped yet.
+        world: the simulation (``sitl.world.lockstep.World``) with the scenario loaded; nothing stepped yet.
         renderer: an entered ``sitl.render.renderer.Renderer`` for the follower's camera.
         cfg: the service config the cores are built from (the scenario's overrides applied).
         stage: the detection step (the detector on one frame, and its feedback from the tracker).
