@@ -18,31 +18,31 @@ Handler = Callable[[argparse.Namespace], int]
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from sitl.serve import main  # noqa: PLC0415
+    from sitl.serve.server import main  # noqa: PLC0415
 
     return main(args)
 
 
 def _dataset(args: argparse.Namespace) -> int:
-    from sitl.dataset import main_dataset  # noqa: PLC0415
+    from sitl.render.dataset import main_dataset  # noqa: PLC0415
 
     return main_dataset(args)
 
 
 def _dataset_merge(args: argparse.Namespace) -> int:
-    from sitl.dataset import main_merge  # noqa: PLC0415
+    from sitl.render.dataset import main_merge  # noqa: PLC0415
 
     return main_merge(args)
 
 
 def _contact_sheet(args: argparse.Namespace) -> int:
-    from sitl.dataset import main_contact_sheet  # noqa: PLC0415
+    from sitl.render.dataset import main_contact_sheet  # noqa: PLC0415
 
     return main_contact_sheet(args)
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from sitl.bench import main  # noqa: PLC0415
+    from sitl.world.bench import main  # noqa: PLC0415
 
     return main(args)
 

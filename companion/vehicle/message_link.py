@@ -1,7 +1,7 @@
 """``MessageVehicleLink``: the :class:`~companion.vehicle.link.VehicleLink` over MAVLink *message objects*.
 
 No sockets, no threads: it sends pymavlink message objects to a :class:`MessageTransport` and reads what comes
-back when its owner calls :meth:`MessageVehicleLink.pump`. For the lockstep harness (``sitl.world.World.link``
+back when its owner calls :meth:`MessageVehicleLink.pump`. For lockstep (``sitl.world.lockstep.World.link``
 is such a transport): one clock for simulation and service, where MAVSDK (real UDP, real time) cannot run.
 
 It does on the wire what :class:`~companion.vehicle.mavsdk_link.MavsdkVehicleLink` makes MAVSDK 4 do, so the

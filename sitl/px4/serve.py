@@ -11,8 +11,8 @@ from pathlib import Path
 from sitl.config import SitlConfig
 from sitl.px4.instance import Px4Build
 from sitl.px4.world import Px4World
-from sitl.scenario import Scenario
-from sitl.serve import Component
+from sitl.serve.server import Component
+from sitl.world.scenario import Scenario
 
 
 def banner(world: Px4World) -> list[str]:

@@ -8,7 +8,7 @@ the project's own autopilot and on real vehicles.
 
 The scenario on top, through PX4's own interfaces only:
 
-* the leader's path is flown by the same :class:`~sitl.pilot.TrajectoryPilot` as on the project's
+* the leader's path is flown by the same :class:`~sitl.world.pilot.TrajectoryPilot` as on the project's
   autopilot, over MAVLink (arm, take-off, offboard position + velocity + acceleration setpoints);
 * wind: the scenario's mean wind as SIH's ``SIH_WIND_N`` / ``SIH_WIND_E`` at start. Gusts and turbulence
   are not flown: changing SIH's wind means a parameter write, and PX4 saves its parameters to file on each
@@ -36,18 +36,18 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.autopilot import AutopilotStatus
-from sitl.autopilot_state import GlobalEstimate, Home
+from sitl.autopilot.autopilot import AutopilotStatus
+from sitl.autopilot.modes import NavState, nav_state_from_mode
+from sitl.autopilot.state import GlobalEstimate, Home
 from sitl.config import SitlConfig
-from sitl.dynamics import VehicleTruth
-from sitl.geo import LocalProjection
-from sitl.modes import NavState, nav_state_from_mode
-from sitl.pilot import TrajectoryPilot
+from sitl.physics.dynamics import VehicleTruth
+from sitl.physics.geo import LocalProjection
+from sitl.physics.wind import WindParams
 from sitl.px4.instance import MAX_INSTANCE, Px4Build, Px4Instance, Px4StartError, free_instance_base
 from sitl.px4.link import Px4Link, StatusText
-from sitl.scenario import Scenario
-from sitl.serve import SEVERITY
-from sitl.wind import WindParams
+from sitl.serve.server import SEVERITY
+from sitl.world.pilot import TrajectoryPilot
+from sitl.world.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,7 @@ class Px4Vehicle:
 
 
 class PilotPort:
-    """What :class:`~sitl.pilot.TrajectoryPilot` needs of an autopilot, over PX4's MAVLink.
+    """What :class:`~sitl.world.pilot.TrajectoryPilot` needs of an autopilot, over PX4's MAVLink.
 
     The pilot reads only what a MAVLink client can (HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE,
     LOCAL_POSITION_NED, HOME_POSITION) and writes messages from the vehicle's onboard computer.
@@ -156,7 +156,7 @@ class PilotPort:
 
 
 class Px4World:
-    """N PX4 SITL vehicles in one world, flying a scenario; the :class:`~sitl.serve.SimHandle` interface.
+    """N PX4 SITL vehicles in one world, flying a scenario; :class:`~sitl.serve.server.SimHandle`'s interface.
 
     Components (the camera server, the run's recorders) see ``t_s``, ``names``, ``truth(name)``,
     ``wait_until(t_s)``, ``mode(name)``, ``status_texts(name)`` and ``scenario``, as on the project's own

@@ -225,7 +225,7 @@ class CameraServer:
 
 
 class _SimHandle(Protocol):
-    """What ``sitl serve`` hands its components (see ``sitl.serve.SimHandle``)."""
+    """What ``sitl serve`` hands its components (see ``sitl.serve.server.SimHandle``)."""
 
     @property
     def t_s(self) -> float: ...

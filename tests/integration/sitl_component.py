@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from sitl.serve import SimHandle
+from sitl.serve.server import SimHandle
 
 
 async def report_truth(sim: SimHandle) -> None:

@@ -44,7 +44,7 @@ def test_a_leader_on_the_ground_ahead_is_found_before_take_off(repo_root: Path) 
     from sitl.render.config import CameraModel, visual_from_mapping
     from sitl.render.geometry import VehiclePose
     from sitl.render.renderer import Renderer
-    from sitl.scenario import load_scenario
+    from sitl.world.scenario import load_scenario
 
     scenario = load_scenario(repo_root / "config" / "scenarios" / "straight.toml")
     cfg = DetectorConfig(model_path=str(repo_root / "models" / "leader_detector.pt"))

@@ -8,10 +8,10 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl.autopilot.modes import NavState
 from sitl.config import SitlConfig, VehicleConfig
-from sitl.modes import NavState
-from sitl.scenario import Scenario
-from sitl.world import World
+from sitl.world.lockstep import World
+from sitl.world.scenario import Scenario
 
 NAN = math.nan
 MODE_NAMES = {

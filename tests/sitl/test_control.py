@@ -9,11 +9,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from companion.kernel.frames import R_from_quat, quat_from_euler
-from sitl.attitude import attitude_from_thrust, quat_between, quat_mul, yaw_of
-from sitl.attitude import quat_from_euler as quat_from_euler_fast
-from sitl.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
-from sitl.dynamics import QUAD
-from sitl.inner_loop import InnerLoop
+from sitl.autopilot.attitude import attitude_from_thrust, quat_between, quat_mul, yaw_of
+from sitl.autopilot.attitude import quat_from_euler as quat_from_euler_fast
+from sitl.autopilot.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
+from sitl.autopilot.inner_loop import InnerLoop
+from sitl.physics.dynamics import QUAD
 
 angles = st.floats(-1.2, 1.2)
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from sitl.dynamics import QUAD, QuadDynamics
-from sitl.geo import LocalProjection
+from sitl.physics.dynamics import QUAD, QuadDynamics
+from sitl.physics.geo import LocalProjection
 
 REPO = Path(__file__).resolve().parents[2]
 WORLD = LocalProjection(47.397742, 8.545594, 488.0)
@@ -18,7 +18,7 @@ WORLD = LocalProjection(47.397742, 8.545594, 488.0)
 
 def test_jsbsim_prints_nothing() -> None:
     code = (
-        "from sitl.dynamics import QuadDynamics; from sitl.geo import LocalProjection;"
+        "from sitl.physics.dynamics import QuadDynamics; from sitl.physics.geo import LocalProjection;"
         "d = QuadDynamics(LocalProjection(47.0, 8.0, 400.0), (0.0, 0.0, 0.0), 0.0, 0.004);"
         "[d.step(0.5, 0.5, 0.5, 0.5) for _ in range(500)]"
     )

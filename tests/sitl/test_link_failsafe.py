@@ -15,8 +15,8 @@ from companion.config import LinkConfig
 from companion.kernel.clock import ManualClock
 from companion.vehicle import failsafe
 from companion.vehicle.message_link import MessageVehicleLink
-from sitl.modes import NavState
-from sitl.world import World
+from sitl.autopilot.modes import NavState
+from sitl.world.lockstep import World
 from tests.sitl.harness import Client, world_with
 
 

@@ -14,7 +14,7 @@ import numpy as np
 from companion.config import LinkConfig
 from companion.kernel.clock import ManualClock
 from companion.vehicle.message_link import MessageVehicleLink
-from sitl.scenario import Scenario
+from sitl.world.scenario import Scenario
 from tests.sitl.harness import world_with
 
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl.autopilot.modes import NavState
 from sitl.config import SitlConfig
-from sitl.modes import NavState
-from sitl.scenario import Scenario
-from sitl.world import World
+from sitl.world.lockstep import World
+from sitl.world.scenario import Scenario
 from tests.sitl.harness import NAN, Client, world_with
 
 pytestmark = pytest.mark.slow
@@ -343,7 +343,7 @@ def test_default_streams_at_px4_onboard_rates_and_set_message_interval() -> None
 def test_every_handled_message_type_with_random_values_is_harmless() -> None:
     import random
 
-    from sitl.autopilot_mavlink import MESSAGE_HANDLERS
+    from sitl.autopilot.mavlink import MESSAGE_HANDLERS
     from tests.fuzz_messages import random_message
 
     world = world_with(seed=10)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.commander import Action, DisarmTimer, Flags, Probation, resolve_failsafe
-from sitl.gps import NormalDraws
-from sitl.modes import NavState, nav_state_from_mode
-from sitl.offboard import SetpointKind, parse_attitude_target, parse_local_ned
-from sitl.params import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, ParamStore, decode_value, encode_value
+from sitl.autopilot.commander import Action, DisarmTimer, Flags, Probation, resolve_failsafe
+from sitl.autopilot.modes import NavState, nav_state_from_mode
+from sitl.autopilot.offboard import SetpointKind, parse_attitude_target, parse_local_ned
+from sitl.autopilot.params import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, ParamStore, decode_value, encode_value
+from sitl.physics.gps import NormalDraws
 
 NAN = math.nan
 

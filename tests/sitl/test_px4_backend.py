@@ -20,7 +20,7 @@ from sitl.px4.instance import (
 )
 from sitl.px4.link import Px4Link
 from sitl.px4.world import mode_name, unsupported
-from sitl.scenario import Scenario
+from sitl.world.scenario import Scenario
 
 
 def _fake_build(root: Path, *, with_rcs: bool = True) -> Path:

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from companion.kernel.errors import ConfigError
-from sitl.links import LinkFaults
-from sitl.scenario import LinkSpec, LinkWindowSpec, Scenario, load_scenario
-from sitl.trajectory import Circle, FigureEight, SpeedProfile, Straight, Waypoints
-from sitl.wind import WindModel, WindParams
+from sitl.physics.wind import WindModel, WindParams
+from sitl.world.links import LinkFaults
+from sitl.world.scenario import LinkSpec, LinkWindowSpec, Scenario, load_scenario
+from sitl.world.trajectory import Circle, FigureEight, SpeedProfile, Straight, Waypoints
 
 REPO = Path(__file__).resolve().parents[2]
 SCENARIOS = sorted((REPO / "config" / "scenarios").glob("*.toml"))
@@ -136,8 +136,8 @@ def test_link_faults_cut_loss_and_latency() -> None:
 
 
 def test_gps_sensor_outages_stuck_wrong_and_jumps() -> None:
-    from sitl.geo import LocalProjection
-    from sitl.gps import GpsFailure, GpsJump, GpsOutage, GpsSensor
+    from sitl.physics.geo import LocalProjection
+    from sitl.physics.gps import GpsFailure, GpsJump, GpsOutage, GpsSensor
 
     world = LocalProjection(47.0, 8.0, 400.0)
     gps = GpsSensor(
@@ -164,7 +164,7 @@ def test_gps_sensor_outages_stuck_wrong_and_jumps() -> None:
 
 def test_link_loss_scenario_cuts_and_bursts_reach_the_client() -> None:
     from sitl.config import SitlConfig
-    from sitl.world import World
+    from sitl.world.lockstep import World
 
     sc = Scenario.model_validate(
         {

@@ -11,7 +11,7 @@ from companion.kernel.errors import ConfigError
 from companion.lab.evaluation.camera_timing import CameraTiming
 from companion.lab.evaluation.campaign import RunSpec, child_args, effective_scenario, read_timing_profile
 from companion.lab.evaluation.setup import scenario_path
-from sitl.scenario import TimingSpec
+from sitl.world.scenario import TimingSpec
 
 REPO = Path(__file__).resolve().parents[2]
 REAL_PATH = REPO / "config" / "timing" / "real-path.toml"

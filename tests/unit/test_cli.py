@@ -127,7 +127,7 @@ def test_the_parsers_import_no_command_until_it_runs() -> None:
         "from companion.cli import build_parser as c\n"
         "from sitl.cli import build_parser as s\n"
         "c(); s()\n"
-        "heavy = ('torch', 'jsbsim', 'cv2', 'sitl.serve', 'sitl.dataset', 'sitl.render', 'companion.app')\n"
+        "heavy = ('torch', 'jsbsim', 'cv2', 'sitl.serve', 'sitl.render', 'companion.app')\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in heavy or m.startswith(heavy)))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

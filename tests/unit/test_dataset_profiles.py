@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from companion.perception.detector.dataset import find_samples
-from sitl.dataset import MANIFEST_COLUMNS, merge
 from sitl.render.config import CameraModel
+from sitl.render.dataset import MANIFEST_COLUMNS, merge
 from sitl.render.randomize import sample_sequence
 
 INTR = CameraModel().intrinsics

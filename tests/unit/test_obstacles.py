@@ -13,7 +13,7 @@ from companion.lab.evaluation.setup import scenario_path
 from sitl.render import world as render_world
 from sitl.render.config import OccluderSpec, VisualConfig, visual_from_mapping
 from sitl.render.structures import solid_structures
-from sitl.scenario import load_scenario
+from sitl.world.scenario import load_scenario
 
 LEVEL = (1.0, 0.0, 0.0, 0.0)
 

@@ -162,7 +162,7 @@ def test_a_runs_folder_keeps_its_seed_and_flies_it_again(
     """``--seed 2`` is the seed in the run's scenario.toml, and that file alone flies seed 2 again."""
     from companion.cli import main
     from companion.lab.evaluation import setup
-    from sitl.scenario import load_scenario
+    from sitl.world.scenario import load_scenario
 
     class WrittenError(Exception):
         pass

@@ -20,7 +20,7 @@ class CameraTiming:
     """Per frame: when its estimate is due at the mission, or None for a dropped frame, sim s.
 
     Args:
-        spec: the scenario's ``timing`` (``sitl.scenario.TimingSpec``).
+        spec: the scenario's ``timing`` (``sitl.world.scenario.TimingSpec``).
         seed: the run's seed; ``stream`` tells followers of one formation apart.
     """
 

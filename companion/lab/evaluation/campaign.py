@@ -99,7 +99,7 @@ def effective_scenario(path: Path, duration_s: float | None, timing: Path | None
 
     The profile's keys replace the scenario's keys they name; the rest of the scenario stays.
     """
-    from sitl.scenario import Scenario, load_scenario  # noqa: PLC0415 (pydantic models of the simulator)
+    from sitl.world.scenario import Scenario, load_scenario  # noqa: PLC0415 (pydantic models of the simulator)
 
     sc = load_scenario(path)
     if timing is not None:

@@ -1,12 +1,13 @@
 """The lockstep closed loop: the simulator, the cameras and the service's flights on one clock, no sockets.
 
-Fast and repeatable (Monte Carlo): a :class:`sitl.world.World` steps the physics and the PX4-like autopilots;
-for each of N followers an in-process :class:`sitl.render.renderer.Renderer` draws its camera, and the
-*same* detector and the service's own :class:`~companion.service.flight.FlightService` (pose, tracker,
-mission machine and runner) fly it through a :class:`~companion.vehicle.message_link.MessageVehicleLink`
-that speaks MAVLink messages to ``world.link(name)``. Everything runs on sim time (a :class:`ManualClock`
-set from the world). :class:`LockstepFlight` is that loop for any number of followers; :class:`LockstepRun`
-is the lone follower (N = 1) with its report figures, and :mod:`companion.lab.formation.run` the formation.
+Fast and repeatable (Monte Carlo): a :class:`sitl.world.lockstep.World` steps the physics and the PX4-like
+autopilots; for each of N followers an in-process :class:`sitl.render.renderer.Renderer` draws its camera,
+and the *same* detector and the service's own :class:`~companion.service.flight.FlightService` (pose,
+tracker, mission machine and runner) fly it through a
+:class:`~companion.vehicle.message_link.MessageVehicleLink` that speaks MAVLink messages to
+``world.link(name)``. Everything runs on sim time (a :class:`ManualClock` set from the world).
+:class:`LockstepFlight` is that loop for any number of followers; :class:`LockstepRun` is the lone follower
+(N = 1) with its report figures, and :mod:`companion.lab.formation.run` the formation.
 
 What differs from the real path (``companion sim`` over UDP with MAVSDK) and why:
 
@@ -359,7 +360,7 @@ class LockstepRun:
     """One scenario flown in lockstep by its lone follower. ``await run()`` returns the :class:`RunResult`.
 
     Args:
-        world: the simulation (``sitl.world.World``) with the scenario loaded; nothing stepped yet.
+        world: the simulation (``sitl.world.lockstep.World``) with the scenario loaded; nothing stepped yet.
         renderer: an entered ``sitl.render.renderer.Renderer`` for the follower's camera.
         cfg: the service config the flight is built from (the scenario's overrides applied).
         stage: the detection step (the detector on one frame, and its feedback from the tracker).

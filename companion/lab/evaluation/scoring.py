@@ -100,7 +100,7 @@ class RunScorer:
 
     @classmethod
     def for_scenario(cls, scenario: Any, snapshots: int = 0, vehicle: str = "follower") -> RunScorer:
-        """The scorer of a ``sitl.scenario.Scenario`` for the follower named ``vehicle``.
+        """The scorer of a ``sitl.world.scenario.Scenario`` for the follower named ``vehicle``.
 
         Its formation window, the follower's GPS outages, ``snapshots`` evenly spaced camera frames, and
         its scene's structures for the crash check.

@@ -116,8 +116,8 @@ def run_lockstep(
 
     from sitl.render.config import CameraModel, visual_from_mapping  # noqa: PLC0415
     from sitl.render.renderer import Renderer  # noqa: PLC0415 (the simulator is only needed here)
-    from sitl.scenario import load_scenario  # noqa: PLC0415
-    from sitl.world import World  # noqa: PLC0415
+    from sitl.world.lockstep import World  # noqa: PLC0415
+    from sitl.world.scenario import load_scenario  # noqa: PLC0415
 
     scenario = load_scenario(path)
     world = World(sitl_config(cfg), scenario, seed=seed)

@@ -95,8 +95,8 @@ def run_formation(
     """Fly one formation scenario file in lockstep (blocking)."""
     from sitl.render.config import CameraModel, visual_from_mapping  # noqa: PLC0415
     from sitl.render.renderer import Renderer  # noqa: PLC0415
-    from sitl.scenario import load_scenario  # noqa: PLC0415
-    from sitl.world import World  # noqa: PLC0415
+    from sitl.world.lockstep import World  # noqa: PLC0415
+    from sitl.world.scenario import load_scenario  # noqa: PLC0415
 
     scenario = load_scenario(scenario_file)
     spec = formation_spec(scenario)

@@ -95,7 +95,7 @@ class FormationRun:
     """The formation flown in lockstep; ``await run()``.
 
     Args:
-        world: ``sitl.world.World`` with the leader and the followers (named as in the plan).
+        world: ``sitl.world.lockstep.World`` with the leader and the followers (named as in the plan).
         followers: ``(name, cfg, stage, renderer)`` per follower; ``cfg`` flies that follower's slot.
     """
 

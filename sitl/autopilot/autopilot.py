@@ -1,8 +1,8 @@
 """A PX4-like autopilot for one simulated vehicle, driven at the message level.
 
 The autopilot is the only thing a MAVLink client talks to. It is transport-free: the UDP server
-(:mod:`sitl.serve`) and the lockstep harness (:mod:`sitl.world`) both feed it pymavlink message
-objects through :meth:`Autopilot.handle_message` and collect what it sends from its links'
+(:mod:`sitl.serve.server`) and the lockstep harness (:mod:`sitl.world.lockstep`) both feed it pymavlink
+message objects through :meth:`Autopilot.handle_message` and collect what it sends from its links'
 ``outbox``, so tests and evaluation run exactly the code that answers on the wire.
 
 Loops (PX4's, at the rates PX4 SITL runs them):
@@ -18,9 +18,9 @@ Links: index 0 is the API link (PX4 "onboard" mode, the one MAVSDK uses on 14540
 GCS link ("normal" mode, QGroundControl on 14550). Command ACKs and parameter replies go back on the
 link the request came from; STATUSTEXT, HEARTBEAT and parameter changes go to every active link.
 
-The autopilot is built in layers, one module each: :mod:`sitl.autopilot_state` (the state, parameters,
-health bits and the outgoing side), :mod:`sitl.autopilot_flight` (commander, land detector, control),
-:mod:`sitl.autopilot_mavlink` (incoming messages and commands) and this module's :class:`Autopilot`
+The autopilot is built in layers, one module each: :mod:`sitl.autopilot.state` (the state, parameters,
+health bits and the outgoing side), :mod:`sitl.autopilot.flight` (commander, land detector, control),
+:mod:`sitl.autopilot.mavlink` (incoming messages and commands) and this module's :class:`Autopilot`
 (the loops).
 """
 
@@ -29,10 +29,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from companion.kernel.frames import R_from_euler
-from sitl import telemetry
-from sitl.autopilot_mavlink import AutopilotMavlink
-from sitl.dynamics import GRAVITY_M_S2
-from sitl.modes import NavState
+from sitl.autopilot import telemetry
+from sitl.autopilot.mavlink import AutopilotMavlink
+from sitl.autopilot.modes import NavState
+from sitl.physics.dynamics import GRAVITY_M_S2
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,7 +3,7 @@
 Attitude -> body rates -> torques -> motor thrusts, after PX4's ``mc_att_control`` (reduced attitude
 first, yaw blended in with MC_YAW_WEIGHT) and ``mc_rate_control``; the rate loop works in physical units
 (angular acceleration times inertia) instead of PX4's per-airframe normalised gains, so it needs no
-tuning file. The position loop that feeds it is :mod:`sitl.control`.
+tuning file. The position loop that feeds it is :mod:`sitl.autopilot.control`.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from sitl.attitude import Quat
-from sitl.dynamics import QuadModel
+from sitl.autopilot.attitude import Quat
+from sitl.physics.dynamics import QuadModel
 
 
 @dataclass(frozen=True, slots=True)
@@ -224,9 +224,9 @@ class InnerLoop:
         """One tick from the attitude (ZYX Euler, rad) and body rates: motor commands 0..1, PX4 order.
 
         The same arithmetic, operation for operation (so bit for bit), as
-        :func:`~sitl.attitude.quat_from_euler`, :meth:`attitude_to_rates` and :meth:`rates_to_motors` in
-        turn, in one Python frame: three calls, their tuples and the setpoint's body z axis (recomputed
-        only when ``q_sp`` changes) cost a third of the inner loop otherwise.
+        :func:`~sitl.autopilot.attitude.quat_from_euler`, :meth:`attitude_to_rates` and
+        :meth:`rates_to_motors` in turn, in one Python frame: three calls, their tuples and the setpoint's
+        body z axis (recomputed only when ``q_sp`` changes) cost a third of the inner loop otherwise.
         """
         g = self.gains
         # quat_from_euler (the shared products are the ones it computes first, left to right).

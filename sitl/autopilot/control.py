@@ -3,11 +3,11 @@
 Position -> velocity -> thrust vector -> attitude -> body rates -> torques -> motor thrusts.
 
 This module is the outer part, position and velocity to a thrust vector, after PX4's
-``mc_pos_control/PositionControl``; :mod:`sitl.attitude` turns the thrust vector into an attitude and
-:mod:`sitl.inner_loop` runs attitude, rates and the mixer (``mc_att_control`` with MC_YAW_WEIGHT's
-reduced-attitude control, and ``mc_rate_control``). The rate loop works in physical units (angular
-acceleration times inertia) instead of PX4's per-airframe normalised gains, so it needs no tuning file.
-Frames: NED world, FRD body. These functions run in the simulator's loops, which is why they avoid
+``mc_pos_control/PositionControl``; :mod:`sitl.autopilot.attitude` turns the thrust vector into an attitude
+and :mod:`sitl.autopilot.inner_loop` runs attitude, rates and the mixer (``mc_att_control`` with
+MC_YAW_WEIGHT's reduced-attitude control, and ``mc_rate_control``). The rate loop works in physical units
+(angular acceleration times inertia) instead of PX4's per-airframe normalised gains, so it needs no tuning
+file. Frames: NED world, FRD body. These functions run in the simulator's loops, which is why they avoid
 numpy: a 3-vector through numpy costs more than the arithmetic on it.
 """
 

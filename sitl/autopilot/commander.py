@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
-from sitl.modes import MANUAL_MODES, NavState
+from sitl.autopilot.modes import MANUAL_MODES, NavState
 
 PROBATION_S = 1.0
 

@@ -1,7 +1,7 @@
 """The autopilot's MAVLink endpoint: incoming commands, setpoints, external vision, parameters and the rest.
 
-The third layer of :class:`sitl.autopilot.Autopilot`: :meth:`AutopilotMavlink.handle_message` dispatches one
-message (:data:`MESSAGE_HANDLERS`), commands go through :data:`_COMMANDS`, acknowledged where they came from.
+The third layer of :class:`sitl.autopilot.autopilot.Autopilot`: :meth:`handle_message` dispatches one message
+(:data:`MESSAGE_HANDLERS`), commands go through :data:`_COMMANDS`, acknowledged where they came from.
 """
 
 from __future__ import annotations
@@ -13,9 +13,16 @@ from typing import Any, Final
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl import telemetry
-from sitl.autopilot_flight import AutopilotFlight
-from sitl.autopilot_state import (
+from sitl.autopilot import telemetry
+from sitl.autopilot.commander import mode_can_run
+from sitl.autopilot.control import NAN
+from sitl.autopilot.estimator import VisionSample
+from sitl.autopilot.flight import AutopilotFlight
+from sitl.autopilot.modes import NavState, nav_state_from_mode
+from sitl.autopilot.offboard import OffboardSetpoint, parse_attitude_target, parse_global_int, parse_local_ned
+from sitl.autopilot.params import PARAM_TYPE_INT32, decode_value, encode_value
+from sitl.autopilot.signing import VehicleSigning
+from sitl.autopilot.state import (
     ACCEPTED,
     DENIED,
     FAILED,
@@ -27,14 +34,7 @@ from sitl.autopilot_state import (
     UNSUPPORTED,
     Home,
 )
-from sitl.commander import mode_can_run
-from sitl.control import NAN
-from sitl.estimator import VisionSample
-from sitl.gps import GpsFailure
-from sitl.links import VehicleSigning
-from sitl.modes import NavState, nav_state_from_mode
-from sitl.offboard import OffboardSetpoint, parse_attitude_target, parse_global_int, parse_local_ned
-from sitl.params import PARAM_TYPE_INT32, decode_value, encode_value
+from sitl.physics.gps import GpsFailure
 
 log = logging.getLogger("sitl.autopilot")
 
@@ -62,7 +62,7 @@ def _fin(value: Any) -> float:
 
 
 class AutopilotMavlink(AutopilotFlight):
-    """The MAVLink endpoint of an autopilot (see :class:`~sitl.autopilot.Autopilot`)."""
+    """The MAVLink endpoint of an autopilot (see :class:`~sitl.autopilot.autopilot.Autopilot`)."""
 
     #: MAVLink 2 signing, once SETUP_SIGNING gave a key (None: everything is accepted, nothing signed).
     signing: VehicleSigning | None = None

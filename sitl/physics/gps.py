@@ -12,7 +12,7 @@ from enum import Enum
 
 import numpy as np
 
-from sitl.geo import LocalProjection
+from sitl.physics.geo import LocalProjection
 
 GPS_RATE_HZ = 10.0
 

@@ -1,4 +1,4 @@
-"""``sitl serve``: the lockstep :class:`~sitl.world.World` in real time x speed, on MAVLink/UDP.
+"""``sitl serve``: the lockstep :class:`~sitl.world.lockstep.World` in real time x speed, on MAVLink/UDP.
 
 Each vehicle ``i`` (MAVLink system ``i + 1``) gets PX4 SITL's two links:
 
@@ -9,7 +9,7 @@ Each vehicle ``i`` (MAVLink system ``i + 1``) gets PX4 SITL's two links:
   (QGroundControl, MAVProxy ``--master=udpin:0.0.0.0:14550``).
 
 Each link answers its default remote and any peer heard in the last 10 s, and drops junk datagram by
-datagram (:mod:`sitl.udp_link`).
+datagram (:mod:`sitl.serve.udp_link`).
 
 Components: anything else that must live in this process and see the simulation (the renderer's
 camera server) is an async callable ``component(sim: SimHandle) -> None`` named in
@@ -35,12 +35,12 @@ from pathlib import Path
 from companion.kernel.errors import CompanionError, ConfigError
 from companion.kernel.logs import setup_logging
 from companion.kernel.shipped import project_root
-from sitl.autopilot_state import GlobalEstimate
+from sitl.autopilot.state import GlobalEstimate
 from sitl.config import SitlConfig, load_sitl_config
-from sitl.dynamics import VehicleTruth
-from sitl.scenario import Scenario, find_scenario, load_scenario
-from sitl.udp_link import UdpLink
-from sitl.world import LINK_API, LINK_GCS, World
+from sitl.physics.dynamics import VehicleTruth
+from sitl.serve.udp_link import UdpLink
+from sitl.world.lockstep import LINK_API, LINK_GCS, World
+from sitl.world.scenario import Scenario, find_scenario, load_scenario
 
 log = logging.getLogger(__name__)
 

@@ -88,9 +88,9 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from companion.kernel.config import Section, format_validation_error, read_toml
 from companion.kernel.errors import ConfigError
-from sitl.gps import GpsFailure, GpsJump, GpsNoise, GpsOutage
-from sitl.trajectory import Circle, FigureEight, SpeedProfile, Straight, Trajectory, Waypoints
-from sitl.wind import WindParams
+from sitl.physics.gps import GpsFailure, GpsJump, GpsNoise, GpsOutage
+from sitl.physics.wind import WindParams
+from sitl.world.trajectory import Circle, FigureEight, SpeedProfile, Straight, Trajectory, Waypoints
 
 SCHEMA_VERSION = 1
 
@@ -147,7 +147,7 @@ class LeaderSpec(Section):
         return self
 
     def trajectory(self) -> Trajectory | None:
-        """The path as a pure :class:`~sitl.trajectory.Trajectory` (None for ``type = "none"``)."""
+        """The path as a pure :class:`~sitl.world.trajectory.Trajectory` (None for ``type = "none"``)."""
         profile = SpeedProfile(self.speed_m_s, self.accel_m_s2)
         heading = math.radians(self.heading_deg)
         if self.type == "straight":

@@ -4,18 +4,23 @@ The commander keeps home, the estimate flags, the mode with its failsafes, and a
 says when the vehicle is on the ground; control turns the offboard or navigator setpoint into the
 position and attitude controllers' inputs.
 
-The second layer of :class:`sitl.autopilot.Autopilot`, on :class:`~sitl.autopilot_state.AutopilotState`;
-the commander's pure decisions are :mod:`sitl.commander`'s, the auto modes' trajectories
-:mod:`sitl.navigator`'s.
+The second layer of :class:`sitl.autopilot.autopilot.Autopilot`, on
+:class:`~sitl.autopilot.state.AutopilotState`; the commander's pure decisions are
+:mod:`sitl.autopilot.commander`'s, the auto modes' trajectories :mod:`sitl.autopilot.navigator`'s.
 """
 
 from __future__ import annotations
 
 import math
 
-from sitl import telemetry
-from sitl.attitude import attitude_from_thrust, wrap_pi
-from sitl.autopilot_state import (
+from sitl.autopilot import telemetry
+from sitl.autopilot.attitude import attitude_from_thrust, wrap_pi
+from sitl.autopilot.commander import Action, Flags, action_nav_state, resolve_failsafe
+from sitl.autopilot.control import NAN, TrajectorySetpoint
+from sitl.autopilot.modes import NavState
+from sitl.autopilot.navigator import RtlPhase
+from sitl.autopilot.offboard import OffboardSetpoint, SetpointKind
+from sitl.autopilot.state import (
     ACCEPTED,
     MOTORS_IDLE,
     MOTORS_OFF,
@@ -25,15 +30,10 @@ from sitl.autopilot_state import (
     AutopilotState,
     Home,
 )
-from sitl.commander import Action, Flags, action_nav_state, resolve_failsafe
-from sitl.control import NAN, TrajectorySetpoint
-from sitl.modes import NavState
-from sitl.navigator import RtlPhase
-from sitl.offboard import OffboardSetpoint, SetpointKind
 
 
 class AutopilotFlight(AutopilotState):
-    """Commander, land detector and control of an autopilot (see :class:`~sitl.autopilot.Autopilot`)."""
+    """Commander, land detector and control of an autopilot (:class:`~sitl.autopilot.autopilot.Autopilot`)."""
 
     # ------------------------------------------------------------------ commander
     def _update_home(self) -> None:

@@ -1,11 +1,11 @@
 """The lockstep simulation core: N vehicles, their autopilots, wind, scripted pilots. No sockets.
 
-Use it directly for fast tests and evaluation (the UDP server in :mod:`sitl.serve` drives the same
+Use it directly for fast tests and evaluation (the UDP server in :mod:`sitl.serve.server` drives the same
 object in real time)::
 
     from sitl.config import load_sitl_config
-    from sitl.scenario import load_scenario
-    from sitl.world import World
+    from sitl.world.scenario import load_scenario
+    from sitl.world.lockstep import World
 
     world = World(load_sitl_config(path), load_scenario(scenario_path), seed=3)
     api = world.link("follower")              # MessageLink: the follower's API link, streams on
@@ -31,17 +31,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.autopilot import Autopilot
-from sitl.autopilot_state import LINK_API, LINK_GCS
+from sitl.autopilot.autopilot import Autopilot
+from sitl.autopilot.state import LINK_API, LINK_GCS
 from sitl.config import SitlConfig
-from sitl.dynamics import QuadDynamics, VehicleTruth
-from sitl.geo import LocalProjection
-from sitl.gps import GpsSensor
-from sitl.heading_error import HeadingError, HeadingErrorModel
-from sitl.links import LinkFaults, MessageLink
-from sitl.pilot import TrajectoryPilot
-from sitl.scenario import LinkSpec, Scenario
-from sitl.wind import WindModel, WindParams
+from sitl.physics.dynamics import QuadDynamics, VehicleTruth
+from sitl.physics.geo import LocalProjection
+from sitl.physics.gps import GpsSensor
+from sitl.physics.heading_error import HeadingError, HeadingErrorModel
+from sitl.physics.wind import WindModel, WindParams
+from sitl.world.links import LinkFaults, MessageLink
+from sitl.world.pilot import TrajectoryPilot
+from sitl.world.scenario import LinkSpec, Scenario
 
 __all__ = ["LINK_API", "LINK_GCS", "VehicleTruth", "World"]
 

@@ -1,4 +1,4 @@
-"""A model of PX4's EKF2 as clients see it (pure: time passed in, seeded randomness; the receiver: sitl.gps).
+"""A model of PX4's EKF2 as clients see it (pure: time in, seeded randomness; the receiver: sitl.physics.gps).
 
 What this reproduces is EKF2's *observable* behaviour, not its maths:
 
@@ -29,8 +29,8 @@ from typing import Final
 
 import numpy as np
 
-from sitl.geo import LocalProjection
-from sitl.gps import GpsSample, NormalDraws
+from sitl.physics.geo import LocalProjection
+from sitl.physics.gps import GpsSample, NormalDraws
 
 # EKF2 timeline constants (s), from ekf2/EKF/common.h.
 NO_AID_DEADRECKON_S = 1.0  # no_aid_timeout_max

@@ -14,9 +14,9 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
-from sitl.attitude import wrap_pi
-from sitl.control import NAN, TrajectorySetpoint
-from sitl.modes import NavState
+from sitl.autopilot.attitude import wrap_pi
+from sitl.autopilot.control import NAN, TrajectorySetpoint
+from sitl.autopilot.modes import NavState
 
 #: PX4 SITL (SIH quadrotor, MPC_TKO_SPEED 1.5 m/s, take-off to 5 m) left the ground 3.0-3.5 s after the
 #: take-off command (spool-up, then MPC_TKO_RAMP_T's ramp) and climbed at 1.0-1.1 m/s at most: the ramp and

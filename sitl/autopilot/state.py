@@ -1,8 +1,8 @@
 """The autopilot's state and what reads it: parameters, the estimate, health bits, outgoing MAVLink.
 
-The first layer of :class:`sitl.autopilot.Autopilot` (see there): its ``__init__`` holds every piece of
-the vehicle's state; the methods here only read it, apply parameters, or queue messages on the links
-(streams at PX4's rates, STATUSTEXT, replies). :mod:`sitl.telemetry` builds the messages from it.
+The first layer of :class:`sitl.autopilot.autopilot.Autopilot` (see there): its ``__init__`` holds every
+piece of the vehicle's state; the methods here only read it, apply parameters, or queue messages on the links
+(streams at PX4's rates, STATUSTEXT, replies). :mod:`sitl.autopilot.telemetry` builds the messages from it.
 """
 
 from __future__ import annotations
@@ -16,20 +16,20 @@ from typing import Final
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl import telemetry
-from sitl.attitude import Quat, quat_from_euler, wrap_pi
-from sitl.commander import Action, DisarmTimer, Flags, ValidityChecks, mode_can_run
-from sitl.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
-from sitl.dynamics import QUAD, QuadDynamics, QuadModel
-from sitl.estimator import Estimator, VisionSample
-from sitl.geo import LocalProjection
-from sitl.gps import GpsSample, GpsSensor
-from sitl.heading_error import HeadingError
-from sitl.inner_loop import AttitudeGains, InnerLoop
-from sitl.modes import NavState
-from sitl.navigator import Navigator, NavLimits, RtlPhase
-from sitl.offboard import OffboardSetpoint
-from sitl.params import ParamStore
+from sitl.autopilot import telemetry
+from sitl.autopilot.attitude import Quat, quat_from_euler, wrap_pi
+from sitl.autopilot.commander import Action, DisarmTimer, Flags, ValidityChecks, mode_can_run
+from sitl.autopilot.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
+from sitl.autopilot.estimator import Estimator, VisionSample
+from sitl.autopilot.inner_loop import AttitudeGains, InnerLoop
+from sitl.autopilot.modes import NavState
+from sitl.autopilot.navigator import Navigator, NavLimits, RtlPhase
+from sitl.autopilot.offboard import OffboardSetpoint
+from sitl.autopilot.params import ParamStore
+from sitl.physics.dynamics import QUAD, QuadDynamics, QuadModel
+from sitl.physics.geo import LocalProjection
+from sitl.physics.gps import GpsSample, GpsSensor
+from sitl.physics.heading_error import HeadingError
 
 log = logging.getLogger("sitl.autopilot")
 
@@ -133,7 +133,7 @@ def _interval(rate_hz: float) -> float:
 
 
 class AutopilotState:
-    """An autopilot's state (the arguments are :class:`~sitl.autopilot.Autopilot`'s)."""
+    """An autopilot's state (the arguments are :class:`~sitl.autopilot.autopilot.Autopilot`'s)."""
 
     def __init__(
         self,

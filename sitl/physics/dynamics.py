@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.kernel.frames import R_from_euler, quat_from_R
-from sitl.geo import LocalProjection
+from sitl.physics.geo import LocalProjection
 
 #: The JSBSim aircraft files ship inside the package (package data: found the same way in a checkout and in
 #: an installed wheel).

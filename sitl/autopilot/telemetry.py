@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Final
 from pymavlink.dialects.v20 import common as mavlink
 
 if TYPE_CHECKING:
-    from sitl.autopilot_state import AutopilotState
+    from sitl.autopilot.state import AutopilotState
 
 MAV_TYPE_QUADROTOR: Final = 2
 MAV_AUTOPILOT_PX4: Final = 12

@@ -20,9 +20,9 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
-from sitl.attitude import Quat, quat_normalized
-from sitl.control import NAN, TrajectorySetpoint
-from sitl.geo import LocalProjection
+from sitl.autopilot.attitude import Quat, quat_normalized
+from sitl.autopilot.control import NAN, TrajectorySetpoint
+from sitl.physics.geo import LocalProjection
 
 FRAME_GLOBAL_INT = 5
 FRAME_GLOBAL_RELATIVE_ALT_INT = 6

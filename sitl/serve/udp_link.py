@@ -16,9 +16,9 @@ from typing import Any, cast
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.links import MessageLink
+from sitl.world.links import MessageLink
 
-log = logging.getLogger("sitl.serve")
+log = logging.getLogger("sitl.serve.server")
 
 #: A peer not heard for this long is no longer sent to, s.
 PEER_TIMEOUT_S = 10.0

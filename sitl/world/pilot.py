@@ -14,11 +14,11 @@ from enum import Enum
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.autopilot import Autopilot
-from sitl.modes import MAIN_OFFBOARD, NavState
-from sitl.offboard import MASK_YAW_RATE
-from sitl.scenario import LeaderSpec
-from sitl.trajectory import Trajectory
+from sitl.autopilot.autopilot import Autopilot
+from sitl.autopilot.modes import MAIN_OFFBOARD, NavState
+from sitl.autopilot.offboard import MASK_YAW_RATE
+from sitl.world.scenario import LeaderSpec
+from sitl.world.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

@@ -7,102 +7,29 @@ jitter, cuts from the scenario). The UDP server puts sockets on the same objects
 harness and the wire see identical behaviour, faults included.
 
 MAVLink 2 signing, as PX4 does it: once a vehicle has a key (SETUP_SIGNING while disarmed, see
-:class:`VehicleSigning`), a message reaches its autopilot only with a valid signature, except HEARTBEAT,
-RADIO_STATUS, ADSB_VEHICLE and COLLISION; everything else is dropped and counted. What the vehicle sends
-is signed on every link.
+:class:`~sitl.autopilot.signing.VehicleSigning`), a message reaches its autopilot only with a valid
+signature, except HEARTBEAT, RADIO_STATUS, ADSB_VEHICLE and COLLISION; everything else is dropped and
+counted. What the vehicle sends is signed on every link.
 """
 
 from __future__ import annotations
 
-import hashlib
 import heapq
-import hmac
 import itertools
-from collections import Counter, OrderedDict, deque
+from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.scenario import LinkSpec
+from sitl.autopilot.signing import SignedOutgoing
+from sitl.world.scenario import LinkSpec
 
 if TYPE_CHECKING:
-    from sitl.autopilot import Autopilot
+    from sitl.autopilot.autopilot import Autopilot
 
 #: Bound on undelivered outgoing messages per link: a harness that stops reading must not grow memory.
 MAX_QUEUED = 20_000
-#: What a signing vehicle still takes unsigned (PX4's list).
-UNSIGNED_ALLOWED = frozenset({"HEARTBEAT", "RADIO_STATUS", "ADSB_VEHICLE", "COLLISION"})
-#: A new signing stream may be at most this far behind the vehicle's timestamp (10 us units: one minute).
-_NEW_STREAM_WINDOW = 6_000_000
-_MAX_STREAMS = 256
-
-
-class VehicleSigning:
-    """One vehicle's MAVLink 2 signing state: its key, its timestamp, each sender's newest timestamp.
-
-    ``mav_signing`` is pymavlink's signing state, shared by every packer of the vehicle's links so that
-    all its outgoing messages are signed with one timestamp that only goes up.
-    """
-
-    def __init__(self, key: bytes, initial_timestamp: int) -> None:
-        self.key = key
-        self.mav_signing = mavlink.MAVLinkSigning()
-        self.mav_signing.secret_key = key
-        self.mav_signing.sign_outgoing = True
-        self.mav_signing.timestamp = initial_timestamp
-        self._streams: OrderedDict[tuple[int, int, int], int] = OrderedDict()
-        self.counters: Counter[str] = Counter()
-
-    def accept(self, msg: Any, src_system: int, src_component: int) -> bool:
-        """Does ``msg`` (as received, with its wire bytes) pass? Counts why not."""
-        buf = msg.get_msgbuf()
-        if not buf or buf[0] != 0xFD or not buf[2] & 0x01:
-            if msg.get_type() in UNSIGNED_ALLOWED:
-                self.counters["unsigned_passed"] += 1
-                return True
-            self.counters["unsigned_dropped"] += 1
-            return False
-        link_id = buf[-13]
-        timestamp = int.from_bytes(bytes(buf[-12:-6]), "little")
-        stream = (link_id, src_system, src_component)
-        last = self._streams.get(stream)
-        if last is not None and timestamp <= last:
-            self.counters["replayed"] += 1
-            return False
-        if last is None and timestamp + _NEW_STREAM_WINDOW < self.mav_signing.timestamp:
-            self.counters["stale_stream"] += 1
-            return False
-        expected = hashlib.sha256(self.key + bytes(buf[:-6])).digest()[:6]
-        if not hmac.compare_digest(expected, bytes(buf[-6:])):
-            self.counters["bad_signature"] += 1
-            return False
-        # Only a valid signature moves the stream (pymavlink moves it first: a forgery could lock it out).
-        self._streams[stream] = timestamp
-        self._streams.move_to_end(stream)
-        while len(self._streams) > _MAX_STREAMS:
-            self._streams.popitem(last=False)
-        self.mav_signing.timestamp = max(self.mav_signing.timestamp, timestamp)
-        self.counters["signed"] += 1
-        return True
-
-
-class SignedOutgoing:
-    """An outgoing message that packs signed: it hands its packer the vehicle's signing state first."""
-
-    __slots__ = ("_msg", "_signing")
-
-    def __init__(self, msg: Any, signing: Any) -> None:
-        self._msg = msg
-        self._signing = signing
-
-    def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes:
-        mav.signing = self._signing
-        return bytes(self._msg.pack(mav, force_mavlink1=force_mavlink1))
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._msg, name)
 
 
 class LinkFaults:
@@ -184,7 +111,8 @@ class MessageLink:
     def send(self, msg: Any, src_system: int = 255, src_component: int = 190) -> None:
         """Deliver ``msg`` to the autopilot as if received on this link from (src_system, src_component).
 
-        Once the vehicle signs, only what :meth:`VehicleSigning.accept` passes is delivered.
+        Once the vehicle signs, only what :meth:`~sitl.autopilot.signing.VehicleSigning.accept` passes is
+        delivered.
         """
         signing = self._ap.signing
         if signing is not None and not signing.accept(msg, src_system, src_component):

@@ -24,8 +24,8 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.config import SitlConfig
-from sitl.scenario import LeaderSpec, RunSpec, Scenario
-from sitl.world import World
+from sitl.world.lockstep import World
+from sitl.world.scenario import LeaderSpec, RunSpec, Scenario
 
 
 def _scenario() -> Scenario:
