@@ -2,7 +2,7 @@
 
 The autopilot is the only thing a MAVLink client talks to. It is transport-free: the UDP server
 (:mod:`sitl.serve.server`) and the lockstep harness (:mod:`sitl.world.lockstep`) both feed it pymavlink
-message objects through :meth:`Autopilot.handle_message` and collect what it sends from its links'
+message objects through its endpoint's ``handle_message`` and collect what it sends from its links'
 ``outbox``, so tests and evaluation run exactly the code that answers on the wire.
 
 Loops (PX4's, at the rates PX4 SITL runs them):
@@ -11,51 +11,41 @@ Loops (PX4's, at the rates PX4 SITL runs them):
   control and the mixer;
 * 50 Hz: :meth:`outer_update` - sensors (GPS 10 Hz), the estimator, the commander (arming, modes,
   failsafes, auto-disarm), the navigator or offboard setpoint, the position controller;
-* streams: :meth:`service_links` sends each link's default streams at PX4's rates, but only for
+* streams: the endpoint's ``service_links`` sends each link's default streams at PX4's rates, but only for
   links that are active - no message is built when nobody listens.
 
 Links: index 0 is the API link (PX4 "onboard" mode, the one MAVSDK uses on 14540+i), index 1 the
 GCS link ("normal" mode, QGroundControl on 14550). Command ACKs and parameter replies go back on the
 link the request came from; STATUSTEXT, HEARTBEAT and parameter changes go to every active link.
 
-The autopilot is built in layers, one module each: :mod:`sitl.autopilot.state` (the state, parameters,
-health bits and the outgoing side), :mod:`sitl.autopilot.flight` (commander, land detector, control),
-:mod:`sitl.autopilot.mavlink` (incoming messages and commands) and this module's :class:`Autopilot`
-(the loops).
+The autopilot owns its parts, one module each: ``state`` (:mod:`sitl.autopilot.state`: what more than
+one part reads - the estimator, parameters, commander state, setpoints, health bits, the links' outboxes),
+``flight`` (:mod:`sitl.autopilot.flight`: commander, land detector, control) and ``mavlink``
+(:mod:`sitl.autopilot.mavlink`: incoming messages, :mod:`sitl.autopilot.commands`, outgoing streams);
+:class:`Autopilot` runs the loops over them.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from companion.kernel.frames import R_from_euler
-from sitl.autopilot import telemetry
-from sitl.autopilot.mavlink import AutopilotMavlink
-from sitl.autopilot.modes import NavState
-from sitl.physics.dynamics import GRAVITY_M_S2
+from sitl.autopilot.flight import FlightLogic
+from sitl.autopilot.mavlink import MavlinkEndpoint
+from sitl.autopilot.state import AutopilotState, AutopilotStatus
+from sitl.physics.dynamics import GRAVITY_M_S2, QUAD, QuadDynamics, QuadModel
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from sitl.physics.geo import LocalProjection
+    from sitl.physics.gps import GpsSensor
+    from sitl.physics.heading_error import HeadingError
+
+__all__ = ["Autopilot", "AutopilotStatus"]
 
 
-@dataclass(frozen=True, slots=True)
-class AutopilotStatus:
-    """What a MAVLink client could know about the vehicle (for in-process pilots and harnesses).
-
-    Everything here is also on the wire (HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE,
-    LOCAL_POSITION_NED, HOME_POSITION); position and velocity are the *estimate*.
-    """
-
-    t_s: float
-    armed: bool
-    nav_state: NavState
-    landed: bool
-    global_position_ok: bool
-    local_position_ok: bool
-    home_set: bool
-    p_ned_m: tuple[float, float, float]
-    v_ned_m_s: tuple[float, float, float]
-    yaw_rad: float
-
-
-class Autopilot(AutopilotMavlink):
+class Autopilot:
     """One vehicle's PX4: estimator, commander, navigator, controllers and MAVLink endpoints.
 
     Args:
@@ -72,24 +62,59 @@ class Autopilot(AutopilotMavlink):
         epoch_unix_s: Unix time at sim time 0 (SYSTEM_TIME).
         params: Parameter overrides (name -> value).
         model: Airframe constants for the control allocation.
+        heading_error: PX4's heading-estimate error (None: a perfect heading).
     """
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        sysid: int,
+        dyn: QuadDynamics,
+        world: LocalProjection,
+        spawn_ned_m: tuple[float, float, float],
+        rng: np.random.Generator,
+        gps: GpsSensor,
+        speed_factor: float = 1.0,
+        epoch_unix_s: float = 1_767_225_600.0,
+        params: dict[str, float] | None = None,
+        model: QuadModel = QUAD,
+        heading_error: HeadingError | None = None,
+    ) -> None:
+        self.state = AutopilotState(
+            name=name,
+            sysid=sysid,
+            dyn=dyn,
+            world=world,
+            spawn_ned_m=spawn_ned_m,
+            rng=rng,
+            gps=gps,
+            speed_factor=speed_factor,
+            epoch_unix_s=epoch_unix_s,
+            params=params,
+            model=model,
+            heading_error=heading_error,
+        )
+        self.flight = FlightLogic(self.state)
+        self.mavlink = MavlinkEndpoint(self.state, self.flight)
 
     # ------------------------------------------------------------------ physics-rate loop
     def inner_update(self, dt_s: float) -> tuple[float, float, float, float]:
         """Attitude -> rates -> motors for this physics tick (motor commands 0..1, PX4 order)."""
-        fixed = self._motors
+        s = self.state
+        fixed = s.motors
         if fixed is not None:
             return fixed
-        d = self.dyn
-        rates = self._rates_sp
+        d = s.dyn
+        rates = s.rates_sp
         if rates is None:
-            return self.inner.update(
-                d.roll_rad, d.pitch_rad, self.yaw_est_rad(), d.p_rad_s, d.q_rad_s, d.r_rad_s,
-                self.q_sp, self.yawspeed_ff_rad_s, self.thrust_sp, dt_s, self._integrate,
+            return s.inner.update(
+                d.roll_rad, d.pitch_rad, s.yaw_est_rad(), d.p_rad_s, d.q_rad_s, d.r_rad_s,
+                s.q_sp, s.yawspeed_ff_rad_s, s.thrust_sp, dt_s, s.integrate,
             )  # fmt: skip
         rp, rq, rr = rates
-        return self.inner.rates_to_motors(
-            rp, rq, rr, self.thrust_sp, d.p_rad_s, d.q_rad_s, d.r_rad_s, dt_s, self._integrate
+        return s.inner.rates_to_motors(
+            rp, rq, rr, s.thrust_sp, d.p_rad_s, d.q_rad_s, d.r_rad_s, dt_s, s.integrate
         )
 
     def _imu_accel_ned(self) -> tuple[float, float, float]:
@@ -98,9 +123,10 @@ class Autopilot(AutopilotMavlink):
         Specific force turned with the estimated attitude, plus gravity: aerodynamic drag is not in it
         (EKF2 fuses no drag by default).
         """
-        d = self.dyn
+        s = self.state
+        d = s.dyn
         fx, fy, fz = d.specific_force_body()
-        R = R_from_euler(d.roll_rad, d.pitch_rad, self.yaw_est_rad())
+        R = R_from_euler(d.roll_rad, d.pitch_rad, s.yaw_est_rad())
         return (
             float(R[0, 0] * fx + R[0, 1] * fy + R[0, 2] * fz),
             float(R[1, 0] * fx + R[1, 1] * fy + R[1, 2] * fz),
@@ -110,56 +136,34 @@ class Autopilot(AutopilotMavlink):
     # ------------------------------------------------------------------ 50 Hz loop
     def outer_update(self, t_s: float, dt_s: float) -> None:
         """Sensors, estimator, commander, navigator and position control at sim time ``t_s``."""
-        self.t_s = t_s
-        if self.heading_error is not None:
-            self.heading_error.update(dt_s)
-        if self._params_version != self.params.version:
-            self._apply_params()
-        n, e, d, vn, ve, vd = self.dyn.kinematics()
-        gps = self.gps.sample(t_s, (n, e, d), (vn, ve, vd))
+        s = self.state
+        s.t_s = t_s
+        if s.heading_error is not None:
+            s.heading_error.update(dt_s)
+        if s.params_version != s.params.version:
+            s.apply_params()
+        n, e, d, vn, ve, vd = s.dyn.kinematics()
+        gps = s.gps.sample(t_s, (n, e, d), (vn, ve, vd))
         if gps is not None:
-            self.gps_last = gps
-        vision = self._vision if int(self._pv["EKF2_EV_CTRL"]) & 1 else None
-        events = self.est.update(
+            s.gps_last = gps
+        vision = s.vision if int(s.pv["EKF2_EV_CTRL"]) & 1 else None
+        events = s.est.update(
             t_s,
             dt_s,
-            p_local_true_m=(n - self._spawn_n, e - self._spawn_e, d),
+            p_local_true_m=(n - s.spawn_n, e - s.spawn_e, d),
             v_true_m_s=(vn, ve, vd),
             gps=gps,
             vision=vision,
-            a_imu_ned_m_s2=self._imu_accel_ned() if self.est.dead_reckoning else None,
+            a_imu_ned_m_s2=self._imu_accel_ned() if s.est.dead_reckoning else None,
         )
         for severity, text in events.texts:
-            self.statustext(severity, text)
-        self._update_home()
-        self._update_flags()
-        self._update_land_detector()
-        self._update_mode()
-        self._control(dt_s)
-        if self.disarm_timer.update(
-            t_s, self.armed, self.landed, self._pv["COM_DISARM_LAND"], self._pv["COM_DISARM_PRFLT"]
-        ):
-            self._disarm(
-                "Disarmed by landing" if self.disarm_timer.flown else "Disarmed by auto preflight disarming"
+            s.statustext(severity, text)
+        self.flight.step(dt_s)
+        if s.disarm_timer.update(t_s, s.armed, s.landed, s.pv["COM_DISARM_LAND"], s.pv["COM_DISARM_PRFLT"]):
+            self.flight.disarm(
+                "Disarmed by landing" if s.disarm_timer.flown else "Disarmed by auto preflight disarming"
             )
-        self._battery_dt_s += dt_s
-        if self._battery_dt_s >= 0.1:
-            self.battery.update(self._battery_dt_s, self.thrust_sp if self.armed else 0.0)
-            self._battery_dt_s = 0.0
-
-    def status(self) -> AutopilotStatus:
-        present, _, health = self.sensor_bits()
-        gps_ok = bool(present & health & telemetry.SENSOR_GPS)
-        vis_ok = bool(present & health & telemetry.SENSOR_VISION_POSITION)
-        return AutopilotStatus(
-            t_s=self.t_s,
-            armed=self.armed,
-            nav_state=self.nav_state,
-            landed=self.landed,
-            global_position_ok=gps_ok,
-            local_position_ok=gps_ok or vis_ok,
-            home_set=self.home is not None,
-            p_ned_m=self.position_ned(),
-            v_ned_m_s=self.velocity_ned(),
-            yaw_rad=self.yaw_est_rad(),
-        )
+        s.battery_dt_s += dt_s
+        if s.battery_dt_s >= 0.1:
+            s.battery.update(s.battery_dt_s, s.thrust_sp if s.armed else 0.0)
+            s.battery_dt_s = 0.0

@@ -4,8 +4,9 @@ The commander keeps home, the estimate flags, the mode with its failsafes, and a
 says when the vehicle is on the ground; control turns the offboard or navigator setpoint into the
 position and attitude controllers' inputs.
 
-The second layer of :class:`sitl.autopilot.autopilot.Autopilot`, on
-:class:`~sitl.autopilot.state.AutopilotState`; the commander's pure decisions are
+:class:`FlightLogic` is one part of :class:`sitl.autopilot.autopilot.Autopilot`: it acts on the vehicle's
+:class:`~sitl.autopilot.state.AutopilotState` and keeps only what no other part reads (the land
+detector's timer, the held yaw, the last trajectory setpoint). The commander's pure decisions are
 :mod:`sitl.autopilot.commander`'s, the auto modes' trajectories :mod:`sitl.autopilot.navigator`'s.
 """
 
@@ -32,35 +33,51 @@ from sitl.autopilot.state import (
 )
 
 
-class AutopilotFlight(AutopilotState):
-    """Commander, land detector and control of an autopilot (:class:`~sitl.autopilot.autopilot.Autopilot`)."""
+class FlightLogic:
+    """Commander, land detector and control of one vehicle's autopilot, acting on its state ``s``."""
+
+    def __init__(self, s: AutopilotState) -> None:
+        self.s = s
+        self._flags_key: tuple[bool, ...] = ()
+        self._ground_contact_since_s: float | None = None
+        self._takeoff_ref_d_m = 0.0
+        self._yaw_hold_rad = s.dyn.yaw_rad
+        self._traj: TrajectorySetpoint | None = None
+
+    def step(self, dt_s: float) -> None:
+        """The commander, land detector and control for one 50 Hz update (the estimate is current)."""
+        self._update_home()
+        self.update_flags()
+        self._update_land_detector()
+        self._update_mode()
+        self._control(dt_s)
 
     # ------------------------------------------------------------------ commander
     def _update_home(self) -> None:
-        if self.home is None and not self.armed and self.flags.global_position_valid:
-            self._set_home_here()
+        if self.s.home is None and not self.s.armed and self.s.flags.global_position_valid:
+            self.set_home_here()
 
-    def _set_home_here(self) -> None:
-        n, e, d = self.position_ned()
-        lat, lon, alt = self.origin.to_geodetic(n, e, d)
-        self.home = Home(lat, lon, alt, n, e, d)
-        self._broadcast(telemetry.home_position(self))
+    def set_home_here(self) -> None:
+        n, e, d = self.s.position_ned()
+        lat, lon, alt = self.s.origin.to_geodetic(n, e, d)
+        self.s.home = Home(lat, lon, alt, n, e, d)
+        self.s.broadcast(telemetry.home_position(self.s))
 
-    def _update_flags(self) -> None:
-        p = self.params
-        lp, lr, lv, gp = self.validity.update(
-            self.t_s,
-            ekf_xy_valid=self.est.xy_valid,
-            ekf_global_valid=self.est.global_valid,
-            eph_m=self.est.eph_m,
-            evh_m_s=self.est.evh_m_s,
+    def update_flags(self) -> None:
+        p = self.s.params
+        lp, lr, lv, gp = self.s.validity.update(
+            self.s.t_s,
+            ekf_xy_valid=self.s.est.xy_valid,
+            ekf_global_valid=self.s.est.global_valid,
+            eph_m=self.s.est.eph_m,
+            evh_m_s=self.s.est.evh_m_s,
             com_pos_fs_eph_m=p["COM_POS_FS_EPH"],
             com_vel_fs_evh_m_s=p["COM_VEL_FS_EVH"],
         )
-        key = (lp, lr, lv, gp, self.home is not None, self._offboard_available(lp, lv))
+        key = (lp, lr, lv, gp, self.s.home is not None, self._offboard_available(lp, lv))
         if key != self._flags_key:  # Flags is immutable; rebuild only when something changed
             self._flags_key = key
-            self.flags = Flags(
+            self.s.flags = Flags(
                 attitude_valid=True,
                 local_position_valid=lp,
                 local_position_relaxed_valid=lr,
@@ -72,160 +89,162 @@ class AutopilotFlight(AutopilotState):
             )
 
     def _offboard_available(self, local_pos_valid: bool, local_vel_valid: bool) -> bool:
-        sp = self.offboard_sp
+        sp = self.s.offboard_sp
         if sp is None:
             return False
-        if self.t_s - sp.t_s >= self._pv["COM_OF_LOSS_T"] * self.speed_factor:
+        if self.s.t_s - sp.t_s >= self.s.pv["COM_OF_LOSS_T"] * self.s.speed_factor:
             return False
         if sp.position and not local_pos_valid:
             return False
         return not (sp.velocity and not local_vel_valid)
 
     def _update_mode(self) -> None:
-        if not self.armed:
-            self.failsafe_action = Action.NONE
-            nav = self.user_mode
+        if not self.s.armed:
+            self.s.failsafe_action = Action.NONE
+            nav = self.s.user_mode
         else:
             if (
-                self.nav_state is NavState.AUTO_TAKEOFF
-                and self.user_mode is NavState.AUTO_TAKEOFF
-                and self.navigator.takeoff_done
+                self.s.nav_state is NavState.AUTO_TAKEOFF
+                and self.s.user_mode is NavState.AUTO_TAKEOFF
+                and self.s.navigator.takeoff_done
             ):
                 # COM_TAKEOFF_ACT = 0: hold at the takeoff point once the altitude is reached.
-                self._hold_target = self.navigator.target
-                self.user_mode = NavState.AUTO_LOITER
-            p = self.params
+                self.s.hold_target = self.s.navigator.target
+                self.s.user_mode = NavState.AUTO_LOITER
+            p = self.s.params
             action = resolve_failsafe(
-                self.user_mode, self.flags, int(p["COM_OBL_RC_ACT"]), int(p["NAV_RCL_ACT"])
+                self.s.user_mode, self.s.flags, int(p["COM_OBL_RC_ACT"]), int(p["NAV_RCL_ACT"])
             )
             if action is Action.DISARM:
-                self._disarm("Failsafe: disarming")
+                self.disarm("Failsafe: disarming")
                 return
-            if action is not self.failsafe_action:
+            if action is not self.s.failsafe_action:
                 if action is not Action.NONE:
                     target = action_nav_state(action)
                     name = target.ui_name if target is not None else action.name.title()
-                    self.statustext(SEV_CRITICAL, f"Failsafe activated: switching to {name}")
-                elif self.failsafe_action is not Action.NONE:
-                    self.statustext(SEV_INFO, "Failsafe cleared")
-            self.failsafe_action = action
-            nav = action_nav_state(action) or self.user_mode
-        if nav is not self.nav_state:
+                    self.s.statustext(SEV_CRITICAL, f"Failsafe activated: switching to {name}")
+                elif self.s.failsafe_action is not Action.NONE:
+                    self.s.statustext(SEV_INFO, "Failsafe cleared")
+            self.s.failsafe_action = action
+            nav = action_nav_state(action) or self.s.user_mode
+        if nav is not self.s.nav_state:
             self._enter(nav)
 
     def _enter(self, nav: NavState) -> None:
-        self.nav_state = nav
-        pos, vel = self.position_ned(), self.velocity_ned()
-        yaw = self.yaw_est_rad()
+        self.s.nav_state = nav
+        pos, vel = self.s.position_ned(), self.s.velocity_ned()
+        yaw = self.s.yaw_est_rad()
         self._yaw_hold_rad = yaw
-        hold_target, self._hold_target = self._hold_target, None
+        hold_target, self.s.hold_target = self.s.hold_target, None
         if nav.is_auto:
-            self.navigator.enter(
-                nav, self.t_s, pos, vel, yaw, takeoff_d_m=self._takeoff_target_d_m, hold_target=hold_target
+            self.s.navigator.enter(
+                nav, self.s.t_s, pos, vel, yaw, takeoff_d_m=self.s.takeoff_target_d_m, hold_target=hold_target
             )
 
-    def _set_user_mode(self, nav: NavState) -> None:
-        self.user_mode = nav
-        if nav is NavState.AUTO_TAKEOFF and not math.isfinite(self._takeoff_target_d_m):
-            self._takeoff_target_d_m = self._takeoff_d_from_alt(NAN)
+    def set_user_mode(self, nav: NavState) -> None:
+        self.s.user_mode = nav
+        if nav is NavState.AUTO_TAKEOFF and not math.isfinite(self.s.takeoff_target_d_m):
+            self.s.takeoff_target_d_m = self.takeoff_d_from_alt(NAN)
         # Re-enter even if the nav state stays (e.g. a second takeoff command) so targets refresh.
         self._update_mode()
-        if self.nav_state is nav:
+        if self.s.nav_state is nav:
             self._enter(nav)
 
-    def _takeoff_d_from_alt(self, alt_amsl_m: float) -> float:
-        home_d = self.home.d_m if self.home is not None else 0.0
+    def takeoff_d_from_alt(self, alt_amsl_m: float) -> float:
+        home_d = self.s.home.d_m if self.s.home is not None else 0.0
         if math.isfinite(alt_amsl_m):
-            target_d = self.origin.alt0_m - alt_amsl_m
+            target_d = self.s.origin.alt0_m - alt_amsl_m
         else:
-            target_d = home_d - self._pv["MIS_TAKEOFF_ALT"]
+            target_d = home_d - self.s.pv["MIS_TAKEOFF_ALT"]
         # Never take off downwards: PX4 holds when already above the takeoff altitude.
-        return min(target_d, self.est.d_m)
+        return min(target_d, self.s.est.d_m)
 
-    def _arm(self, forced: bool) -> tuple[int, str | None]:
-        if self.armed:
+    def arm(self, forced: bool) -> tuple[int, str | None]:
+        if self.s.armed:
             return ACCEPTED, None
         del forced  # PX4 runs the checks on external arm requests even when forced
-        if not self.armable():
+        if not self.s.armable():
             return TEMPORARILY_REJECTED, "Arming denied: Resolve system health failures first"
-        self.armed = True
-        self.landed = True
-        self._takeoff_ref_d_m = self.est.d_m
-        self.disarm_timer.reset()
-        self.pos_ctrl.reset()
-        self.inner.reset_integrators()
-        if self.flags.global_position_valid:
-            self._set_home_here()  # PX4 updates home on arming
-        self._enter(self.nav_state)
-        self.statustext(SEV_INFO, "Armed by external command")
+        self.s.armed = True
+        self.s.landed = True
+        self._takeoff_ref_d_m = self.s.est.d_m
+        self.s.disarm_timer.reset()
+        self.s.pos_ctrl.reset()
+        self.s.inner.reset_integrators()
+        if self.s.flags.global_position_valid:
+            self.set_home_here()  # PX4 updates home on arming
+        self._enter(self.s.nav_state)
+        self.s.statustext(SEV_INFO, "Armed by external command")
         return ACCEPTED, None
 
-    def _disarm(self, text: str | None) -> None:
-        was_failsafe = self.failsafe_action is not Action.NONE
-        self.armed = False
-        self._motors = MOTORS_OFF
-        self.thrust_sp = 0.0
-        self.landed = True
-        self._takeoff_target_d_m = NAN
+    def disarm(self, text: str | None) -> None:
+        was_failsafe = self.s.failsafe_action is not Action.NONE
+        self.s.armed = False
+        self.s.motors = MOTORS_OFF
+        self.s.thrust_sp = 0.0
+        self.s.landed = True
+        self.s.takeoff_target_d_m = NAN
         if was_failsafe:
-            self.user_mode = NavState.AUTO_LAND if self.nav_state is NavState.DESCEND else self.nav_state
-        self.failsafe_action = Action.NONE
-        if self.nav_state is not self.user_mode:
-            self._enter(self.user_mode)
-        self.disarm_timer.reset()
+            self.s.user_mode = (
+                NavState.AUTO_LAND if self.s.nav_state is NavState.DESCEND else self.s.nav_state
+            )
+        self.s.failsafe_action = Action.NONE
+        if self.s.nav_state is not self.s.user_mode:
+            self._enter(self.s.user_mode)
+        self.s.disarm_timer.reset()
         if text:
-            self.statustext(SEV_INFO, text)
+            self.s.statustext(SEV_INFO, text)
 
     # ------------------------------------------------------------------ land detector
     def _descent_commanded(self) -> bool:
-        nav = self.nav_state
+        nav = self.s.nav_state
         if nav in (NavState.AUTO_LAND, NavState.DESCEND):
             return True
-        if nav is NavState.AUTO_RTL and self.navigator.rtl_phase is RtlPhase.LAND:
+        if nav is NavState.AUTO_RTL and self.s.navigator.rtl_phase is RtlPhase.LAND:
             return True
         sp = self._traj
         if sp is not None:
             if not math.isnan(sp.vz) and sp.vz > 0.05:
                 return True
-            return bool(not math.isnan(sp.z) and sp.z > self.est.d_m + 0.3)
+            return bool(not math.isnan(sp.z) and sp.z > self.s.est.d_m + 0.3)
         # Attitude/rate offboard: low thrust is the only hint, as for PX4's land detector.
-        return self.thrust_sp < 0.6 * self._pv["MPC_THR_HOVER"]
+        return self.s.thrust_sp < 0.6 * self.s.pv["MPC_THR_HOVER"]
 
     def _update_land_detector(self) -> None:
-        if not self.armed:
-            self.landed = True
+        if not self.s.armed:
+            self.s.landed = True
             self._ground_contact_since_s = None
             return
-        e = self.est
-        if self.landed:
-            if self._motors is None and (self._takeoff_ref_d_m - e.d_m > 0.3 or e.vd_m_s < -0.5):
-                self.landed = False
+        e = self.s.est
+        if self.s.landed:
+            if self.s.motors is None and (self._takeoff_ref_d_m - e.d_m > 0.3 or e.vd_m_s < -0.5):
+                self.s.landed = False
                 self._ground_contact_since_s = None
             return
         slow = abs(e.vd_m_s) < 0.25 and math.hypot(e.vn_m_s, e.ve_m_s) < 1.5
-        low_thrust = self.thrust_sp < 0.9 * self._pv["MPC_THR_HOVER"]
+        low_thrust = self.s.thrust_sp < 0.9 * self.s.pv["MPC_THR_HOVER"]
         if slow and low_thrust and self._descent_commanded():
             if self._ground_contact_since_s is None:
-                self._ground_contact_since_s = self.t_s
-            elif self.t_s - self._ground_contact_since_s >= 1.0:  # LNDMC_TRIG_TIME
-                self.landed = True
+                self._ground_contact_since_s = self.s.t_s
+            elif self.s.t_s - self._ground_contact_since_s >= 1.0:  # LNDMC_TRIG_TIME
+                self.s.landed = True
                 self._takeoff_ref_d_m = e.d_m
         else:
             self._ground_contact_since_s = None
 
     # ------------------------------------------------------------------ control
     def _control(self, dt_s: float) -> None:
-        if not self.armed or self.nav_state is NavState.TERMINATION:
-            self._motors = MOTORS_OFF
-            self.thrust_sp = 0.0
+        if not self.s.armed or self.s.nav_state is NavState.TERMINATION:
+            self.s.motors = MOTORS_OFF
+            self.s.thrust_sp = 0.0
             self._traj = None
             return
-        nav = self.nav_state
-        self._rates_sp = None
-        self.yawspeed_ff_rad_s = NAN
+        nav = self.s.nav_state
+        self.s.rates_sp = None
+        self.s.yawspeed_ff_rad_s = NAN
         traj: TrajectorySetpoint | None = None
-        if nav is NavState.OFFBOARD and self.offboard_sp is not None:
-            sp = self.offboard_sp
+        if nav is NavState.OFFBOARD and self.s.offboard_sp is not None:
+            sp = self.s.offboard_sp
             if sp.kind is SetpointKind.TRAJECTORY:
                 traj = sp.trajectory
                 if not sp.valid:
@@ -236,51 +255,51 @@ class AutopilotFlight(AutopilotState):
                 self._attitude_setpoint(sp, dt_s)
                 return
         elif nav.is_auto:
-            home = self.home
+            home = self.s.home
             home_ned = (home.n_m, home.e_m, home.d_m) if home is not None else (0.0, 0.0, 0.0)
-            traj = self.navigator.update(self.t_s, dt_s, self.position_ned(), home_ned)
+            traj = self.s.navigator.update(self.s.t_s, dt_s, self.s.position_ned(), home_ned)
         else:
-            traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, self._pv["MPC_LAND_SPEED"]))
+            traj = TrajectorySetpoint().set(acc=(0.0, 0.0, NAN), vel=(NAN, NAN, self.s.pv["MPC_LAND_SPEED"]))
         self._traj = traj
-        if self.landed and not self._climb_demanded(traj):
+        if self.s.landed and not self._climb_demanded(traj):
             self._idle_on_ground()
             return
-        if self._motors is not None:
+        if self.s.motors is not None:
             # Leaving the ground: start the position controller from a clean state.
-            self.pos_ctrl.reset()
-            self.inner.reset_integrators()
-            self._motors = None
-        thr = self.pos_ctrl.update(traj, self.position_ned(), self.velocity_ned(), dt_s)
+            self.s.pos_ctrl.reset()
+            self.s.inner.reset_integrators()
+            self.s.motors = None
+        thr = self.s.pos_ctrl.update(traj, self.s.position_ned(), self.s.velocity_ned(), dt_s)
         if not math.isnan(traj.yaw):
             self._yaw_hold_rad = traj.yaw
         elif not math.isnan(traj.yawspeed):
             self._yaw_hold_rad = wrap_pi(self._yaw_hold_rad + traj.yawspeed * dt_s)
         if not math.isnan(traj.yawspeed):
-            self.yawspeed_ff_rad_s = traj.yawspeed
-        self.q_sp, self.thrust_sp = attitude_from_thrust(thr[0], thr[1], thr[2], self._yaw_hold_rad)
-        self._integrate = not self.landed
+            self.s.yawspeed_ff_rad_s = traj.yawspeed
+        self.s.q_sp, self.s.thrust_sp = attitude_from_thrust(thr[0], thr[1], thr[2], self._yaw_hold_rad)
+        self.s.integrate = not self.s.landed
 
     def _attitude_setpoint(self, sp: OffboardSetpoint, dt_s: float) -> None:
         del dt_s
-        self.thrust_sp = sp.thrust
+        self.s.thrust_sp = sp.thrust
         if sp.kind is SetpointKind.ATTITUDE:
-            self.q_sp = sp.q_sp
-            self.yawspeed_ff_rad_s = sp.yawspeed_rad_s
+            self.s.q_sp = sp.q_sp
+            self.s.yawspeed_ff_rad_s = sp.yawspeed_rad_s
         else:
             r = sp.rates_sp
-            self._rates_sp = (
+            self.s.rates_sp = (
                 r[0] if r[0] == r[0] else 0.0,
                 r[1] if r[1] == r[1] else 0.0,
                 r[2] if r[2] == r[2] else 0.0,
             )
-        if self.landed and sp.thrust < 0.5 * self._pv["MPC_THR_HOVER"]:
+        if self.s.landed and sp.thrust < 0.5 * self.s.pv["MPC_THR_HOVER"]:
             self._idle_on_ground()
             return
-        self._motors = None
-        self._integrate = not self.landed
+        self.s.motors = None
+        self.s.integrate = not self.s.landed
 
     def _climb_demanded(self, traj: TrajectorySetpoint) -> bool:
-        d = self.est.d_m
+        d = self.s.est.d_m
         if not math.isnan(traj.z) and traj.z < d - 0.3:
             return True
         if not math.isnan(traj.vz) and traj.vz < -0.3:
@@ -288,9 +307,9 @@ class AutopilotFlight(AutopilotState):
         return not math.isnan(traj.az) and traj.az < -1.0
 
     def _idle_on_ground(self) -> None:
-        self._motors = MOTORS_IDLE
-        self.thrust_sp = 0.0
-        self.pos_ctrl.reset()
-        self.inner.reset_integrators()
-        self._integrate = False
-        self._yaw_hold_rad = self.yaw_est_rad()
+        self.s.motors = MOTORS_IDLE
+        self.s.thrust_sp = 0.0
+        self.s.pos_ctrl.reset()
+        self.s.inner.reset_integrators()
+        self.s.integrate = False
+        self._yaw_hold_rad = self.s.yaw_est_rad()

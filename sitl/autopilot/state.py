@@ -1,8 +1,9 @@
 """The autopilot's state and what reads it: parameters, the estimate, health bits, outgoing MAVLink.
 
-The first layer of :class:`sitl.autopilot.autopilot.Autopilot` (see there): its ``__init__`` holds every
-piece of the vehicle's state; the methods here only read it, apply parameters, or queue messages on the links
-(streams at PX4's rates, STATUSTEXT, replies). :mod:`sitl.autopilot.telemetry` builds the messages from it.
+One part of :class:`sitl.autopilot.autopilot.Autopilot` (see there): :class:`AutopilotState` holds the
+vehicle's state that more than one part reads or writes (the estimator, parameters, commander state,
+setpoints, the inner loop's inputs, the links' outboxes); its methods only read it, apply parameters, or
+queue messages on the links. :mod:`sitl.autopilot.telemetry` builds the messages from it.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from sitl.autopilot import telemetry
 from sitl.autopilot.attitude import Quat, quat_from_euler, wrap_pi
 from sitl.autopilot.commander import Action, DisarmTimer, Flags, ValidityChecks, mode_can_run
-from sitl.autopilot.control import NAN, PositionController, PositionLimits, TrajectorySetpoint
+from sitl.autopilot.control import NAN, PositionController, PositionLimits
 from sitl.autopilot.estimator import Estimator, VisionSample
 from sitl.autopilot.inner_loop import AttitudeGains, InnerLoop
 from sitl.autopilot.modes import NavState
@@ -97,6 +98,26 @@ class Battery:
         self.current_ca = int(current_a * 100)
 
 
+@dataclass(frozen=True, slots=True)
+class AutopilotStatus:
+    """What a MAVLink client could know about the vehicle (for in-process pilots and harnesses).
+
+    Everything here is also on the wire (HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE,
+    LOCAL_POSITION_NED, HOME_POSITION); position and velocity are the *estimate*.
+    """
+
+    t_s: float
+    armed: bool
+    nav_state: NavState
+    landed: bool
+    global_position_ok: bool
+    local_position_ok: bool
+    home_set: bool
+    p_ned_m: tuple[float, float, float]
+    v_ned_m_s: tuple[float, float, float]
+    yaw_rad: float
+
+
 class LinkOutput:
     """One MAVLink link's outgoing side: stream intervals (s) and the outbox of message objects."""
 
@@ -159,13 +180,13 @@ class AutopilotState:
         self.gps = gps
         self.speed_factor = speed_factor
         self.epoch_unix_s = epoch_unix_s
-        self._spawn_n, self._spawn_e = spawn_ned_m[0], spawn_ned_m[1]
+        self.spawn_n, self.spawn_e = spawn_ned_m[0], spawn_ned_m[1]
         lat, lon, alt = world.to_geodetic(spawn_ned_m[0], spawn_ned_m[1], 0.0)
         self.origin = LocalProjection(lat, lon, alt)
         self.params = ParamStore({"MAV_SYS_ID": float(sysid), **(params or {})})
         #: The store's live value dict (a plain dict lookup: these are read many times a tick).
-        self._pv = self.params.values
-        self._params_version = -1
+        self.pv = self.params.values
+        self.params_version = -1
         self.est = Estimator(self.origin, rng)
         self.validity = ValidityChecks()
         self.disarm_timer = DisarmTimer()
@@ -175,7 +196,7 @@ class AutopilotState:
         self.model = model
         self.links = [LinkOutput(telemetry.ONBOARD_RATES_HZ), LinkOutput(telemetry.NORMAL_RATES_HZ)]
         self.battery = Battery()
-        self._battery_dt_s = 0.0
+        self.battery_dt_s = 0.0
         self.counters: Counter[str] = Counter()
         # Commander state.
         self.t_s = 0.0
@@ -184,30 +205,25 @@ class AutopilotState:
         self.nav_state = NavState.AUTO_LOITER
         self.failsafe_action = Action.NONE
         self.flags = Flags()
-        self._flags_key: tuple[bool, ...] = ()
         self.home: Home | None = None
         self.gps_last: GpsSample | None = None
         self.landed = True
-        self._ground_contact_since_s: float | None = None
-        self._takeoff_ref_d_m = 0.0
-        self._takeoff_target_d_m = NAN
-        self._hold_target: tuple[float, float, float] | None = None
+        self.takeoff_target_d_m = NAN
+        self.hold_target: tuple[float, float, float] | None = None
         # Setpoints.
         self.offboard_sp: OffboardSetpoint | None = None
-        self._vision: VisionSample | None = None
-        self._yaw_hold_rad = dyn.yaw_rad
-        self._traj: TrajectorySetpoint | None = None
+        self.vision: VisionSample | None = None
         # Inner-loop inputs (read every physics tick).
         self.q_sp: Quat = (1.0, 0.0, 0.0, 0.0)
         self.thrust_sp = 0.0
         self.yawspeed_ff_rad_s = NAN
-        self._rates_sp: tuple[float, float, float] | None = None
-        self._motors: tuple[float, float, float, float] | None = MOTORS_OFF
-        self._integrate = False
+        self.rates_sp: tuple[float, float, float] | None = None
+        self.motors: tuple[float, float, float, float] | None = MOTORS_OFF
+        self.integrate = False
         self._statustext_sent: dict[str, float] = {}
         #: The last STATUSTEXTs sent, (sim time s, MAV_SEVERITY, text): what a harness records of the run.
         self.texts_sent: deque[tuple[float, int, str]] = deque(maxlen=2000)
-        self._apply_params()
+        self.apply_params()
 
     def global_estimate(self) -> GlobalEstimate | None:
         """The global position this autopilot reports (GLOBAL_POSITION_INT); None before it has an origin."""
@@ -229,6 +245,23 @@ class AutopilotState:
         yaw = self.dyn.yaw_rad
         return yaw if err is None else wrap_pi(yaw + err.rad)
 
+    def status(self) -> AutopilotStatus:
+        present, _, health = self.sensor_bits()
+        gps_ok = bool(present & health & telemetry.SENSOR_GPS)
+        vis_ok = bool(present & health & telemetry.SENSOR_VISION_POSITION)
+        return AutopilotStatus(
+            t_s=self.t_s,
+            armed=self.armed,
+            nav_state=self.nav_state,
+            landed=self.landed,
+            global_position_ok=gps_ok,
+            local_position_ok=gps_ok or vis_ok,
+            home_set=self.home is not None,
+            p_ned_m=self.position_ned(),
+            v_ned_m_s=self.velocity_ned(),
+            yaw_rad=self.yaw_est_rad(),
+        )
+
     # ------------------------------------------------------------------ time
     def time_boot_ms(self) -> int:
         return int(self.t_s * 1000.0) & 0xFFFFFFFF
@@ -237,9 +270,9 @@ class AutopilotState:
         return int((self.epoch_unix_s + self.t_s) * 1e6)
 
     # ------------------------------------------------------------------ parameters
-    def _apply_params(self) -> None:
+    def apply_params(self) -> None:
         p = self.params
-        self._params_version = p.version
+        self.params_version = p.version
         self.pos_ctrl.limits = PositionLimits(
             pos_p_xy=p["MPC_XY_P"],
             pos_p_z=p["MPC_Z_P"],
@@ -379,48 +412,20 @@ class AutopilotState:
             self._statustext_sent.clear()
         log.info("%s: %s", self.name, text)
         self.texts_sent.append((self.t_s, severity, text))
-        self._broadcast(
+        self.broadcast(
             mavlink.MAVLink_statustext_message(severity, text[:50].encode("ascii", "replace"), 0, 0)
         )
 
-    def _broadcast(self, msg: mavlink.MAVLink_message | None) -> None:
+    def broadcast(self, msg: mavlink.MAVLink_message | None) -> None:
         if msg is None:
             return
         for link in self.links:
             if link.active:
                 link.outbox.append(msg)
 
-    def _reply(self, link: int | None, msg: mavlink.MAVLink_message | None) -> None:
+    def reply(self, link: int | None, msg: mavlink.MAVLink_message | None) -> None:
         if msg is None or link is None or not 0 <= link < len(self.links):
             return
         out = self.links[link]
         if out.active:
             out.outbox.append(msg)
-
-    def service_links(self, t_s: float) -> None:
-        """Queue the streams that are due at ``t_s`` on every active link."""
-        self.t_s = t_s
-        gps = self.gps_last
-        for link in self.links:
-            if not link.active:
-                continue
-            due = link.next_due_s
-            for msg_id, interval in link.intervals_s.items():
-                if interval == telemetry.ON_UPDATE:
-                    # On every receiver update; at 1 Hz with "no fix" once data stops.
-                    fresh = gps is not None and gps.t_s > link._gps_sent_t_s and t_s - gps.t_s <= 1.0
-                    if fresh and gps is not None:
-                        link._gps_sent_t_s = gps.t_s
-                    elif t_s >= due.get(msg_id, 0.0) and (gps is None or t_s - gps.t_s > 1.0):
-                        due[msg_id] = t_s + 1.0
-                    else:
-                        continue
-                else:
-                    next_s = due.get(msg_id, 0.0)
-                    if t_s < next_s:
-                        continue
-                    next_s += interval
-                    due[msg_id] = next_s if next_s > t_s else t_s + interval
-                msg = telemetry.BUILDERS[msg_id](self)
-                if msg is not None:
-                    link.outbox.append(msg)

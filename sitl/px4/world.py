@@ -106,7 +106,7 @@ class Px4Vehicle:
     link: Px4Link
 
 
-class PilotPort:
+class Px4PilotPort:
     """What :class:`~sitl.world.pilot.TrajectoryPilot` needs of an autopilot, over PX4's MAVLink.
 
     The pilot reads only what a MAVLink client can (HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE,
@@ -129,7 +129,7 @@ class PilotPort:
     def time_boot_ms(self) -> int:
         return int(self.vehicle.link.boot_s * 1000.0)
 
-    def handle_message(self, msg: Any, _link: object, src_system: int, src_component: int) -> None:
+    def handle_message(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
         self.vehicle.link.send(msg, src_system, src_component)
 
     def status(self) -> AutopilotStatus:
@@ -409,7 +409,7 @@ class Px4World:
             traj = self.scenario.leader.trajectory()
             leader = next((v for v in self.vehicles if v.role == "leader"), None)
             if traj is not None and leader is not None:
-                pilots.append(TrajectoryPilot(PilotPort(leader, self), self.scenario.leader, traj))  # type: ignore[arg-type]
+                pilots.append(TrajectoryPilot(Px4PilotPort(leader, self), self.scenario.leader, traj))
             for v in self.vehicles:
                 for o in self.scenario.faults(v.name).gps.outage_windows():
                     gps_events.append((o.start_s, v, False))

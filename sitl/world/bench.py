@@ -53,8 +53,8 @@ def run_once(sim_s: float, with_links: bool) -> dict[str, float]:
         for _ in range(steps_per_s // 10):
             world.step()
         if not sent and world.t_s >= 12.0:
-            follower.autopilot.handle_message(arm, None, 245, 190)
-            follower.autopilot.handle_message(takeoff, None, 245, 190)
+            follower.autopilot.mavlink.handle_message(arm, None, 245, 190)
+            follower.autopilot.mavlink.handle_message(takeoff, None, 245, 190)
             sent = True
         for link in links:
             messages += len(link.receive())

@@ -94,15 +94,15 @@ class MessageLink:
 
     @property
     def active(self) -> bool:
-        return self._ap.links[self.index].active
+        return self._ap.state.links[self.index].active
 
     def open(self) -> MessageLink:
         """Start the link's streams (PX4 always streams on a configured link; a harness opts in)."""
-        self._ap.links[self.index].active = True
+        self._ap.state.links[self.index].active = True
         return self
 
     def close(self) -> None:
-        out = self._ap.links[self.index]
+        out = self._ap.state.links[self.index]
         out.active = False
         out.outbox.clear()
         self._outbound.clear()
@@ -114,7 +114,7 @@ class MessageLink:
         Once the vehicle signs, only what :meth:`~sitl.autopilot.signing.VehicleSigning.accept` passes is
         delivered.
         """
-        signing = self._ap.signing
+        signing = self._ap.mavlink.signing
         if signing is not None and not signing.accept(msg, src_system, src_component):
             self.dropped_unsigned += 1
             return
@@ -125,7 +125,7 @@ class MessageLink:
             return
         self.sent += 1
         if delay <= 0.0:
-            self._ap.handle_message(msg, self.index, src_system, src_component)
+            self._ap.mavlink.handle_message(msg, self.index, src_system, src_component)
         else:
             heapq.heappush(self._inbound, (t + delay, next(self._seq), msg, src_system, src_component))
 
@@ -134,11 +134,11 @@ class MessageLink:
         q = self._inbound
         while q and q[0][0] <= t_s:
             _, _, msg, sys_id, comp_id = heapq.heappop(q)
-            self._ap.handle_message(msg, self.index, sys_id, comp_id)
+            self._ap.mavlink.handle_message(msg, self.index, sys_id, comp_id)
 
     def collect(self, t_s: float) -> None:
         """Move the autopilot's outbox through the outgoing faults (the world calls this)."""
-        box = self._ap.links[self.index].outbox
+        box = self._ap.state.links[self.index].outbox
         if box:
             faults = self._faults_out
             if faults.perfect:
@@ -162,7 +162,7 @@ class MessageLink:
         """Everything the autopilot sent that has arrived by now (oldest first); signed once it signs."""
         out = [m for _, m in self._outbound]
         self._outbound.clear()
-        signing = self._ap.signing
+        signing = self._ap.mavlink.signing
         if signing is not None:
             return [SignedOutgoing(m, signing.mav_signing) for m in out]
         return out

@@ -40,7 +40,7 @@ from sitl.physics.gps import GpsSensor
 from sitl.physics.heading_error import HeadingError, HeadingErrorModel
 from sitl.physics.wind import WindModel, WindParams
 from sitl.world.links import LinkFaults, MessageLink
-from sitl.world.pilot import TrajectoryPilot
+from sitl.world.pilot import AutopilotPort, TrajectoryPilot
 from sitl.world.scenario import LinkSpec, Scenario
 
 __all__ = ["LINK_API", "LINK_GCS", "VehicleTruth", "World"]
@@ -155,10 +155,10 @@ class World:
             traj = scenario.leader.trajectory()
             leader = next((v for v in self.vehicles if v.role == "leader"), None)
             if traj is not None and leader is not None:
-                self.pilots.append(TrajectoryPilot(leader.autopilot, scenario.leader, traj))
+                self.pilots.append(TrajectoryPilot(AutopilotPort(leader.autopilot), scenario.leader, traj))
         self.wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
         # Flat lists for the per-tick loop (attribute chains cost as much as the work here).
-        self._pairs = [(v.autopilot, v.dyn) for v in self.vehicles]
+        self._pairs = [(v.autopilot, v.autopilot.state, v.dyn) for v in self.vehicles]
         self._links = [link for v in self.vehicles for link in v.links]
         self._links_open = False
 
@@ -206,8 +206,8 @@ class World:
             for link in self._links:
                 if link._inbound:
                     link.deliver_due(t)
-        for ap, dyn in self._pairs:
-            ap.t_s = t
+        for ap, state, dyn in self._pairs:
+            state.t_s = t
             dyn.step(*ap.inner_update(dt))
         self._tick = k
         if k % self._outer_every == 0:
@@ -222,8 +222,8 @@ class World:
         if self._links_open:
             for v in self.vehicles:
                 ap = v.autopilot
-                if ap.any_link_active:
-                    ap.service_links(t)
+                if ap.state.any_link_active:
+                    ap.mavlink.service_links(t)
                     for link in v.links:
                         if link.active:
                             link.collect(t)

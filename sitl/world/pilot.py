@@ -2,8 +2,8 @@
 
 A pilot talks to the autopilot only in MAVLink messages (COMMAND_LONG, SET_POSITION_TARGET_LOCAL_NED)
 from component 191 (MAV_COMP_ID_ONBOARD_COMPUTER) and reads only what HEARTBEAT, SYS_STATUS and
-LOCAL_POSITION_NED carry (:meth:`Autopilot.status`). So the leader in a scenario is flown by PX4-like
-control with PX4's limits, exactly as a real leader would be.
+LOCAL_POSITION_NED carry (its :class:`PilotPort`'s ``status``). So the leader in a scenario is flown by
+PX4-like control with PX4's limits, exactly as a real leader would be.
 """
 
 from __future__ import annotations
@@ -11,12 +11,14 @@ from __future__ import annotations
 import logging
 import math
 from enum import Enum
+from typing import Any, Protocol
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.autopilot.autopilot import Autopilot
 from sitl.autopilot.modes import MAIN_OFFBOARD, NavState
 from sitl.autopilot.offboard import MASK_YAW_RATE
+from sitl.autopilot.state import AutopilotStatus, Home
 from sitl.world.scenario import LeaderSpec
 from sitl.world.trajectory import Trajectory
 
@@ -42,6 +44,45 @@ class PilotPhase(Enum):
     DONE = "done"
 
 
+class PilotPort(Protocol):
+    """What a pilot needs of a vehicle's autopilot: what an onboard MAVLink client reads and sends."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def sysid(self) -> int: ...
+    @property
+    def home(self) -> Home | None: ...
+    def time_boot_ms(self) -> int: ...
+    def status(self) -> AutopilotStatus: ...
+    def handle_message(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
+        """Deliver one message from the vehicle's onboard computer (no link: no reply comes back)."""
+
+
+class AutopilotPort:
+    """The simulator's own autopilot as a :class:`PilotPort`: its state read, its endpoint written."""
+
+    def __init__(self, autopilot: Autopilot) -> None:
+        self._state = autopilot.state
+        self._endpoint = autopilot.mavlink
+        self.name = autopilot.state.name
+        self.sysid = autopilot.state.sysid
+
+    @property
+    def home(self) -> Home | None:
+        return self._state.home
+
+    def time_boot_ms(self) -> int:
+        return self._state.time_boot_ms()
+
+    def status(self) -> AutopilotStatus:
+        return self._state.status()
+
+    def handle_message(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
+        """Deliver one message from the vehicle's onboard computer (no link: no reply comes back)."""
+        self._endpoint.handle_message(msg, link, src_system, src_component)
+
+
 class TrajectoryPilot:
     """Flies a scenario's leader path through the vehicle's autopilot.
 
@@ -51,7 +92,7 @@ class TrajectoryPilot:
     velocity loop's integrator wound up on each speed ramp and the leader overshot its 2 m/s to 2.5 m/s.
     """
 
-    def __init__(self, autopilot: Autopilot, spec: LeaderSpec, trajectory: Trajectory) -> None:
+    def __init__(self, autopilot: PilotPort, spec: LeaderSpec, trajectory: Trajectory) -> None:
         self.ap = autopilot
         self.spec = spec
         self.trajectory = trajectory

@@ -37,7 +37,8 @@ class Client:
 
     @property
     def ap(self) -> Any:
-        return self.world.autopilot(self.name)
+        """The vehicle's autopilot state: what a test reads of it."""
+        return self.world.autopilot(self.name).state
 
     def send(self, msg: Any) -> None:
         self.link.send(msg, 255, 190)

@@ -37,10 +37,10 @@ def _service_link(world: World, **cfg: Any) -> tuple[MessageVehicleLink, ManualC
 @pytest.mark.parametrize(("action", "value"), [("hold", 5), ("land", 4), ("return", 3)])
 def test_link_sets_the_offboard_loss_action_on_connect(action: str, value: int) -> None:
     world = world_with(seed=2)
-    assert world.autopilot("follower").params["COM_OBL_RC_ACT"] == 0  # PX4's default
+    assert world.autopilot("follower").state.params["COM_OBL_RC_ACT"] == 0  # PX4's default
     link, clock = _service_link(world, offboard_loss_action=action)
     _pump(world, link, clock, 3.0)
-    assert world.autopilot("follower").params["COM_OBL_RC_ACT"] == value
+    assert world.autopilot("follower").state.params["COM_OBL_RC_ACT"] == value
     assert link.snapshot().offboard_loss_param == value
 
 
@@ -49,7 +49,7 @@ def test_autopilot_setting_is_read_and_left_alone(caplog: pytest.LogCaptureFixtu
     link, clock = _service_link(world, offboard_loss_action="autopilot")
     with caplog.at_level(logging.INFO, logger="companion.vehicle"):
         _pump(world, link, clock, 3.0)
-    assert world.autopilot("follower").params["COM_OBL_RC_ACT"] == 0
+    assert world.autopilot("follower").state.params["COM_OBL_RC_ACT"] == 0
     assert link.snapshot().offboard_loss_param == 0
     assert any("offboard-loss failsafe: Position (without RC" in r.message for r in caplog.records)
 

@@ -277,7 +277,7 @@ def test_scenario_leader_flies_its_straight_line() -> None:
     # The path's acceleration is fed forward as PX4's trajectory follower does: without it the speed
     # ramp wound up the velocity integrator and the leader overshot its 2 m/s by a quarter.
     assert max(speeds_m_s) < 2.3  # 2.17 with, 2.51 without
-    assert w.autopilot("leader").nav_state is NavState.OFFBOARD
+    assert w.autopilot("leader").state.nav_state is NavState.OFFBOARD
     assert w.truth("leader").p_ned_m[0] - n0 == pytest.approx(20.0, abs=1.5)
     assert w.truth("leader").p_ned_m[2] == pytest.approx(-5.09, abs=0.3)
 

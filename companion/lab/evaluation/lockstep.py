@@ -275,7 +275,7 @@ class LockstepFlight:
         """
         for f in self.followers:
             if f.autolabel is not None and f.autolabel.share.due(t_s):
-                est = self.world.autopilot("leader").est
+                est = self.world.autopilot("leader").state.est
                 p = self._local(self._world_estimate("leader"), f.name)
                 f.autolabel.share.sample(t_s, p, bool(est.global_valid))
         bus = self.shares
@@ -284,11 +284,11 @@ class LockstepFlight:
         if bus.due(t_s):
             shares = []
             for v in self.world.vehicles:
-                est = v.autopilot.est
+                est = v.autopilot.state.est
                 if not est.global_valid:
                     continue
                 v_ned = (float(est.vn_m_s), float(est.ve_m_s), float(est.vd_m_s))
-                yaw = float(v.autopilot.yaw_est_rad())
+                yaw = float(v.autopilot.state.yaw_est_rad())
                 shares.append(
                     Share(v.name, t_s, self._world_estimate(v.name), v_ned, yaw, float(v.dyn.r_rad_s))
                 )
@@ -313,7 +313,7 @@ class LockstepFlight:
 
     def _world_estimate(self, name: str) -> Vec3T:
         """Vehicle ``name``'s own position estimate in the shared world frame (NED from home), m."""
-        est = self.world.autopilot(name).est
+        est = self.world.autopilot(name).state.est
         off = self.world.origin_offset_ned_m(name)
         return (float(est.n_m + off[0]), float(est.e_m + off[1]), float(est.d_m + off[2]))
 
