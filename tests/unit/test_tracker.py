@@ -267,6 +267,34 @@ def _run_ramp(cfg: TrackerConfig, seconds: float = 2.2) -> list[tuple[float, obj
     return out
 
 
+def _size_ranged(a: float, z_m: float, stamp_s: float, *, fx_px: float = 450.0) -> LeaderMeasurement:
+    """A far detection ranged by its box size: tight in bearing (2 px), 30 % in range, along its ray."""
+    p_cam = np.array([a * z_m, 0.0, z_m])
+    J = np.array([[z_m / fx_px, 0.0, a], [0.0, z_m / fx_px, 0.0], [0.0, 0.0, 1.0]])
+    cov = (J * np.array([4.0, 4.0, (0.3 * z_m) ** 2])) @ J.T
+    m = meas(p_cam, stamp_s, score=0.5)
+    return dataclasses.replace(m, cov_cam_m2=cov, range_source="size")
+
+
+def test_two_bearings_loose_in_range_never_pull_the_track_to_the_camera() -> None:
+    """A far track ranged by box size and a second far detection a few degrees off: a Cartesian update would
+    put the track where the two rays cross, at the camera (leader-occluded: 23 m to 0.04 m in one frame).
+    That detection is refused; the track keeps its range."""
+    tracker = TargetTracker(TrackerConfig(), CAM)
+    first = tracker.step(0.0, [_size_ranged(-0.55, 23.0, 0.0)], LEVEL)
+    assert first.status is TrackStatus.TENTATIVE
+    assert first.estimate is not None
+    r0 = float(np.linalg.norm(first.estimate.p_ned_rel_m))
+    second = tracker.step(DT, [_size_ranged(-0.50, 26.0, DT)], LEVEL)
+    assert second.estimate is not None
+    assert second.measurement is None  # refused
+    assert float(np.linalg.norm(second.estimate.p_ned_rel_m)) == pytest.approx(r0, rel=0.05)
+    # The same detection on the track's own bearing is taken.
+    third = tracker.step(2 * DT, [_size_ranged(-0.55, 24.0, 2 * DT)], LEVEL)
+    assert third.measurement is not None
+    assert float(np.linalg.norm(third.estimate.p_ned_rel_m)) > 20.0  # type: ignore[union-attr]
+
+
 def test_constant_velocity_model_reports_no_acceleration() -> None:
     (_, est), *_ = reversed(_run_ramp(TrackerConfig()))
     assert est is not None
