@@ -27,20 +27,11 @@ one part reads - the estimator, parameters, commander state, setpoints, health b
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from companion.kernel.frames import R_from_euler
 from sitl.autopilot.flight import FlightLogic
 from sitl.autopilot.mavlink import MavlinkEndpoint
 from sitl.autopilot.state import AutopilotState, AutopilotStatus
-from sitl.physics.dynamics import GRAVITY_M_S2, QUAD, QuadDynamics, QuadModel
-
-if TYPE_CHECKING:
-    import numpy as np
-
-    from sitl.physics.geo import LocalProjection
-    from sitl.physics.gps import GpsSensor
-    from sitl.physics.heading_error import HeadingError
+from sitl.physics.dynamics import GRAVITY_M_S2
 
 __all__ = ["Autopilot", "AutopilotStatus"]
 
@@ -48,55 +39,14 @@ __all__ = ["Autopilot", "AutopilotStatus"]
 class Autopilot:
     """One vehicle's PX4: estimator, commander, navigator, controllers and MAVLink endpoints.
 
-    Args:
-        name: Vehicle name (logs).
-        sysid: MAVLink system id (PX4 SITL: instance + 1).
-        dyn: The vehicle's dynamics; the autopilot reads its attitude and rates (a perfect AHRS) and
-            its kinematics only through the sensor models.
-        world: Projection of the shared world frame.
-        spawn_ned_m: The vehicle's spawn point in the world frame: its EKF origin and first home.
-        rng: Seeded generator for the estimator's errors.
-        gps: The GNSS receiver model (owns its own generator and scripted faults).
-        speed_factor: Sim/wall speed; COM_OF_LOSS_T is multiplied by it, as PX4 SITL does with
-            PX4_SIM_SPEED_FACTOR, so wall-clock setpoint streams keep working at any speed.
-        epoch_unix_s: Unix time at sim time 0 (SYSTEM_TIME).
-        params: Parameter overrides (name -> value).
-        model: Airframe constants for the control allocation.
-        heading_error: PX4's heading-estimate error (None: a perfect heading).
+    Built on the vehicle's :class:`~sitl.autopilot.state.AutopilotState` (its arguments are the vehicle's:
+    dynamics, sensors, spawn point, parameters); the flight logic and the endpoint act on that state.
     """
 
-    def __init__(
-        self,
-        *,
-        name: str,
-        sysid: int,
-        dyn: QuadDynamics,
-        world: LocalProjection,
-        spawn_ned_m: tuple[float, float, float],
-        rng: np.random.Generator,
-        gps: GpsSensor,
-        speed_factor: float = 1.0,
-        epoch_unix_s: float = 1_767_225_600.0,
-        params: dict[str, float] | None = None,
-        model: QuadModel = QUAD,
-        heading_error: HeadingError | None = None,
-    ) -> None:
-        self.state = AutopilotState(
-            name=name,
-            sysid=sysid,
-            dyn=dyn,
-            world=world,
-            spawn_ned_m=spawn_ned_m,
-            rng=rng,
-            gps=gps,
-            speed_factor=speed_factor,
-            epoch_unix_s=epoch_unix_s,
-            params=params,
-            model=model,
-            heading_error=heading_error,
-        )
-        self.flight = FlightLogic(self.state)
-        self.mavlink = MavlinkEndpoint(self.state, self.flight)
+    def __init__(self, state: AutopilotState) -> None:
+        self.state = state
+        self.flight = FlightLogic(state)
+        self.mavlink = MavlinkEndpoint(state, self.flight)
 
     # ------------------------------------------------------------------ physics-rate loop
     def inner_update(self, dt_s: float) -> tuple[float, float, float, float]:

@@ -154,7 +154,24 @@ def _interval(rate_hz: float) -> float:
 
 
 class AutopilotState:
-    """An autopilot's state (the arguments are :class:`~sitl.autopilot.autopilot.Autopilot`'s)."""
+    """One vehicle's autopilot state, what :class:`~sitl.autopilot.autopilot.Autopilot`'s parts share.
+
+    Args:
+        name: Vehicle name (logs).
+        sysid: MAVLink system id (PX4 SITL: instance + 1).
+        dyn: The vehicle's dynamics; the autopilot reads its attitude and rates (a perfect AHRS) and
+            its kinematics only through the sensor models.
+        world: Projection of the shared world frame.
+        spawn_ned_m: The vehicle's spawn point in the world frame: its EKF origin and first home.
+        rng: Seeded generator for the estimator's errors.
+        gps: The GNSS receiver model (owns its own generator and scripted faults).
+        speed_factor: Sim/wall speed; COM_OF_LOSS_T is multiplied by it, as PX4 SITL does with
+            PX4_SIM_SPEED_FACTOR, so wall-clock setpoint streams keep working at any speed.
+        epoch_unix_s: Unix time at sim time 0 (SYSTEM_TIME).
+        params: Parameter overrides (name -> value).
+        model: Airframe constants for the control allocation.
+        heading_error: PX4's heading-estimate error (None: a perfect heading).
+    """
 
     def __init__(
         self,

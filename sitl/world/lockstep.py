@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl.autopilot.autopilot import Autopilot
-from sitl.autopilot.state import LINK_API, LINK_GCS
+from sitl.autopilot.state import LINK_API, LINK_GCS, AutopilotState
 from sitl.config import SitlConfig
 from sitl.physics.dynamics import QuadDynamics, VehicleTruth
 from sitl.physics.geo import LocalProjection
@@ -121,17 +121,19 @@ class World:
                 jumps=faults.gps.jump_windows() if faults is not None else (),
             )
             ap = Autopilot(
-                name=vc.name,
-                sysid=i + 1,
-                dyn=dyn,
-                world=self.projection,
-                spawn_ned_m=vc.spawn_ned_m,
-                rng=np.random.default_rng(s[1]),
-                gps=gps,
-                speed_factor=speed_factor,
-                epoch_unix_s=epoch_unix_s,
-                params=dict(vc.params),
-                heading_error=heading_error(cfg, np.random.default_rng(s[4])),
+                AutopilotState(
+                    name=vc.name,
+                    sysid=i + 1,
+                    dyn=dyn,
+                    world=self.projection,
+                    spawn_ned_m=vc.spawn_ned_m,
+                    rng=np.random.default_rng(s[1]),
+                    gps=gps,
+                    speed_factor=speed_factor,
+                    epoch_unix_s=epoch_unix_s,
+                    params=dict(vc.params),
+                    heading_error=heading_error(cfg, np.random.default_rng(s[4])),
+                )
             )
             link_spec = faults.link if faults is not None else LinkSpec()
             links = tuple(
