@@ -18,6 +18,9 @@ class FormationConfig(Section):
     #: error varies once per revolution: kp 0.9 / ki 0.05 left 0.27 m RMSE, these 0.13 m. 2.5 trails an
     #: accelerating leader less under socket timing but is not the default (docs/flight.md, "Time").
     kp_xy: float = 1.8
+    #: The range gain while the track is steady (the same test as ``command_slew_steady_m_s2``), 1/s:
+    #: trails an accelerating leader less; a young or blinking track keeps ``kp_xy``.
+    kp_xy_steady: float = Field(1.8, gt=0.0, le=5.0)
     #: The range gain of the GPS-lost attitude law, 1/s: its outer loop feeds its own relative-velocity
     #: loop (``FormationLaw.KV_XY_1_S``), not PX4's, and is kept apart from ``kp_xy`` so that each is
     #: tuned for its loop.

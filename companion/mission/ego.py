@@ -31,6 +31,9 @@ from companion.kernel.frames import Vec3
 
 #: Never predict an estimate further ahead than this (s); older ones are the mission's "stale" problem.
 MAX_PREDICT_S = 1.0
+#: Never predict further past the control instant than this (s): a setpoint's transport delay is
+#: milliseconds; a larger figure is a link in trouble, not a delay to plan on.
+MAX_AHEAD_S = 0.1
 #: How much follower velocity history is kept (s): longer than any estimate may be old.
 HISTORY_S = 2.0
 #: The newest sample stands for the velocity this long after it (s): telemetry arrives at 30-50 Hz.
@@ -101,15 +104,25 @@ class EgoMotion:
         return d
 
     def predict(
-        self, stamp_s: float, p_rel: Vec3, v_rel: Vec3, now_s: float, a_leader: Vec3 | None = None
+        self,
+        stamp_s: float,
+        p_rel: Vec3,
+        v_rel: Vec3,
+        now_s: float,
+        *,
+        a_leader: Vec3 | None = None,
+        ahead_s: float = 0.0,
     ) -> RelativeNow:
-        """The estimate taken at ``stamp_s`` brought to ``now_s`` (see the module doc).
+        """The estimate taken at ``stamp_s`` brought to ``now_s + ahead_s`` (see the module doc).
 
         ``a_leader`` (NED, m/s^2), when given, carries the leader's velocity forward over the age too.
+        ``ahead_s``: how long after ``now_s`` the command made from it acts (the setpoint's transport
+        delay); over it the follower keeps its newest velocity, the leader its velocity and acceleration.
         """
         p = np.asarray(p_rel, dtype=np.float64)
         v = np.asarray(v_rel, dtype=np.float64)
         age = min(max(0.0, now_s - stamp_s), MAX_PREDICT_S)
+        ahead = min(max(0.0, ahead_s), MAX_AHEAD_S)
         t0 = now_s - age
         v_f0 = self.v_at(t0)
         v_f1 = self.v_at(now_s)
@@ -118,6 +131,7 @@ class EgoMotion:
             return RelativeNow(p, v, None)
         v_leader = v_f0 + v
         a = np.zeros(3) if a_leader is None else np.asarray(a_leader, dtype=np.float64)
-        p_now = p + v_leader * age + 0.5 * a * age * age - disp
-        v_leader_now = v_leader + a * age
+        span = age + ahead
+        p_now = p + v_leader * span + 0.5 * a * span * span - disp - v_f1 * ahead
+        v_leader_now = v_leader + a * span
         return RelativeNow(p_now, v_leader_now - v_f1, v_leader_now)

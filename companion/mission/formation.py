@@ -183,6 +183,7 @@ class FormationLaw:
         coasting: bool = False,
         slot_target: SlotTarget | None = None,
         v_leader_ned_m_s: Vec3 | None = None,
+        kp_range_1_s: float | None = None,
     ) -> VelocityCommand:
         """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
 
@@ -195,6 +196,7 @@ class FormationLaw:
         to it is flown out too, and the slot's own motion fed forward. ``v_leader_ned_m_s``: the leader's
         own velocity where it shares one (GPS on both ends: steadier than the camera's at the range of an
         outer slot, and unbroken while the detector misses it); default: ours plus the estimate's relative.
+        ``kp_range_1_s``: the range gain (default ``kp_xy``).
         """
         if not all_finite(
             p_ned_rel_m,
@@ -232,7 +234,8 @@ class FormationLaw:
             ff[:2] += cfg.leader_accel_ff_s * a_leader[:2]
             ff[2] += cfg.leader_accel_ff_z_s * a_leader[2]
 
-        v_range = cfg.kp_xy * err.e_range_m + cfg.kd_xy * err.e_range_rate_m_s + self._i_range_m_s
+        kp = cfg.kp_xy if kp_range_1_s is None else kp_range_1_s
+        v_range = kp * err.e_range_m + cfg.kd_xy * err.e_range_rate_m_s + self._i_range_m_s
         v_down = cfg.kp_z * err.e_down_m + self._i_down_m_s
         raw = ff + v_range * err.u_los + np.array([0.0, 0.0, v_down])
         if slot_target is not None:

@@ -133,6 +133,14 @@ def test_velocity_law_takes_the_trackers_leader_acceleration_bounded() -> None:
     assert lw.leader_accel_ned_m_s2 == pytest.approx((0.0, 3.0, 0.0))
 
 
+def test_the_range_gain_can_be_given_per_command() -> None:
+    """1 m short of the slot, at rest: the range term is the gain given, ``kp_xy`` without one."""
+    for kp, expect in ((None, 1.8), (2.5, 2.5)):
+        lw = law(kp_xy=1.8, kd_xy=0.0, ki_xy=0.0)
+        cmd = lw.velocity(np.array([6.0, 0.0, 0.0]), np.zeros(3), hover(), 0.0, kp_range_1_s=kp)
+        assert cmd.v_ned_m_s[0] == pytest.approx(expect)
+
+
 def test_velocity_law_yaws_toward_the_leader_with_bearing_rate_feed_forward() -> None:
     lw = law()
     cmd = lw.velocity(np.array([5.0, 0.5, 0.0]), np.array([0.0, 1.0, 0.0]), hover(), 0.0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -484,6 +485,24 @@ def test_the_fast_slew_waits_for_a_clean_link() -> None:
     assert step_after_jump_m_s(f.steady_link_hold_s) == pytest.approx(
         f.command_slew_steady_m_s2 * DT_S, rel=0.02
     )
+
+
+def test_the_steady_range_gain_is_flown_only_on_a_steady_track() -> None:
+    """1 m beyond the slot: the command is ``kp_xy_steady`` x 1 m on a steady track, ``kp_xy`` x 1 m on a
+    blinking one (seen in half its recent frames)."""
+    f = FormationConfig(
+        kp_xy=1.0, kp_xy_steady=2.0, ki_xy=0.0, kd_xy=0.0, leader_velocity_ff=0.0, leader_accel_ff_s=0.0
+    )
+    for hit_ratio, expect_m_s in ((1.0, 2.0), (0.5, 1.0)):
+        h = Harness(cfg=Config(formation=f))
+        h.to_follow()
+        h.leader_mode, h.leader_status = "fresh", TrackStatus.CONFIRMED
+        h.leader_hit_ratio = hit_ratio
+        h.leader_p = (6.0, 0.0, 0.0)
+        h.run(2.0)
+        out = h.step()
+        assert isinstance(out.setpoint, VelocityBodySetpoint)
+        assert out.setpoint.v_body_m_s[0] == pytest.approx(expect_m_s, abs=1e-6)
 
 
 def test_reacquire_waits_for_a_steady_track() -> None:
@@ -1149,6 +1168,21 @@ def test_latency_compensation_brings_the_estimate_to_the_tick_and_can_be_turned_
         h = Harness(cfg=Config(formation=FormationConfig(latency_compensation=on)))
         h.to_follow()
         est = leader(h.now_s - 0.2, p=(5.0, 0.0, 0.0), v=(2.0, 0.0, 0.0))
-        p_rel, v_rel = h.machine.follow.relative_now(est)
+        p_rel, v_rel = h.machine.follow.relative_now(est, h.ap.state(h.now_s))
+        assert p_rel[0] == pytest.approx(expect_n_m, abs=1e-6)
+        assert v_rel[0] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_the_estimate_is_brought_to_when_the_setpoint_acts_one_measured_link_delay_after_the_tick() -> None:
+    """A 0.2 s old estimate of a leader 2 m/s faster, over a link measured at 30 ms one way: 0.46 m ahead.
+
+    Unmeasured (NaN) adds nothing; a delay past the bound is taken at the bound, never further.
+    """
+    for delay_s, expect_n_m in ((0.03, 5.46), (math.nan, 5.4), (5.0, 5.6)):
+        h = Harness()
+        h.to_follow()
+        veh = dataclasses.replace(h.ap.state(h.now_s), link_delay_s=delay_s)
+        est = leader(h.now_s - 0.2, p=(5.0, 0.0, 0.0), v=(2.0, 0.0, 0.0))
+        p_rel, v_rel = h.machine.follow.relative_now(est, veh)
         assert p_rel[0] == pytest.approx(expect_n_m, abs=1e-6)
         assert v_rel[0] == pytest.approx(2.0, abs=1e-6)

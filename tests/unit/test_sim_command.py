@@ -117,7 +117,7 @@ def test_ego_motion_carries_the_leader_acceleration_over_the_age() -> None:
     ego = EgoMotion()
     for k in range(41):
         ego.push(k * 0.025, np.zeros(3))
-    rel = ego.predict(0.8, np.array([5.0, 0.0, 0.0]), np.zeros(3), 1.0, np.array([1.0, 0.0, 0.0]))
+    rel = ego.predict(0.8, np.array([5.0, 0.0, 0.0]), np.zeros(3), 1.0, a_leader=np.array([1.0, 0.0, 0.0]))
     assert rel.v_ned_rel_m_s[0] == pytest.approx(0.2)
     assert rel.p_ned_rel_m[0] == pytest.approx(5.0 + 0.5 * 0.04)
 

@@ -8,10 +8,12 @@ REACQUIRE (:mod:`companion.mission.states.recovery`).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from companion.estimation.leader import LeaderEstimate, TrackStatus
-from companion.kernel.flight import ExternalPosition, Setpoint
+from companion.kernel.flight import ExternalPosition, Setpoint, VehicleState
 from companion.kernel.frames import Vec3
 from companion.mission.states.context import MissionContext
 from companion.mission.types import MissionInputs, MissionState, Reason, VisionMode
@@ -47,7 +49,9 @@ class FollowPhase:
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
-        p_rel, v_rel = self.relative_now(est)
+        p_rel, v_rel = self.relative_now(est, veh)
+        f = self.c.cfg.formation
+        steady = self._steady(est)
         cmd = self.c.law.velocity(
             p_rel,
             v_rel,
@@ -55,7 +59,8 @@ class FollowPhase:
             self.c.now_s,
             a_leader_ned_m_s2=est.a_ned_leader_m_s2,
             obstacle_ned_m=self.c.obstacle_now(inp),
-            slew_m_s2=self._slew(est),
+            slew_m_s2=f.command_slew_steady_m_s2 if steady else f.command_slew_m_s2,
+            kp_range_1_s=f.kp_xy_steady if steady else f.kp_xy,
             coasting=est.status == TrackStatus.COASTING,
             slot_target=self.c.slot_target(inp),
             v_leader_ned_m_s=self._shared_leader_velocity(inp),
@@ -71,15 +76,18 @@ class FollowPhase:
             return None
         return np.asarray(sh.v_ned_m_s, dtype=np.float64)
 
-    def _slew(self, est: LeaderEstimate) -> float:
-        """The command slew, m/s^2: the faster one only while the leader is seen steadily on a clean link."""
+    def _steady(self, est: LeaderEstimate) -> bool:
+        """Whether the leader is seen steadily on a clean link: the faster slew and range gain are flown."""
         f = self.c.cfg.formation
-        steady = est.status == TrackStatus.CONFIRMED and est.recent_hit_ratio >= f.steady_hit_ratio
-        clean = self.c.link.clean(self.c.now_s)
-        return f.command_slew_steady_m_s2 if steady and clean else f.command_slew_m_s2
+        seen = est.status == TrackStatus.CONFIRMED and est.recent_hit_ratio >= f.steady_hit_ratio
+        return seen and self.c.link.clean(self.c.now_s)
 
-    def relative_now(self, est: LeaderEstimate) -> tuple[Vec3, Vec3]:
-        """The estimate brought from its frame's capture instant to now (see :mod:`companion.mission.ego`)."""
+    def relative_now(self, est: LeaderEstimate, veh: VehicleState) -> tuple[Vec3, Vec3]:
+        """The estimate brought from its frame's capture instant to when the setpoint made now acts.
+
+        That is now plus the link's measured one-way delay (TIMESYNC; none while unmeasured), see
+        :mod:`companion.mission.ego`.
+        """
         if not self.c.cfg.formation.latency_compensation:
             return np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s)
         a_leader = (
@@ -87,8 +95,14 @@ class FollowPhase:
             if est.a_ned_leader_m_s2 is None
             else np.array(est.a_ned_leader_m_s2)
         )
+        ahead_s = veh.link_delay_s if math.isfinite(veh.link_delay_s) else 0.0
         rel = self.c.ego.predict(
-            est.stamp_s, np.array(est.p_ned_rel_m), np.array(est.v_ned_rel_m_s), self.c.now_s, a_leader
+            est.stamp_s,
+            np.array(est.p_ned_rel_m),
+            np.array(est.v_ned_rel_m_s),
+            self.c.now_s,
+            a_leader=a_leader,
+            ahead_s=ahead_s,
         )
         return rel.p_ned_rel_m, rel.v_ned_rel_m_s
 
@@ -124,7 +138,7 @@ class FollowPhase:
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
-        p_rel, v_rel = self.relative_now(est)
+        p_rel, v_rel = self.relative_now(est, veh)
         ext = self._external_fix(inp) if self.c.m.gps_loss_policy == "vision_external_position" else None
 
         if self.c.vision_mode == VisionMode.EXTERNAL_POSITION:
