@@ -77,8 +77,8 @@ class FormationConfig(Section):
     #: 0.4-0.6 m (3.0: 0.25-0.3); the average there is ~0.033 s, on a clean link ~0.005 s.
     steady_link_age_s: float = Field(0.02, gt=0)
     steady_link_hold_s: float = Field(3.0, ge=0)
-    #: 0.6 (was 0.8): four missed frames of a long-held track just as the leader started held the fast
-    #: slew back for its first 0.35 s. A young track still needs ``confirm_hits`` first, and the tracker
+    #: 0.6, not 0.8: at 0.8 four missed frames of a long-held track just as the leader started held the
+    #: fast slew back for its first 0.35 s. A young track still needs ``confirm_hits`` first, and the tracker
     #: keeps a far pair of size-ranged boxes from pulling it onto the camera (docs/perception.md).
     steady_hit_ratio: float = Field(0.6, ge=0.0, le=1.0)
     #: A formation plan (``config/formations/*.toml``; a relative path as companion/config/paths.py says:

@@ -146,6 +146,11 @@ class VehicleState:
     status_text_seq: int = 0
 
     @property
+    def link_delay_or_zero_s(self) -> float:
+        """The link's measured one-way delay, s; 0 while unmeasured."""
+        return self.link_delay_s if math.isfinite(self.link_delay_s) else 0.0
+
+    @property
     def in_air(self) -> bool:
         """PX4's in-air flag as MAVSDK computes it (IN_AIR, TAKING_OFF or LANDING)."""
         return self.landed_state in (LandedState.IN_AIR, LandedState.TAKING_OFF, LandedState.LANDING)

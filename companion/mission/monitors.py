@@ -96,8 +96,7 @@ class LinkMonitor:
         steady delay is taken out of every stamp already (companion/vehicle/boottime.py).
         """
         f = self.formation
-        delay_s = veh.link_delay_s if math.isfinite(veh.link_delay_s) else 0.0
-        age_s = min(max(now_s - veh.attitude_stamp_s - delay_s, 0.0), 1.0)
+        age_s = min(max(now_s - veh.attitude_stamp_s - veh.link_delay_or_zero_s, 0.0), 1.0)
         dt_s = min(max(now_s - self.age_stamp_s, 0.0), 1.0)
         self.age_stamp_s = now_s
         self.age_avg_s += dt_s / (LINK_AGE_TAU_S + dt_s) * (age_s - self.age_avg_s)

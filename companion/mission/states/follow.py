@@ -8,8 +8,6 @@ REACQUIRE (:mod:`companion.mission.states.recovery`).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from companion.estimation.leader import LeaderEstimate, TrackStatus
@@ -95,14 +93,13 @@ class FollowPhase:
             if est.a_ned_leader_m_s2 is None
             else np.array(est.a_ned_leader_m_s2)
         )
-        ahead_s = veh.link_delay_s if math.isfinite(veh.link_delay_s) else 0.0
         rel = self.c.ego.predict(
             est.stamp_s,
             np.array(est.p_ned_rel_m),
             np.array(est.v_ned_rel_m_s),
             self.c.now_s,
             a_leader=a_leader,
-            ahead_s=ahead_s,
+            ahead_s=veh.link_delay_or_zero_s,
         )
         return rel.p_ned_rel_m, rel.v_ned_rel_m_s
 
