@@ -8,6 +8,7 @@ Offboard), says no failsafe, and the follower lands and disarms under the servic
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -17,7 +18,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from companion.lab.evaluation.metrics import offset_cam_to_level_body, to_heading_frame
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED_PX4 = REPO.parent / "shared" / "px4-sitl" / "bin" / "px4"
@@ -217,4 +221,36 @@ def test_px4_takes_the_external_position_and_flies_velocity_again(tmp_path: Path
     assert ap["follower_failsafes"] == [], shown
     assert not FAILSAFE_MODES & {m["mode"] for m in ap["follower_modes"]}, shown
     assert ap["follower_modes"][-1]["mode"] == "Offboard", shown
-    assert report["formation_max_deviation_m"] < 2.0
+    # The deviation: held before the service was stopped, regained after it, and never a fly-away. While
+    # the process is stopped PX4 flies its last velocity setpoint blind, so how far the gap opens then is
+    # the pause's (the last command against the leader's speed, times the pause) and the host's, not the
+    # service's.
+    t_s, err_m = _formation_errors(out)
+    assert abs(float(err_m.max()) - report["formation_max_deviation_m"]) < 1e-6  # the report's own figure
+    gaps = [(float(a), float(b)) for a, b in itertools.pairwise(t_s) if b - a > 0.5]
+    assert len(gaps) == 2, f"the two pauses, as gaps in the control ticks: {gaps}"
+    at = f"maximum {err_m.max():.2f} m at t = {t_s[int(err_m.argmax())]:.1f} s; pauses {gaps}\n{shown}"
+    assert err_m[t_s <= gaps[0][0]].max() < HELD_M, at
+    assert err_m[t_s >= t_s[-1] - REGAINED_WINDOW_S].max() < REGAINED_M, at
+    assert err_m.max() < NO_FLY_AWAY_M, at
+
+
+#: The deviation before the pauses, m: the hand-over to PX4's external fix, when PX4's velocity estimate
+#: is still up to 0.7 m/s off, takes 0.7-1.0 m on an idle host and up to 1.8 m with both cores busy.
+HELD_M = 2.0
+#: The end of the flight, s, over which the formation must be back within :data:`REGAINED_M` (m).
+REGAINED_WINDOW_S = 5.0
+REGAINED_M = 1.0
+#: The deviation no flight may reach, pauses included, m (two 0.8 s pauses at a 2 m/s leader: 1.6 m each
+#: if the last command was a stop).
+NO_FLY_AWAY_M = 4.0
+
+
+def _formation_errors(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Per formation tick: its time (s) and the distance from the follower's slot (m), from the run's log."""
+    log = np.load(out / "flight_log.npz")
+    offset = json.loads((out / "logs" / "service-config.json").read_text())["formation"]["offset_cam_m"]
+    sel = log["formation"]
+    rel_ned_m = log["p_ned_leader_m"][sel] - log["p_ned_follower_m"][sel]
+    rel_m = to_heading_frame(rel_ned_m, log["yaw_follower_rad"][sel])
+    return log["t_s"][sel], np.linalg.norm(rel_m - offset_cam_to_level_body(offset), axis=1)

@@ -234,6 +234,8 @@ def write_run_without_plots(
     report = build_report(name, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **extra})
     write_report(out_dir, report)
     save_log(result.log, out_dir / "flight_log.npz")
+    if result.trace is not None:
+        result.trace.write_trace(out_dir / "trace.jsonl")
     return report
 
 
