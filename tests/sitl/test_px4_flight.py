@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.lab.evaluation.metrics import offset_cam_to_level_body, to_heading_frame
+from companion.lab.evaluation.log import load_log
+from companion.lab.evaluation.metrics import formation_errors
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED_PX4 = REPO.parent / "shared" / "px4-sitl" / "bin" / "px4"
@@ -248,9 +249,6 @@ NO_FLY_AWAY_M = 4.0
 
 def _formation_errors(out: Path) -> tuple[np.ndarray, np.ndarray]:
     """Per formation tick: its time (s) and the distance from the follower's slot (m), from the run's log."""
-    log = np.load(out / "flight_log.npz")
+    log = load_log(out / "flight_log.npz")
     offset = json.loads((out / "logs" / "service-config.json").read_text())["formation"]["offset_cam_m"]
-    sel = log["formation"]
-    rel_ned_m = log["p_ned_leader_m"][sel] - log["p_ned_follower_m"][sel]
-    rel_m = to_heading_frame(rel_ned_m, log["yaw_follower_rad"][sel])
-    return log["t_s"][sel], np.linalg.norm(rel_m - offset_cam_to_level_body(offset), axis=1)
+    return log.t_s[log.formation], formation_errors(log, offset)

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.lab.evaluation.log import FlightRecorder
-from companion.lab.evaluation.metrics import compute_metrics, monte_carlo_summary
+from companion.lab.evaluation.log import FlightRecorder, load_log, save_log
+from companion.lab.evaluation.metrics import compute_metrics, formation_errors, monte_carlo_summary
 from companion.lab.evaluation.plots import Snapshot, desired_follower_ned, write_plots
 from companion.lab.evaluation.report import build_report, missing_keys, summary_markdown, write_report
 
@@ -70,6 +70,19 @@ def test_detection_rates_and_latency() -> None:
     assert m.false_positive_rate == pytest.approx(0.01)
     assert m.perception_latency_ms["p50"] == pytest.approx(9.0)
     assert m.frames == 400
+
+
+def test_a_saved_log_loads_back_with_the_same_figures(tmp_path: Path) -> None:
+    rec = circle_flight(lateral_error_m=0.2)
+    rec.transition(3.0, "ACQUIRE", "FOLLOW", "LEADER_ACQUIRED")
+    log = rec.freeze()
+    save_log(log, tmp_path / "flight_log.npz")
+    back = load_log(tmp_path / "flight_log.npz")
+    assert back.state == log.state
+    assert back.transitions == log.transitions
+    np.testing.assert_array_equal(back.frame_detected, log.frame_detected)
+    np.testing.assert_allclose(formation_errors(back, OFFSET), formation_errors(log, OFFSET))
+    assert compute_metrics(back, OFFSET).formation_max_deviation_m == pytest.approx(0.2, rel=1e-6)
 
 
 def test_no_estimate_is_not_zero_error() -> None:

@@ -186,3 +186,19 @@ def save_log(log: FlightLog, path: Path) -> None:
         [[f"{t.t_s:.3f}", t.from_state, t.to_state, t.reason] for t in log.transitions], dtype=str
     ).reshape(-1, 4)
     np.savez_compressed(path, **arrays)
+
+
+def load_log(path: Path) -> FlightLog:
+    """A log written by :func:`save_log`: its arrays, states and transitions.
+
+    ``gps_loss_t_s``, ``crashed`` and ``landed`` are not in the file (the run's report has them); they
+    come back as their defaults.
+    """
+    with np.load(path) as npz:
+        arrays = {f.name: npz[f.name] for f in fields(FlightLog) if f.name in npz.files}
+        state = [str(s) for s in npz["state"]]
+        rows = npz["transitions"]
+    arrays.pop("state", None)
+    arrays.pop("transitions", None)
+    transitions = [Transition(float(t), a, b, why) for t, a, b, why in rows.tolist()]
+    return FlightLog(**arrays, state=state, transitions=transitions)
