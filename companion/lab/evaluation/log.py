@@ -194,11 +194,12 @@ def load_log(path: Path) -> FlightLog:
     ``gps_loss_t_s``, ``crashed`` and ``landed`` are not in the file (the run's report has them); they
     come back as their defaults.
     """
+    text = ("state", "transitions")
     with np.load(path) as npz:
-        arrays = {f.name: npz[f.name] for f in fields(FlightLog) if f.name in npz.files}
+        arrays = {
+            f.name: npz[f.name] for f in fields(FlightLog) if f.name in npz.files and f.name not in text
+        }
         state = [str(s) for s in npz["state"]]
         rows = npz["transitions"]
-    arrays.pop("state", None)
-    arrays.pop("transitions", None)
     transitions = [Transition(float(t), a, b, why) for t, a, b, why in rows.tolist()]
     return FlightLog(**arrays, state=state, transitions=transitions)
