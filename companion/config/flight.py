@@ -101,6 +101,12 @@ class FormationConfig(Section):
     #: The slot's own acceleration (as it turns with the leader) fed forward as a velocity lead, s; the
     #: same reason as ``leader_accel_ff_s``. 0 turns it off.
     slot_accel_ff_s: float = Field(0.35, ge=0.0, le=2.0)
+    #: The join (companion/mission/join.py): entering the formation this far (m) or more from the slot, the
+    #: follower flies a planned approach at up to ``join_speed_m_s`` relative to the leader, accelerating
+    #: and braking at ``join_accel_m_s2``, instead of the full gain on the whole error. 0 m/s: no join.
+    join_speed_m_s: float = Field(1.5, ge=0.0, le=10.0)
+    join_accel_m_s2: float = Field(1.0, gt=0.0, le=5.0)
+    join_min_error_m: float = Field(0.5, ge=0.0)
 
 
 class MissionConfig(Section):

@@ -42,9 +42,11 @@ from companion.mission.formation_commands import (
     all_finite,
     bounded_velocity,
     clamp_norm,
+    integrate,
     low_passed_rate,
 )
 from companion.mission.geometry import FollowerState, Slot, SlotError, slot_error, tilt_from_accel
+from companion.mission.join import JoinReference, joined
 from companion.mission.plan_slot import NeighbourNow, SlotTarget
 from companion.mission.safety import (
     SafetyLimits,
@@ -162,14 +164,6 @@ class FormationLaw:
         rate = self.cfg.kp_yaw * wrap_pi(err.yaw_des_rad - yaw_rad) + err.bearing_rate_rad_s
         return float(np.clip(rate, -max_rate, max_rate))
 
-    def _integrate(
-        self, value: float, rate: float, dt_s: float, limit: float, saturated_same_sign: bool
-    ) -> float:
-        """Bounded integral with conditional integration (no growth while the output saturates that way)."""
-        if saturated_same_sign:
-            return value
-        return float(np.clip(value + rate * dt_s, -limit, limit))
-
     def velocity(
         self,
         p_ned_rel_m: Vec3,
@@ -184,6 +178,7 @@ class FormationLaw:
         slot_target: SlotTarget | None = None,
         v_leader_ned_m_s: Vec3 | None = None,
         kp_range_1_s: float | None = None,
+        join: JoinReference | None = None,
     ) -> VelocityCommand:
         """The GPS-healthy law: a body velocity and yaw rate that hold the slot (see module doc).
 
@@ -196,7 +191,8 @@ class FormationLaw:
         to it is flown out too, and the slot's own motion fed forward. ``v_leader_ned_m_s``: the leader's
         own velocity where it shares one (GPS on both ends: steadier than the camera's at the range of an
         outer slot, and unbroken while the detector misses it); default: ours plus the estimate's relative.
-        ``kp_range_1_s``: the range gain (default ``kp_xy``).
+        ``kp_range_1_s``: the range gain (default ``kp_xy``). ``join``: the planned approach's reference
+        (:mod:`companion.mission.join`): the error is flown to it, its motion fed forward.
         """
         if not all_finite(
             p_ned_rel_m,
@@ -216,6 +212,7 @@ class FormationLaw:
         dt = self._dt(now_s)
         cfg, lim = self.cfg, self.limits
         err = slot_error(self.slot, p_ned_rel_m, v_ned_rel_m_s, follower.yaw_rad)
+        err, ff_join = (err, None) if join is None else joined(err, join, self.cfg.leader_accel_ff_s)
         v_rel = np.asarray(v_ned_rel_m_s, dtype=np.float64)
         v_leader: Vec3 | None
         if v_leader_ned_m_s is not None:
@@ -238,6 +235,8 @@ class FormationLaw:
         v_range = kp * err.e_range_m + cfg.kd_xy * err.e_range_rate_m_s + self._i_range_m_s
         v_down = cfg.kp_z * err.e_down_m + self._i_down_m_s
         raw = ff + v_range * err.u_los + np.array([0.0, 0.0, v_down])
+        if ff_join is not None:
+            raw += ff_join
         if slot_target is not None:
             raw += self._slot_velocity(np.asarray(p_ned_rel_m, dtype=np.float64), err.u_los, slot_target)
             raw[:2] += cfg.slot_accel_ff_s * self._slot_accel(slot_target, dt)[:2]
@@ -266,10 +265,10 @@ class FormationLaw:
         # Anti-windup: hold an integral while the output is cut in the direction it would push.
         cut_h = float(np.dot(raw - v, err.u_los))
         cut_z = float(raw[2] - v[2])
-        self._i_range_m_s = self._integrate(
+        self._i_range_m_s = integrate(
             self._i_range_m_s, cfg.ki_xy * err.e_range_m, dt, cfg.i_limit_xy_m_s, cut_h * err.e_range_m > 1e-3
         )
-        self._i_down_m_s = self._integrate(
+        self._i_down_m_s = integrate(
             self._i_down_m_s, cfg.ki_z * err.e_down_m, dt, cfg.i_limit_z_m_s, cut_z * err.e_down_m > 1e-3
         )
 
@@ -388,10 +387,10 @@ class FormationLaw:
                     -self.I_ACC_LIMIT_M_S2,
                     self.I_ACC_LIMIT_M_S2,
                 )
-            self._i_range_m_s = self._integrate(
+            self._i_range_m_s = integrate(
                 self._i_range_m_s, cfg.ki_xy * err.e_range_m, dt, cfg.i_limit_xy_m_s, saturated
             )
-            self._i_down_m_s = self._integrate(
+            self._i_down_m_s = integrate(
                 self._i_down_m_s, cfg.ki_z * err.e_down_m, dt, cfg.i_limit_z_m_s, False
             )
 

@@ -75,6 +75,13 @@ def clamp_norm(a: Vec3, limit: float) -> Vec3:
     return a * (limit / n) if n > limit else a
 
 
+def integrate(value: float, rate: float, dt_s: float, limit: float, saturated_same_sign: bool) -> float:
+    """Bounded integral with conditional integration (no growth while the output saturates that way)."""
+    if saturated_same_sign:
+        return value
+    return float(np.clip(value + rate * dt_s, -limit, limit))
+
+
 def low_passed_rate(a_prev: Vec3, v: Vec3, v_prev: Vec3, dt: float, *, tau_s: float, limit: float) -> Vec3:
     """The low-passed (``tau_s``) derivative of ``v``, its norm capped at ``limit``; one step of ``dt``."""
     k = dt / (tau_s + dt)

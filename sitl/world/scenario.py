@@ -106,6 +106,9 @@ class RunSpec(Section):
     camera_rate_hz: float = Field(30.0, gt=0.0, le=90.0)
     #: Windows [start_s, end_s) in which the camera does not see the leader at all (fault injection).
     leader_hidden_s: tuple[tuple[float, float], ...] = ()
+    #: Where the leader spawns off the follower's slot (north, east; the follower faces north), m: the
+    #: formation then starts with a join into the slot instead of in it.
+    leader_spawn_offset_m: tuple[float, float] = (0.0, 0.0)
 
     @model_validator(mode="after")
     def _fits(self) -> RunSpec:

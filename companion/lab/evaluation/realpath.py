@@ -43,6 +43,7 @@ from companion.lab.evaluation.procs import REPO, Broker, Child, SimRunError
 from companion.lab.evaluation.procs import SitlPorts as Ports
 from companion.lab.evaluation.runlog import attach_run_log
 from companion.lab.evaluation.scoring import RunScorer, snapshot_times
+from companion.lab.evaluation.setup import leader_spawn_ned_m
 from companion.lab.evaluation.simclock import SimClock
 from companion.lab.evaluation.sitl_components import RUN_ENV
 from companion.lab.evaluation.tomlw import toml_value
@@ -62,13 +63,18 @@ TRUTH_RATE_HZ = 50.0
 START_TIMEOUT_S = 90.0
 
 
-def sitl_environment(cfg: Config, ports: Ports, base_vehicles: list[dict[str, Any]]) -> dict[str, str]:
-    """``SITL_*`` overrides for this run: private ports, no GCS links, the leader in the follower's slot."""
-    x_right, _, z_forward = cfg.formation.offset_cam_m
-    vehicles = [
-        {**v, "spawn_ned_m": [z_forward, x_right, 0.0]} if v.get("role") == "leader" else v
-        for v in base_vehicles
-    ]
+def sitl_environment(
+    cfg: Config,
+    ports: Ports,
+    base_vehicles: list[dict[str, Any]],
+    offset_ne_m: tuple[float, float] = (0.0, 0.0),
+) -> dict[str, str]:
+    """``SITL_*`` overrides for this run: private ports, no GCS links, the leader spawned in its place.
+
+    That is the follower's slot moved by the scenario's ``leader_spawn_offset_m`` (setup.leader_spawn_ned_m).
+    """
+    spawn = list(leader_spawn_ned_m(cfg, offset_ne_m))
+    vehicles = [{**v, "spawn_ned_m": spawn} if v.get("role") == "leader" else v for v in base_vehicles]
     return {
         "SITL_MAVLINK__API_LOCAL_PORT_BASE": str(ports.api_local),
         "SITL_MAVLINK__API_REMOTE_PORT_BASE": str(ports.api_remote),
@@ -167,7 +173,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
         **os.environ,
         "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
         RUN_ENV: str(settings_path),
-        **sitl_environment(cfg, ports, base_vehicles),
+        **sitl_environment(cfg, ports, base_vehicles, scenario.run.leader_spawn_offset_m),
     }
     follower_port = ports.follower_api
     if options.autopilot == "px4":

@@ -86,20 +86,30 @@ def load_detect(cfg: Config, runtime: str) -> DetectStage:
     return detect_stage(cfg.detector, REPO)
 
 
-def sitl_config(cfg: Config, base: Path = SITL_CONFIG) -> Any:
+def leader_spawn_ned_m(
+    cfg: Config, offset_ne_m: tuple[float, float] = (0.0, 0.0)
+) -> tuple[float, float, float]:
+    """Where the leader spawns (NED, m): the follower's slot plus ``offset_ne_m`` (north, east).
+
+    The slot is ``formation.offset_cam_m`` in the level camera frame of a follower at the origin facing north.
+    """
+    x_right, _, z_forward = cfg.formation.offset_cam_m
+    return (z_forward + offset_ne_m[0], x_right + offset_ne_m[1], 0.0)
+
+
+def sitl_config(cfg: Config, base: Path = SITL_CONFIG, offset_ne_m: tuple[float, float] = (0.0, 0.0)) -> Any:
     """The simulator config for a run: ``base`` with the leader spawned in the follower's slot.
 
-    The follower spawns at the origin facing north; the leader starts where the formation wants it
-    (``formation.offset_cam_m`` in the level camera frame), so formation flight starts without a
-    transient, as the paper's runs do.
+    The follower spawns at the origin facing north; the leader starts where the formation wants it, so
+    formation flight starts without a transient, as the paper's runs do; ``offset_ne_m`` moves it off the
+    slot (a join).
     """
     from sitl.config import load_sitl_config  # noqa: PLC0415 (the simulator is only needed here)
 
     sitl = load_sitl_config(base)
-    x_right, _, z_forward = cfg.formation.offset_cam_m
+    spawn = leader_spawn_ned_m(cfg, offset_ne_m)
     vehicles = tuple(
-        v.model_copy(update={"spawn_ned_m": (z_forward, x_right, 0.0)}) if v.role == "leader" else v
-        for v in sitl.vehicles
+        v.model_copy(update={"spawn_ned_m": spawn}) if v.role == "leader" else v for v in sitl.vehicles
     )
     return sitl.model_copy(update={"vehicles": vehicles})
 
@@ -120,7 +130,7 @@ def run_lockstep(
     from sitl.world.scenario import load_scenario  # noqa: PLC0415
 
     scenario = load_scenario(path)
-    world = World(sitl_config(cfg), scenario, seed=seed)
+    world = World(sitl_config(cfg, offset_ne_m=scenario.run.leader_spawn_offset_m), scenario, seed=seed)
     camera = CameraModel(rate_hz=scenario.run.camera_rate_hz)
     visual = visual_from_mapping(scenario.visual, f"{path} [visual]")
     with Renderer(camera=camera, visual=visual, mount=cfg.camera.mount, seed=seed) as renderer:

@@ -21,6 +21,7 @@ from companion.kernel.stall import StallAwareAge
 from companion.mission.ego import EgoMotion
 from companion.mission.formation import FormationLaw
 from companion.mission.geometry import FollowerState
+from companion.mission.join import JoinPlanner
 from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
 from companion.mission.offboard import CommandBook, OffboardStream
 from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
@@ -85,6 +86,8 @@ class MissionContext:
         self.m = cfg.mission
         self.limits = SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2)
         self.law = law or FormationLaw(cfg.formation, self.limits, cfg.mission.hover_thrust_norm)
+        f = cfg.formation
+        self.join = JoinPlanner(f.join_speed_m_s, f.join_accel_m_s2, f.join_min_error_m)
         self.state = MissionState.WAIT_LINK
         self.entered_s = 0.0
         self.vision_mode: VisionMode | None = None
@@ -137,6 +140,11 @@ class MissionContext:
             self.last_attempt_s = -math.inf
             self.touchdown_since = None
             self.law.reset()
+            # A planned approach into the slot on every entry into FOLLOW (planned on its first tick).
+            if state == MissionState.FOLLOW:
+                self.join.arm()
+            else:
+                self.join.cancel()
 
     def t_in_state(self) -> float:
         return self.now_s - self.entered_s

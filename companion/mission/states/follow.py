@@ -62,6 +62,7 @@ class FollowPhase:
             coasting=est.status == TrackStatus.COASTING,
             slot_target=self.c.slot_target(inp),
             v_leader_ned_m_s=self._shared_leader_velocity(inp),
+            join=self.c.join.reference(self.c.law.slot, p_rel, veh.yaw_rad, self.c.now_s),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
 
