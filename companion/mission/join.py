@@ -19,6 +19,15 @@ import numpy as np
 from companion.kernel.frames import Vec3
 from companion.mission.geometry import Slot, SlotError, slot_error
 
+#: The plan's clock runs at full rate while the follower trails the reference by up to this much along the
+#: plan (m), and stops at this plus ``LAG_SPAN_M``: a leader that starts off during the join, or a slow
+#: vehicle, holds the reference back instead of leaving the gain to sprint after it and overshoot.
+LAG_FREE_M = 0.2
+LAG_SPAN_M = 0.3
+#: A gap between two references longer than this does not advance the plan (s): after a pause of the
+#: service the plan goes on from where it was.
+MAX_STEP_S = 0.5
+
 
 @dataclass(frozen=True, slots=True)
 class JoinReference:
@@ -81,7 +90,9 @@ class JoinPlanner:
         self.accel_m_s2 = accel_m_s2
         self.min_error_m = min_error_m
         self._pending = False
-        self._start_s = 0.0
+        #: The plan's own clock (s since the start, slowed while the follower trails) and the last call.
+        self._tau_s = 0.0
+        self._last_s = 0.0
         #: The error at the start along (range, down), m, and its length.
         self._e0 = (0.0, 0.0)
         self._distance_m = 0.0
@@ -109,13 +120,26 @@ class JoinPlanner:
             self._plan(slot_error(slot, p_ned_rel_m, np.zeros(3), yaw_rad), now_s)
         if not self.active:
             return None
-        t_s = now_s - self._start_s
-        if t_s >= self._duration_s:
+        d_range, d_down = self._e0[0] / self._distance_m, self._e0[1] / self._distance_m
+        err = slot_error(slot, p_ned_rel_m, np.zeros(3), yaw_rad)
+        covered_m = trapezoid(self._distance_m, self.speed_m_s, self.accel_m_s2, self._tau_s)[0]
+        # How far the follower trails the reference along the plan (m; negative: ahead of it).
+        lag_m = err.e_range_m * d_range + err.e_down_m * d_down - (self._distance_m - covered_m)
+        clock = min(1.0, max(0.0, 1.0 - (lag_m - LAG_FREE_M) / LAG_SPAN_M))
+        step_s = now_s - self._last_s
+        self._last_s = now_s
+        if 0.0 < step_s <= MAX_STEP_S:
+            self._tau_s += clock * step_s
+        if self._tau_s >= self._duration_s:
             self._distance_m = 0.0
             return None
-        covered_m, speed_m_s, accel_m_s2 = trapezoid(self._distance_m, self.speed_m_s, self.accel_m_s2, t_s)
+        covered_m, speed_m_s, accel_m_s2 = trapezoid(
+            self._distance_m, self.speed_m_s, self.accel_m_s2, self._tau_s
+        )
         left = 1.0 - covered_m / self._distance_m
-        d_range, d_down = self._e0[0] / self._distance_m, self._e0[1] / self._distance_m
+        # The reference moves at the plan's speed times its clock's rate.
+        speed_m_s *= clock
+        accel_m_s2 *= clock * clock
         return JoinReference(
             range_offset_m=self._e0[0] * left,
             range_rate_m_s=-d_range * speed_m_s,
@@ -129,7 +153,8 @@ class JoinPlanner:
         distance = math.hypot(err.e_range_m, err.e_down_m)
         if not math.isfinite(distance) or distance < self.min_error_m:
             return
-        self._start_s = now_s
+        self._tau_s = 0.0
+        self._last_s = now_s
         self._e0 = (err.e_range_m, err.e_down_m)
         self._distance_m = distance
         self._duration_s = trapezoid_duration_s(distance, self.speed_m_s, self.accel_m_s2)

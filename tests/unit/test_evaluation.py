@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from companion.lab.evaluation.log import FlightRecorder, load_log, save_log
-from companion.lab.evaluation.metrics import compute_metrics, formation_errors, monte_carlo_summary
+from companion.lab.evaluation.metrics import (
+    compute_metrics,
+    formation_errors,
+    join_figures,
+    monte_carlo_summary,
+)
 from companion.lab.evaluation.plots import Snapshot, desired_follower_ned, write_plots
 from companion.lab.evaluation.report import build_report, missing_keys, summary_markdown, write_report
 
@@ -157,3 +162,23 @@ def test_monte_carlo_summary() -> None:
     assert s["relative_position_rmse_m"]["p50"] == pytest.approx(50.5)
     assert s["relative_position_rmse_m"]["min"] == pytest.approx(1.0)
     assert s["relative_yaw_rmse_deg"] is None
+
+
+def test_the_join_is_timed_from_the_first_follow_tick_to_the_slot() -> None:
+    rec = FlightRecorder()
+    leader = (9.0, 0.0, -5.0)
+    for k in range(200):  # 10 s at 20 Hz: 1 s acquiring, 4 s closing 4 m, 0.2 m past the slot, back
+        t = k * 0.05
+        if t < 1.0:
+            north, state = 0.0, "ACQUIRE"
+        elif t < 5.0:
+            north, state = t - 1.0, "FOLLOW"
+        else:
+            north, state = 4.0 + 0.2 * math.sin(math.pi * min(t - 5.0, 1.0)), "FOLLOW"
+        rec.tick(t, (north, 0.0, -5.0), leader, 0.0, None, formation=False, gps_ok=True, state=state)
+    join_s, overshoot_m = join_figures(rec.freeze(), (0.0, 0.0, 5.0))
+    assert join_s == pytest.approx(3.75, abs=0.051)  # error 4 - (t - 1) under 0.3 m
+    assert overshoot_m == pytest.approx(0.2, abs=1e-3)  # 0.2 m closer to the leader than the slot
+    never = FlightRecorder()
+    never.tick(0.0, (0.0, 0.0, -5.0), leader, 0.0, None, formation=False, gps_ok=True, state="FOLLOW")
+    assert join_figures(never.freeze(), (0.0, 0.0, 5.0)) == (None, None)

@@ -69,6 +69,13 @@ def test_no_join_under_the_minimum_error_or_when_turned_off() -> None:
     assert near.planned == off.planned == 0
 
 
+def on_reference(ref: JoinReference | None) -> np.ndarray:
+    """The relative position of a follower exactly where the reference wants it (slot 5 m ahead, yaw 0)."""
+    if ref is None:
+        return np.array([5.0, 0.0, 0.0])
+    return np.array([5.0 + ref.range_offset_m, 0.0, ref.down_offset_m])
+
+
 def test_the_join_starts_at_the_error_and_ends_in_the_slot() -> None:
     planner = JoinPlanner(1.5, 1.0, min_error_m=0.5)
     planner.arm()
@@ -78,15 +85,36 @@ def test_the_join_starts_at_the_error_and_ends_in_the_slot() -> None:
     assert (start.range_offset_m, start.down_offset_m) == pytest.approx((4.0, -3.0))
     assert (start.range_rate_m_s, start.down_rate_m_s) == pytest.approx((0.0, 0.0))
     total = trapezoid_duration_s(5.0, 1.5, 1.0)
-    mid = planner.reference(SLOT, p, 0.0, 10.0 + total / 2)
-    assert mid is not None
+    ref, t = start, 10.0
+    while t < 10.0 + total / 2 - 1e-9:  # a follower that keeps to the plan: its clock runs at full rate
+        t += 0.05
+        ref = planner.reference(SLOT, on_reference(ref), 0.0, t)
+    assert ref is not None
     # Halfway, along the same line: range and height close together, at the full speed.
-    assert (mid.range_offset_m, mid.down_offset_m) == pytest.approx((2.0, -1.5))
-    assert np.hypot(mid.range_rate_m_s, mid.down_rate_m_s) == pytest.approx(1.5)
-    assert mid.range_rate_m_s < 0.0 < mid.down_rate_m_s
-    assert planner.reference(SLOT, p, 0.0, 10.0 + total) is None
+    assert (ref.range_offset_m, ref.down_offset_m) == pytest.approx((2.0, -1.5), abs=0.07)  # a tick
+    assert np.hypot(ref.range_rate_m_s, ref.down_rate_m_s) == pytest.approx(1.5)
+    assert ref.range_rate_m_s < 0.0 < ref.down_rate_m_s
+    while ref is not None:
+        t += 0.05
+        ref = planner.reference(SLOT, on_reference(ref), 0.0, t)
+    assert t - 10.0 == pytest.approx(total, abs=0.051)
     assert not planner.active
     assert planner.planned == 1
+
+
+def test_the_plan_waits_for_a_follower_that_trails_it() -> None:
+    planner = JoinPlanner(1.5, 1.0, min_error_m=0.5)
+    planner.arm()
+    stuck = np.array([9.0, 0.0, 0.0])
+    refs = [planner.reference(SLOT, stuck, 0.0, 0.05 * k) for k in range(200)]
+    last = refs[-1]
+    assert last is not None  # 10 s on: a 4 m join at 1.5 m/s is long over, but the follower never moved
+    # The reference stopped 0.2-0.5 m ahead of the follower along the plan, and stands still there.
+    assert 4.0 - 0.5 <= last.range_offset_m <= 4.0 - 0.2
+    assert last.range_rate_m_s == pytest.approx(0.0)
+    moving = planner.reference(SLOT, on_reference(last), 0.0, 10.05)
+    assert moving is not None
+    assert moving.range_rate_m_s < 0.0  # caught up: the plan goes on
 
 
 def test_a_cancelled_join_gives_no_reference() -> None:

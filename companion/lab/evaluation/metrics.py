@@ -106,9 +106,9 @@ class FlightMetrics:
     frames: int
     formation_s: float
     outcome: str
-    #: From the first FOLLOW tick into the slot (s), and the largest error over the settling after (m).
+    #: From the first FOLLOW tick into the slot (s), and how far past the slot's range it went then (m).
     join_s: float | None = None
-    join_settle_max_m: float | None = None
+    join_overshoot_m: float | None = None
 
 
 def _bearing_errors(rel_est: F64, rel_true: F64, yaw: F64) -> F64:
@@ -156,30 +156,34 @@ def formation_errors(log: FlightLog, offset_cam_m: Sequence[float]) -> F64:
 
 #: The join is done when the formation error first falls under this (m).
 JOIN_DONE_M = 0.3
-#: The join's settling is judged over this long after it is done (s).
+#: The join's overshoot is looked for over this long after it is done (s).
 JOIN_SETTLE_S = 5.0
 
 
 def join_figures(log: FlightLog, offset_cam_m: Sequence[float]) -> tuple[float | None, float | None]:
-    """How the follower got into its slot: the join's time (s) and the largest error as it settles (m).
+    """How the follower got into its slot: the join's time (s) and its overshoot (m).
 
-    The time runs from the first FOLLOW tick until the formation error first falls under ``JOIN_DONE_M``;
-    the settling is the ``JOIN_SETTLE_S`` after. None, None when it never followed or never got there.
+    The time runs from the first FOLLOW tick until the formation error first falls under ``JOIN_DONE_M``.
+    The overshoot is how far past the slot's range the follower went over the ``JOIN_SETTLE_S`` after (on
+    the other side of the slot from where it started; 0 when never past). None, None when it never
+    followed or never got there.
     """
     follow = np.flatnonzero(np.array([s == "FOLLOW" for s in log.state], dtype=bool))
     if follow.size == 0:
         return None, None
     i0 = int(follow[0])
     rel_true = log.p_ned_leader_m[i0:] - log.p_ned_follower_m[i0:]
-    h = to_heading_frame(rel_true, log.yaw_follower_rad[i0:])
-    err = np.linalg.norm(h - offset_cam_to_level_body(offset_cam_m), axis=1)
+    slot = offset_cam_to_level_body(offset_cam_m)
+    err = np.linalg.norm(to_heading_frame(rel_true, log.yaw_follower_rad[i0:]) - slot, axis=1)
+    e_range = np.hypot(rel_true[:, 0], rel_true[:, 1]) - math.hypot(slot[0], slot[1])
     t = log.t_s[i0:] - log.t_s[i0]
     done = np.flatnonzero(err < JOIN_DONE_M)
     if done.size == 0:
         return None, None
     k = int(done[0])
     settle = (t >= t[k]) & (t <= t[k] + JOIN_SETTLE_S)
-    return float(t[k]), float(err[settle].max())
+    past = -math.copysign(1.0, float(e_range[0])) * e_range[settle]
+    return float(t[k]), max(0.0, float(past.max()))
 
 
 def outcome_of(log: FlightLog) -> str:
@@ -202,7 +206,7 @@ def compute_metrics(log: FlightLog, offset_cam_m: Sequence[float]) -> FlightMetr
     n_frames = int(log.frame_t_s.size)
     dt = np.diff(log.t_s, append=log.t_s[-1] if log.t_s.size else 0.0)
     yaw_rms = rms(az_err)
-    join_s, join_settle_m = join_figures(log, offset_cam_m)
+    join_s, join_overshoot_m = join_figures(log, offset_cam_m)
     return FlightMetrics(
         relative_position_rmse_m=rms(pos_err),
         relative_yaw_rmse_deg=math.degrees(yaw_rms) if yaw_rms is not None else None,
@@ -216,7 +220,7 @@ def compute_metrics(log: FlightLog, offset_cam_m: Sequence[float]) -> FlightMetr
         formation_s=float(dt[log.formation].sum()) if log.t_s.size else 0.0,
         outcome=outcome_of(log),
         join_s=join_s,
-        join_settle_max_m=join_settle_m,
+        join_overshoot_m=join_overshoot_m,
     )
 
 

@@ -4,7 +4,7 @@ report.json keys (add freely, never rename): scenario, seed, sim_duration_s, wal
 relative_position_rmse_m, relative_yaw_rmse_deg, formation_rmse_m, formation_max_deviation_m,
 min_separation_m, detection_recall, false_positive_rate, perception_latency_ms {p50, p95, p99}, frames,
 gps_loss_s (sim time of the follower's GPS loss, null if none), transitions ([t_s, from, to, reason]),
-join_s and join_settle_max_m (how the follower got into its slot, metrics.join_figures).
+join_s and join_overshoot_m (how the follower got into its slot, metrics.join_figures).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def build_report(
         "transitions": [[round(t.t_s, 3), t.from_state, t.to_state, t.reason] for t in log.transitions],
         "formation_s": metrics.formation_s,
         "join_s": metrics.join_s,
-        "join_settle_max_m": metrics.join_settle_max_m,
+        "join_overshoot_m": metrics.join_overshoot_m,
     }
     if scenario in TARGETS:
         report["targets"] = dict(TARGETS[scenario])
@@ -137,7 +137,7 @@ def report_markdown(report: Mapping[str, Any]) -> str:
         lines += [
             "",
             f"Join: in the slot (error under 0.3 m) {report['join_s']:.1f} s after entering the formation; "
-            f"largest error over the next 5 s {_fmt(report.get('join_settle_max_m'), 3)} m.",
+            f"overshoot past the slot's range {_fmt(report.get('join_overshoot_m'), 3)} m.",
         ]
     if report.get("crash_reason"):
         lines += ["", f"Crash: {report['crash_reason']}."]
