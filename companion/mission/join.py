@@ -97,7 +97,7 @@ class JoinPlanner:
         self._e0 = (0.0, 0.0)
         self._distance_m = 0.0
         self._duration_s = 0.0
-        #: Joins planned since start (a figure for the status and the tests).
+        #: Joins planned since the service started.
         self.planned = 0
 
     @property

@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import io
 import math
+import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from companion.config import Config
 from companion.kernel.errors import ConfigError
 from companion.lab.evaluation import campaign
 from companion.lab.evaluation.campaign import (
@@ -21,8 +23,10 @@ from companion.lab.evaluation.campaign import (
     parse_seeds,
 )
 from companion.lab.evaluation.campaign_summary import monte_carlo_markdown
+from companion.lab.evaluation.procs import SitlPorts
 from companion.lab.evaluation.progress import ProgressLine
-from companion.lab.evaluation.setup import all_scenarios, scenario_path
+from companion.lab.evaluation.realpath import sitl_environment
+from companion.lab.evaluation.setup import all_scenarios, leader_spawn_ned_m, scenario_path, sitl_config
 from companion.mission.ego import EgoMotion
 
 
@@ -48,6 +52,23 @@ def test_all_scenarios_paper_first_and_at_least_eight() -> None:
     assert names[:4] == ["straight", "circle", "gps-loss", "visibility"]
     assert {"figure8", "leader-occluded", "link-loss", "wind"} <= set(names)
     assert scenario_path("gps-loss-land").exists()  # variants resolve too
+
+
+def test_the_join_scenarios_spawn_the_leader_off_the_slot_on_both_harnesses() -> None:
+    cfg = Config()
+    offset = effective_scenario(scenario_path("join"), None).run.leader_spawn_offset_m
+    assert offset == (4.0, 2.5)
+    assert effective_scenario(scenario_path("straight"), None).run.leader_spawn_offset_m == (0.0, 0.0)
+    assert leader_spawn_ned_m(cfg) == (5.0, 0.0, 0.0)  # the slot, 5 m ahead of a follower facing north
+    want = (9.0, 2.5, 0.0)
+    assert leader_spawn_ned_m(cfg, offset) == want
+    lockstep = {v.role: v.spawn_ned_m for v in sitl_config(cfg, offset_ne_m=offset).vehicles}
+    assert lockstep["leader"] == want
+    assert lockstep["follower"] == (0.0, 0.0, 0.0)
+    base = [v.model_dump(mode="json") for v in sitl_config(cfg).vehicles]
+    env = sitl_environment(cfg, SitlPorts(20000), base, offset)
+    real = {v["role"]: tuple(v["spawn_ned_m"]) for v in tomllib.loads("v = " + env["SITL_VEHICLES"])["v"]}
+    assert real == lockstep
 
 
 def test_duration_reshapes_the_formation_window() -> None:
