@@ -15,8 +15,9 @@ from collections.abc import Callable, Sequence
 
 from companion import __version__
 from companion.commands import autolabel, bench, config_cmd, detector, replay, run, sim, status
+from companion.kernel import compat
 from companion.kernel.cli import describe_commands
-from companion.kernel.errors import CompanionError
+from companion.kernel.errors import CompanionError, first_companion_error
 
 log = logging.getLogger("companion")
 
@@ -68,6 +69,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 0
     except CompanionError as exc:
-        for line in str(exc).splitlines() or [type(exc).__name__]:
-            print(f"companion: {line}", file=sys.stderr)
-        return exc.exit_code
+        return _report(exc)
+    except compat.BaseExceptionGroup as group:
+        # A task group (a simulated flight's service, say) that failed on one of our own errors: its one
+        # line, not the group's traceback.
+        ours = first_companion_error(group)
+        if ours is None:
+            raise
+        return _report(ours)
+
+
+def _report(exc: CompanionError) -> int:
+    for line in str(exc).splitlines() or [type(exc).__name__]:
+        print(f"companion: {line}", file=sys.stderr)
+    return exc.exit_code

@@ -9,8 +9,11 @@ from pathlib import Path
 
 import pytest
 
+from companion import cli
 from companion.cli import build_parser as build_companion_parser
 from companion.cli import main as companion_main
+from companion.kernel.compat import ExceptionGroup
+from companion.kernel.errors import ModelError
 from sitl.cli import build_parser as build_sitl_parser
 from sitl.cli import main as sitl_main
 
@@ -206,3 +209,26 @@ def test_check_config_lists_every_problem_in_one_pass(tmp_path: Path, repo_root:
         "-m", "companion", "check-config", str(p), cwd=repo_root, env={"WINGMAN_LINK__URL": "udpin://h:1"}
     )
     assert "link.url" not in r.stderr  # the variable's value replaced the file's
+
+
+def test_an_error_of_ours_inside_a_task_group_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A flight's task group that failed on a missing model says so in one line, not a group traceback."""
+
+    def fails(_: argparse.Namespace) -> int:
+        raise ExceptionGroup("unhandled errors in a TaskGroup", [ModelError("model file not found: /x.pt")])
+
+    def unrelated(_: argparse.Namespace) -> int:
+        raise ExceptionGroup("unhandled errors in a TaskGroup", [ValueError("a bug")])
+
+    for handler in (fails, unrelated):
+        parser = argparse.ArgumentParser()
+        parser.set_defaults(handler=handler)
+        monkeypatch.setattr(cli, "build_parser", lambda p=parser: p)
+        if handler is fails:
+            assert cli.main([]) == ModelError("").exit_code
+            assert capsys.readouterr().err.strip().splitlines() == ["companion: model file not found: /x.pt"]
+        else:
+            with pytest.raises(ExceptionGroup):  # not ours: the traceback stays
+                cli.main([])

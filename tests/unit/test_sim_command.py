@@ -26,7 +26,13 @@ from companion.lab.evaluation.campaign_summary import monte_carlo_markdown
 from companion.lab.evaluation.procs import SitlPorts
 from companion.lab.evaluation.progress import ProgressLine
 from companion.lab.evaluation.realpath import sitl_environment
-from companion.lab.evaluation.setup import all_scenarios, leader_spawn_ned_m, scenario_path, sitl_config
+from companion.lab.evaluation.setup import (
+    all_scenarios,
+    leader_spawn_ned_m,
+    scenario_path,
+    service_config,
+    sitl_config,
+)
 from companion.mission.ego import EgoMotion
 
 
@@ -212,3 +218,14 @@ def test_a_runs_folder_keeps_its_seed_and_flies_it_again(
     assert [s.seed for s in flown] == [2]  # no --seed: the file's
     assert main([*argv, "--seed", "5"]) == 0
     assert [s.seed for s in flown] == [2, 5]
+
+
+def test_a_run_finds_the_shipped_weights_from_any_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    cfg = service_config({})
+    model = Path(cfg.detector.model_path)
+    assert model.is_absolute()
+    assert model == (Path(__file__).resolve().parents[2] / "models" / "leader_detector.pt")
+    assert cfg.formation.plan == ""  # nothing named, nothing resolved

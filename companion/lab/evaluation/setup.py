@@ -13,6 +13,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from companion.config import Config
+from companion.config.paths import resolve_path
 from companion.kernel.config import deep_merge, format_validation_error, read_toml
 from companion.kernel.errors import ConfigError
 from companion.kernel.shipped import project_root
@@ -60,10 +61,19 @@ def scenario_path(name: str, scenario_dir: Path = SCENARIO_DIR) -> Path:
 def service_config(
     scenario_overrides: Mapping[str, Any], extra: Mapping[str, Any] | None = None, base: Path = DEFAULT_CONFIG
 ) -> Config:
-    """The service config for a run: ``base`` + the scenario's ``[companion]`` table + ``extra``."""
+    """The service config for a run: ``base`` + the scenario's ``[companion]`` table + ``extra``.
+
+    The files it reads (the detector's weights, a formation plan) are resolved as the service resolves
+    them (companion/config/paths.py, against ``base``'s folder), so a run finds them from any folder.
+    """
     data = deep_merge(read_toml(base), scenario_overrides)
     if extra:
         data = deep_merge(data, extra)
+    for section, key in (("detector", "model_path"), ("formation", "plan")):
+        table = data.setdefault(section, {})
+        given = table.get(key, getattr(getattr(Config(), section), key))
+        if isinstance(given, str) and given:
+            table[key] = str(resolve_path(given, base.parent, f"{base.parent}").path)
     try:
         return Config.model_validate(data)
     except ValidationError as exc:
