@@ -69,9 +69,10 @@ def service_config(
     data = deep_merge(read_toml(base), scenario_overrides)
     if extra:
         data = deep_merge(data, extra)
+    defaults = Config()
     for section, key in (("detector", "model_path"), ("formation", "plan")):
         table = data.setdefault(section, {})
-        given = table.get(key, getattr(getattr(Config(), section), key))
+        given = table.get(key, getattr(getattr(defaults, section), key))
         if isinstance(given, str) and given:
             table[key] = str(resolve_path(given, base.parent, f"{base.parent}").path)
     try:
