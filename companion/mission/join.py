@@ -115,13 +115,15 @@ class JoinPlanner:
 
     def reference(self, slot: Slot, p_ned_rel_m: Vec3, yaw_rad: float, now_s: float) -> JoinReference | None:
         """The join's reference now (None: no join, or it is over and the slot itself is flown)."""
+        if not (self._pending or self.active):
+            return None
+        err = slot_error(slot, p_ned_rel_m, np.zeros(3), yaw_rad)
         if self._pending:
             self._pending = False
-            self._plan(slot_error(slot, p_ned_rel_m, np.zeros(3), yaw_rad), now_s)
-        if not self.active:
-            return None
+            self._plan(err, now_s)
+            if not self.active:
+                return None
         d_range, d_down = self._e0[0] / self._distance_m, self._e0[1] / self._distance_m
-        err = slot_error(slot, p_ned_rel_m, np.zeros(3), yaw_rad)
         covered_m = trapezoid(self._distance_m, self.speed_m_s, self.accel_m_s2, self._tau_s)[0]
         # How far the follower trails the reference along the plan (m; negative: ahead of it).
         lag_m = err.e_range_m * d_range + err.e_down_m * d_down - (self._distance_m - covered_m)
