@@ -32,6 +32,7 @@ if sys.version_info < (3, 11):  # noqa: UP036 (the service side also runs on 3.1
         "unit/test_dataset_profiles.py",
         "unit/test_procs.py",
         "unit/test_sim_command.py",
+        "unit/test_tilt_probe.py",
         "service/test_safety_sitl.py",
         "service/test_service_sitl.py",
         "service/test_simulator_page.py",
