@@ -63,11 +63,11 @@ def silhouette_tilt(
     u = u_px - u_px.mean()
     v = v_px - v_px.mean()
     axis_rad = 0.5 * math.atan2(2.0 * float(np.mean(u * v)), float(np.mean(u * u) - np.mean(v * v)))
-    below_m = v * float(np.median(d[mask])) / fy_px
+    z = d[mask]
+    below_m = v * float(np.median(z)) / fy_px
     spread = float(np.mean(below_m * below_m))
     if spread <= 0.0:
         return None
-    z = d[mask]
     slope = float(np.mean(below_m * (z - z.mean()))) / spread
     return math.degrees(axis_rad), math.degrees(math.atan(slope))
 
