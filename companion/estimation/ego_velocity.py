@@ -168,10 +168,14 @@ class EgoVelocityObserver:
         return self._model
 
     # -- after the loss ------------------------------------------------------------------------------
-    def step(self, t_s: float, R_ned_body: Mat3, v_start_ned_m_s: Velocity) -> Vec3 | None:
+    def step(
+        self, t_s: float, R_ned_body: Mat3, v_start_ned_m_s: Velocity, vd_m_s: float | None = None
+    ) -> Vec3 | None:
         """The follower's velocity at ``t_s`` without GPS, GPS's frame (NED m/s); None without a model.
 
         ``v_start_ned_m_s``: the last GPS-aided velocity, where the first step after the loss starts from.
+        ``vd_m_s``: the autopilot's vertical velocity, which the barometer keeps aided without GPS (its
+        height stays valid); None or not finite holds the last GPS-aided one.
         """
         m = self.model()
         if m is None:
@@ -188,6 +192,8 @@ class EgoVelocityObserver:
         accel = tilt - m.drag_per_s * v + np.asarray(m.push_ne_m_s2)
         v = v + accel * dt
         self._coast = (t_s, v)
+        if vd_m_s is not None and math.isfinite(vd_m_s):
+            self._vd_m_s = vd_m_s
         return np.array([v[0], v[1], self._vd_m_s])
 
 

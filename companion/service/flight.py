@@ -212,8 +212,9 @@ class FlightService:
 
         The velocity is the tracker's ego-motion: PX4's only while its estimate is GPS-aided; after a GPS
         loss PX4's dead-reckoned velocity runs off by metres per second within seconds. Then the
-        :class:`EgoVelocityObserver`'s, from the drag model it learnt meanwhile and the attitude; without a
-        model, none (the track predicts on its own relative velocity).
+        :class:`EgoVelocityObserver`'s, from the drag model it learnt meanwhile and the attitude, with PX4's
+        vertical velocity (the barometer keeps the height aided); without a model, none (the track
+        predicts on its own relative velocity).
         """
         v = self.raw_link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
@@ -236,7 +237,11 @@ class FlightService:
                 if not self._ego_said:
                     self._ego_said = True
                     _say_ego_model(ego)
-                v_own = ego.step(stamp_s, R, self._v_aided)
+                vd_m_s = float(v.v_ned_m_s[2])
+                v_own = ego.step(stamp_s, R, self._v_aided, vd_m_s)
+                if v_own is None and math.isfinite(vd_m_s):
+                    # No drag model: no horizontal ego-motion (held), the vertical still PX4's.
+                    v_own = np.array([self._v_aided[0], self._v_aided[1], vd_m_s], dtype=np.float64)
                 if v_own is not None:
                     self.pipeline.velocity.push(stamp_s, v_own)
 

@@ -76,6 +76,23 @@ def test_without_gps_the_model_holds_the_velocity() -> None:
     assert max(errors) < 0.3  # where dead-reckoning on the accelerometers ran off by 1-2 m/s
 
 
+def test_without_gps_the_vertical_is_the_autopilots_barometric_one() -> None:
+    # Height stays aided by the barometer after a GPS loss: its vertical velocity is passed through; one
+    # missing or not finite holds the last known.
+    obs = EgoVelocityObserver()
+    _fly(obs, drag=0.9, wind=(1.0, -0.5), err=0.0, seconds=60.0, gps=True)
+    R = np.eye(3)
+    out = obs.step(60.0, R, np.zeros(3), 0.4)
+    assert out is not None
+    assert out[2] == pytest.approx(0.4)
+    held = obs.step(60.05, R, np.zeros(3), math.nan)
+    assert held is not None
+    assert held[2] == pytest.approx(0.4)
+    none = obs.step(60.1, R, np.zeros(3))
+    assert none is not None
+    assert none[2] == pytest.approx(0.4)
+
+
 def test_no_model_from_a_hover_and_none_offered() -> None:
     obs = EgoVelocityObserver()
     R = np.eye(3)
