@@ -49,6 +49,9 @@ class FormationConfig(Section):
     #: 0.2 with ff 0.7 (was 0.3 / 0.6) and the lead dropped while coasting: straight lockstep seeds 1-8
     #: mean max deviation 0.338 -> 0.295 m (lockstep).
     leader_accel_tau_s: float = Field(0.2, gt=0.0, le=5.0)
+    #: The horizontal lead fades below about this acceleration, m/s^2 (scaled by |a|^2 / (|a|^2 + fade^2)):
+    #: the estimate's noise while the leader hovers otherwise swings the follower. 0: the full lead always.
+    leader_accel_fade_m_s2: float = Field(0.0, ge=0.0, le=5.0)
     #: Keep the acceleration lead while the track coasts (no detection). False drops it then: a coasting
     #: estimate's velocity is extrapolated, and the faster lead amplified it (circle seed 3 with tau 0.2 and
     #: the lead kept: 1.34 m, the follower past the leader at 1.51 m).

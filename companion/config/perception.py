@@ -147,6 +147,10 @@ class TrackerConfig(Section):
     """Constant-velocity Kalman tracker of the leader's position relative to the follower."""
 
     process_accel_std_m_s2: float = Field(2.0, gt=0)
+    #: The same in height (down), m/s^2; None takes ``process_accel_std_m_s2``. Smaller steadies the
+    #: follower's height (0.7: vertical speed in formation 0.09 -> 0.03 m/s RMS, no height swing after a
+    #: bad depth) but lags a climbing leader; docs/flight.md has what it did to the starts.
+    process_accel_std_z_m_s2: float | None = Field(None, gt=0)
     gate_chi2: float = Field(16.27, gt=0)  # chi-square 3 dof, p = 0.001
     confirm_hits: int = Field(3, ge=1)
     confirm_window: int = Field(5, ge=1)

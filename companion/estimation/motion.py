@@ -94,6 +94,11 @@ def process_noise(cfg: TrackerConfig, dt: float, p_ned_m: Vec3, n: int, *, size_
     line of sight ``p_ned_m`` is scaled by ``(size_range_accel_std_m_s2 / process_accel_std_m_s2)^2``:
     range then comes from ~10 % per-frame measurements and only a smoother radial motion model averages
     enough of them; across the line of sight the bearing stays precise.
+
+    Constant velocity only: with ``process_accel_std_z_m_s2`` set, the height's noise is scaled by
+    ``(process_accel_std_z_m_s2 / process_accel_std_m_s2)^2``. The follower's own climbs are taken out
+    as ego-motion, so the relative height moves only when the leader's does; a noisy vertical rate fed
+    forward otherwise pumps the follower's height.
     """
     if n == 6:
         T = (cfg.process_accel_std_m_s2**2 * dt * dt) * np.array([[dt * dt / 4.0, dt / 2.0], [dt / 2.0, 1.0]])
@@ -108,10 +113,14 @@ def process_noise(cfg: TrackerConfig, dt: float, p_ned_m: Vec3, n: int, *, size_
         )
     r2 = p_ned_m @ p_ned_m
     if not size_ranged or r2 <= 0.0:
-        Q: Mat6 = np.kron(T, _EYE3).astype(np.float64)
-        return Q
-    # Spatial shape I - (1 - k) u u^T with k = (q_los / q)^2: the radial variance scaled down.
-    k = (cfg.size_range_accel_std_m_s2 / cfg.process_accel_std_m_s2) ** 2
-    shape = _EYE3 - ((1.0 - k) / r2) * np.outer(p_ned_m, p_ned_m)
-    Qs: Mat6 = np.kron(T, shape).astype(np.float64)
-    return Qs
+        shape = _EYE3
+    else:
+        # Spatial shape I - (1 - k) u u^T with k = (q_los / q)^2: the radial variance scaled down.
+        k = (cfg.size_range_accel_std_m_s2 / cfg.process_accel_std_m_s2) ** 2
+        shape = _EYE3 - ((1.0 - k) / r2) * np.outer(p_ned_m, p_ned_m)
+    if n == 6 and cfg.process_accel_std_z_m_s2 is not None:
+        # Height scaled apart (D shape D keeps it positive semi-definite).
+        d = np.array([1.0, 1.0, cfg.process_accel_std_z_m_s2 / cfg.process_accel_std_m_s2])
+        shape = shape * np.outer(d, d)
+    Q: Mat6 = np.kron(T, shape).astype(np.float64)
+    return Q

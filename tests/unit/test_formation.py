@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from companion.config import FormationConfig, SafetyConfig
 from companion.kernel.frames import heading_to_ned, ned_to_heading
 from companion.mission.formation import FormationLaw
-from companion.mission.geometry import FollowerState, Slot, slot_error, tilt_from_accel
+from companion.mission.geometry import FollowerState, Slot, faded, slot_error, tilt_from_accel
 from companion.mission.safety import (
     G_M_S2,
     SafetyLimits,
@@ -131,6 +131,21 @@ def test_velocity_law_takes_the_trackers_leader_acceleration_bounded() -> None:
         a_leader_ned_m_s2=(0.0, 9.0, 0.0),
     )
     assert lw.leader_accel_ned_m_s2 == pytest.approx((0.0, 3.0, 0.0))
+
+
+def test_the_lead_fades_on_small_accelerations_and_keeps_large_ones() -> None:
+    """``leader_accel_fade_m_s2``: a hover's noise (0.3 m/s^2) loses most of its lead, a start's 1.2 little."""
+    assert faded(np.array([0.3, 0.0]), 0.5) == pytest.approx([0.3 * 0.09 / 0.34, 0.0])
+    assert faded(np.array([0.0, 1.2]), 0.5) == pytest.approx([0.0, 1.2 * 1.44 / 1.69])
+    assert faded(np.array([0.3, -0.4]), 0.0) == pytest.approx([0.3, -0.4])
+
+    def lead(fade: float, a: float) -> float:
+        lw = law(leader_accel_ff_s=1.0, leader_accel_fade_m_s2=fade, kp_xy=0.0, kd_xy=0.0, ki_xy=0.0)
+        cmd = lw.velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(), 0.0, a_leader_ned_m_s2=(a, 0, 0))
+        return float(cmd.v_ned_m_s[0])
+
+    assert lead(0.5, 0.3) == pytest.approx(0.3 * 0.09 / 0.34)
+    assert lead(0.0, 0.3) == pytest.approx(0.3)
 
 
 def test_the_range_gain_can_be_given_per_command() -> None:

@@ -251,6 +251,28 @@ def test_size_ranged_track_has_a_smoother_radial_model_and_takes_depth_back() ->
     assert back.measurement.range_source == "depth"
 
 
+def test_height_has_its_own_process_noise() -> None:
+    # A leader holding its height: with a smaller process noise in height (process_accel_std_z_m_s2) the
+    # estimated vertical rate is steadier, and the horizontal estimate is the same as without it.
+    def run(cfg: TrackerConfig) -> tuple[float, float]:
+        rng = np.random.default_rng(3)
+        tracker = TargetTracker(cfg, CAM)
+        v_down, v_east = [], []
+        for k in range(450):
+            noise = rng.normal(0.0, 0.02, 3)
+            st_ = tracker.step(k * DT, [meas(np.array([0.0, 0.0, 5.0]) + noise, k * DT)], LEVEL)
+            if k >= 60 and st_.estimate is not None:
+                v_down.append(float(st_.estimate.v_ned_rel_m_s[2]))
+                v_east.append(float(st_.estimate.v_ned_rel_m_s[1]))
+        return float(np.std(v_down)), float(np.std(v_east))
+
+    cfg = TrackerConfig()
+    down_same, east_same = run(cfg)
+    down_z, east_z = run(cfg.model_copy(update={"process_accel_std_z_m_s2": 0.7}))
+    assert down_z < 0.7 * down_same
+    assert east_z == pytest.approx(east_same, rel=1e-9)
+
+
 def _accelerating_leader(t_s: float) -> np.ndarray:
     """6 m ahead, speeding up north at 1.2 m/s^2 from rest (the leader-start ramp)."""
     return np.array([6.0 + 0.6 * t_s * t_s, 0.5, 0.0])
