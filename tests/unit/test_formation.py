@@ -134,7 +134,7 @@ def test_velocity_law_takes_the_trackers_leader_acceleration_bounded() -> None:
 
 
 def test_the_lead_fades_on_small_accelerations_and_keeps_large_ones() -> None:
-    """``leader_accel_fade_m_s2``: a hover's noise (0.3 m/s^2) loses most of its lead, a start's 1.2 little."""
+    """``leader_accel_fade_m_s2``: 0.3 m/s^2 of hover noise loses most of its lead, a 1.2 start little."""
     assert faded(np.array([0.3, 0.0]), 0.5) == pytest.approx([0.3 * 0.09 / 0.34, 0.0])
     assert faded(np.array([0.0, 1.2]), 0.5) == pytest.approx([0.0, 1.2 * 1.44 / 1.69])
     assert faded(np.array([0.3, -0.4]), 0.0) == pytest.approx([0.3, -0.4])
