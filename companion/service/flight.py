@@ -213,8 +213,8 @@ class FlightService:
         The velocity is the tracker's ego-motion: PX4's only while its estimate is GPS-aided; after a GPS
         loss PX4's dead-reckoned velocity runs off by metres per second within seconds. Then the
         :class:`EgoVelocityObserver`'s, from the drag model it learnt meanwhile and the attitude, with PX4's
-        vertical velocity (the barometer keeps the height aided); without a model, none (the track
-        predicts on its own relative velocity).
+        vertical velocity (the barometer keeps the height aided); without a model, PX4's vertical velocity
+        alone (the horizontal held: the track predicts on its own relative velocity there).
         """
         v = self.raw_link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
@@ -407,7 +407,9 @@ def _say_ego_model(ego: EgoVelocityObserver) -> None:
     """One line at a GPS loss: what the follower's velocity will come from now."""
     m = ego.model()
     if m is None:
-        log.warning("ego velocity: no drag model learnt before the GPS loss; the track predicts alone")
+        log.warning(
+            "ego velocity: no drag model learnt before the GPS loss; the track predicts alone horizontally"
+        )
         return
     log.info(
         "ego velocity without GPS: drag %.2f 1/s, wind push (%.2f, %.2f) m/s^2, heading error %.1f deg "
