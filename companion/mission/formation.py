@@ -454,15 +454,17 @@ class FormationLaw:
         p_ned_rel_m: Vec3,
         follower: FollowerState,
         obstacle_ned_m: Vec3 | None = None,
+        v_station_ned_m_s: Vec3T = (0.0, 0.0, 0.0),
     ) -> VelocityBodySetpoint:
         """Coast with the leader unseen (GPS healthy): its last velocity, level, no closing on its guess.
 
         The camera is kept on the leader's dead-reckoned bearing. The dead-reckoned leader flies straight
         on while a real one may turn: closing on it brought a follower from 4.4 m to 1.7 m of a circling
         leader in 1.5 s (network circle runs). The separation barrier still applies against the
-        dead-reckoned position.
+        dead-reckoned position. ``v_station_ned_m_s``: added to hold a station (NED, m/s; horizontal).
         """
         if not all_finite(
+            v_station_ned_m_s,
             v_leader_ned_m_s,
             p_ned_rel_m,
             follower.yaw_rad,
@@ -476,7 +478,9 @@ class FormationLaw:
         lim = self.limits
         p = np.asarray(p_ned_rel_m, dtype=np.float64)
         v_leader = np.asarray(v_leader_ned_m_s, dtype=np.float64)
-        level = clamp_speed(np.array([v_leader[0], v_leader[1], 0.0]), lim)
+        level = clamp_speed(
+            np.array([v_leader[0] + v_station_ned_m_s[0], v_leader[1] + v_station_ned_m_s[1], 0.0]), lim
+        )
         v = bounded_velocity(level, p, v_leader, follower, lim, self.neighbours, obstacle_ned_m)
         v_rel = v_leader - (np.zeros(3) if follower.v_ned_m_s is None else np.asarray(follower.v_ned_m_s))
         yaw_rate = self._yaw_rate(slot_error(self.slot, p, v_rel, follower.yaw_rad), follower.yaw_rad)

@@ -514,6 +514,7 @@ def test_reacquire_waits_for_a_steady_track() -> None:
     assert h.state == S.REACQUIRE
     h.run(0.5)
     h.leader_status = TrackStatus.CONFIRMED
+    h.leader_p = (5.0, 3.0, 0.0)  # 3 m from where the leader was lost
     h.leader_track_age_s, h.leader_hit_ratio = 0.4, 1.0  # just confirmed: too young
     h.run(0.5)
     assert h.state == S.REACQUIRE
@@ -524,6 +525,51 @@ def test_reacquire_waits_for_a_steady_track() -> None:
     h.step()
     assert h.state == S.FOLLOW
     assert h.last_transition().reason == R.LEADER_REACQUIRED
+
+
+def test_a_young_track_where_the_leader_was_lost_is_the_leader_while_coasting() -> None:
+    """A confirmed track where the lost leader dead-reckons to is taken at once during the coast (a
+    hovering leader found after a short miss would otherwise start off while the track ages), not during
+    the scan, and not 3 m away."""
+    cfg = cfg_with(reacquire_min_track_s=0.8, reacquire_coast_s=2.0, reacquire_scan_s=10.0)
+    for found_after_s, found_p, taken in (
+        (0.5, (5.3, 0.2, 0.0), True),
+        (0.5, (5.0, 3.0, 0.0), False),
+        (2.5, (5.3, 0.2, 0.0), False),
+    ):
+        h = Harness(cfg=cfg)
+        h.to_follow()
+        h.leader_status = TrackStatus.LOST
+        h.step()
+        h.run(found_after_s)
+        assert h.state == S.REACQUIRE
+        h.leader_status, h.leader_p = TrackStatus.CONFIRMED, found_p
+        h.leader_track_age_s = 0.3
+        h.run(0.2)
+        assert (h.state == S.FOLLOW) == taken, (found_after_s, found_p)
+
+
+def test_coasting_on_a_leader_lost_hovering_holds_station() -> None:
+    """A leader lost at 0.2 m/s (hovering: its velocity is noise) is not followed at that velocity: the
+    follower holds where it lost it, flying back (at most 0.5 m/s) when pushed off. A leader lost at
+    2 m/s is coasted on at its velocity, wherever the follower is."""
+    for v_leader, drift_m, expect_n, expect_e in (
+        ((0.2, 0.1, 0.0), (-0.3, 0.1, 0.0), 0.3, -0.1),
+        ((0.2, 0.1, 0.0), (-2.0, 0.0, 0.0), 0.5, 0.0),
+        ((2.0, 0.0, 0.0), (-0.3, 0.1, 0.0), 2.0, 0.0),
+    ):
+        h = Harness(cfg=cfg_with(reacquire_coast_s=2.0))
+        h.to_follow()
+        h.leader_v = v_leader
+        h.run(0.2)
+        h.leader_status = TrackStatus.LOST
+        h.step()
+        assert h.state == S.REACQUIRE
+        p0 = h.ap.p_ned_m
+        h.ap.p_ned_m = (p0[0] + drift_m[0], p0[1] + drift_m[1], p0[2])
+        out = h.step()
+        assert isinstance(out.setpoint, VelocityBodySetpoint)
+        assert out.setpoint.v_body_m_s[:2] == pytest.approx((expect_n, expect_e), abs=1e-6), v_leader
 
 
 def test_reacquire_looks_at_a_candidate_but_does_not_fly_to_it() -> None:

@@ -76,6 +76,9 @@ OBSTACLE_STALE_S = 0.5
 #: Control ticks missed in a row that make a stall of the service itself (ages then restart, see
 #: companion.kernel.stall).
 STALL_TICKS = 4
+#: A leader lost at a slower horizontal speed than this is taken as hovering (m/s): a hovering leader's
+#: estimated velocity is 0.1-0.2 m/s of noise, a flying one's the 2-3 m/s it flies.
+HOVERING_LEADER_M_S = 0.5
 
 
 class MissionContext:
@@ -111,6 +114,8 @@ class MissionContext:
         self.ego = EgoMotion()
         self.leader_lost_p_ned_m: Vec3 | None = None
         self.leader_lost_v_ned_m_s: Vec3 | None = None
+        #: Where the follower was when it lost a hovering leader: REACQUIRE's coast holds it (local NED, m).
+        self.hold_p_ned_m: Vec3 | None = None
         self.scan_sign = 1.0
         self.alt_hold_m = math.nan
         self.ext_valid_since: float | None = None
@@ -280,13 +285,23 @@ class MissionContext:
         if last is not None:
             p_rel, v_rel = np.array(last.p_ned_rel_m), np.array(last.v_ned_rel_m_s)
             age = max(0.0, self.now_s - last.stamp_s)
-            self.leader_lost_p_ned_m = np.array(veh.p_ned_m) + p_rel + (np.array(veh.v_ned_m_s) + v_rel) * age
-            self.leader_lost_v_ned_m_s = np.array(veh.v_ned_m_s) + v_rel
+            v_leader = np.array(veh.v_ned_m_s) + v_rel
+            if math.hypot(v_leader[0], v_leader[1]) < HOVERING_LEADER_M_S:
+                # Its estimated velocity is noise: coasting on it flew the follower away from its slot.
+                v_leader = np.zeros(3)
+                self.hold_p_ned_m = np.array(veh.p_ned_m)
+            else:
+                self.hold_p_ned_m = None
+            # p_rel is from the estimate's stamp: the leader moved by its velocity since, we by ours.
+            p_rel_now = p_rel + (v_leader - np.array(veh.v_ned_m_s)) * age
+            self.leader_lost_p_ned_m = np.array(veh.p_ned_m) + p_rel_now
+            self.leader_lost_v_ned_m_s = v_leader
             bearing = math.atan2(p_rel[1], p_rel[0])
             self.scan_sign = 1.0 if wrap_pi(bearing - veh.yaw_rad) >= 0.0 else -1.0
         else:
             self.leader_lost_p_ned_m = None
             self.leader_lost_v_ned_m_s = None
+            self.hold_p_ned_m = None
             self.scan_sign = 1.0
         self.alt_hold_m = veh.alt_rel_m
         self.go(MissionState.REACQUIRE, Reason.LEADER_LOST, detail)

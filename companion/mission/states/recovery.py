@@ -1,8 +1,9 @@
 """REACQUIRE and HOVER: the leader lost or its estimate stale, in the air.
 
-REACQUIRE coasts on the leader's last velocity (GPS healthy), then scans in yaw toward where it was last
-seen, and takes the leader again only on a steady track; HOVER holds on the vehicle's own telemetry while
-perception stalls. Both abort after their timeouts (``reacquire_coast_s + reacquire_scan_s``,
+REACQUIRE coasts on the leader's last velocity (GPS healthy; a leader lost hovering: the follower holds
+where it was), then scans in yaw toward where it was last seen, and takes the leader again on a steady
+track, or sooner on a confirmed one where the leader was lost; HOVER holds on the vehicle's own telemetry
+while perception stalls. Both abort after their timeouts (``reacquire_coast_s + reacquire_scan_s``,
 ``stall_hover_s``).
 """
 
@@ -13,13 +14,20 @@ import math
 import numpy as np
 
 from companion.estimation.leader import TrackStatus
-from companion.kernel.flight import Setpoint, VehicleState
+from companion.kernel.flight import Setpoint, Vec3T, VehicleState
 from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.states.context import MissionContext
 from companion.mission.types import MissionInputs, MissionState, Reason
 
 #: Altitude-hold gain of the attitude hover (1/s).
 ALT_HOLD_KP_1_S = 0.8
+#: Station keeping while coasting on a leader lost hovering: gain (1/s) and speed cap (m/s).
+STATION_KP_1_S = 1.0
+STATION_MAX_M_S = 0.5
+#: A confirmed track this close to the dead-reckoned leader while coasting is the leader again, without
+#: waiting for ``reacquire_min_track_s`` (m): a hovering leader found again after a short miss was left
+#: to start off while the follower waited out the age.
+FOUND_WHERE_LOST_M = 1.0
 
 
 class RecoveryPhase:
@@ -30,7 +38,9 @@ class RecoveryPhase:
 
     def reacquire(self, inp: MissionInputs) -> Setpoint | None:
         veh = inp.vehicle
-        if self.c.tracked(inp, confirmed_only=True) and self.c.track.steady(inp.leader):
+        if self.c.tracked(inp, confirmed_only=True) and (
+            self.c.track.steady(inp.leader) or self._found_where_lost(inp)
+        ):
             self.c.enter_follow(inp, Reason.LEADER_REACQUIRED)
             return None
         if not self.c.attitude_kind and not self.c.gps.ok:
@@ -66,8 +76,29 @@ class RecoveryPhase:
                 p_rel,
                 self.c.follower(veh, velocity_valid=True),
                 self.c.obstacle_now(inp),
+                v_station_ned_m_s=self._station_velocity(veh),
             )
         return self.c.law.hover_velocity(yaw_rate_rad_s=scan_rate)
+
+    def _station_velocity(self, veh: VehicleState) -> Vec3T:
+        """Back to where the follower lost a hovering leader (NED, m/s, horizontal); zero otherwise."""
+        if self.c.hold_p_ned_m is None:
+            return (0.0, 0.0, 0.0)
+        vn = STATION_KP_1_S * (float(self.c.hold_p_ned_m[0]) - veh.p_ned_m[0])
+        ve = STATION_KP_1_S * (float(self.c.hold_p_ned_m[1]) - veh.p_ned_m[1])
+        k = min(1.0, STATION_MAX_M_S / max(math.hypot(vn, ve), 1e-9))
+        return (k * vn, k * ve, 0.0)
+
+    def _found_where_lost(self, inp: MissionInputs) -> bool:
+        """Whether the track is where the lost leader dead-reckons to (coasting, GPS healthy)."""
+        lost_p, lost_v, est = self.c.leader_lost_p_ned_m, self.c.leader_lost_v_ned_m_s, inp.leader
+        t = self.c.t_in_state()
+        if lost_p is None or lost_v is None or est is None or self.c.attitude_kind or not self.c.gps.ok:
+            return False
+        if t > self.c.m.reacquire_coast_s:
+            return False
+        p_found = np.array(inp.vehicle.p_ned_m) + np.array(est.p_ned_rel_m)
+        return float(np.linalg.norm(p_found - (lost_p + lost_v * t))) < FOUND_WHERE_LOST_M
 
     def _look_rate(self, p_rel_ned_m: Vec3, yaw_rad: float) -> float:
         """A yaw rate that turns the camera onto a relative position, bounded by the scan rate, rad/s."""
