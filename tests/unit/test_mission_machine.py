@@ -530,11 +530,11 @@ def test_reacquire_waits_for_a_steady_track() -> None:
 def test_a_young_track_where_the_leader_was_lost_is_the_leader_while_coasting() -> None:
     """A confirmed track where the lost leader dead-reckons to is taken at once during the coast (a
     hovering leader found after a short miss would otherwise start off while the track ages), not during
-    the scan, and not 3 m away."""
+    the scan, and not 0.8 m away."""
     cfg = cfg_with(reacquire_min_track_s=0.8, reacquire_coast_s=2.0, reacquire_scan_s=10.0)
     for found_after_s, found_p, taken in (
         (0.5, (5.3, 0.2, 0.0), True),
-        (0.5, (5.0, 3.0, 0.0), False),
+        (0.5, (5.0, 0.8, 0.0), False),
         (2.5, (5.3, 0.2, 0.0), False),
     ):
         h = Harness(cfg=cfg)
