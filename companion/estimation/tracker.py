@@ -25,11 +25,7 @@ Per frame, :meth:`TargetTracker.step` takes the frame's stamp, the pose measurem
    ``switch_ratio_margin`` (the leader crossing the view for under a second while a tree-crown track
    blinks on);
    while the track is still tentative, a challenger seen as often with a higher mean score takes it over
-   (``contend_tentative``: a false box seen alone on the first frame otherwise started the track);
-   a confirmed track that missed every frame of a challenger seen in each of at least three, within
-   0.75 m of it, has drifted off its own object: it moves onto the challenger and stays the same track
-   (one measurement near the gate's edge once kicked the track's velocity, the leader's next eight boxes
-   fell outside the gate, and the follower followed the drifting prediction 0.9 m down).
+   (``contend_tentative``: a false box seen alone on the first frame otherwise started the track).
 
 Opt-in (``leader_accel_filter``): a constant-acceleration (Singer) filter runs beside the track on the
 measurements the track accepts, with the same ego-motion; the estimate's position, velocity and the
@@ -89,10 +85,6 @@ _RANGE_COLLAPSE_FRACTION = 0.5
 #: Objects followed outside the track's gate at once: one slot held by a blinking tree kept the leader,
 #: seen in 6 straight frames beside it, from ever counting (leader-occluded seed 8).
 _MAX_CHALLENGERS = 3
-#: A confirmed track that missed this many frames in a row, each with a hit of one challenger within
-#: ``_REANCHOR_M`` of it (m), has drifted off its object and moves onto that challenger.
-_REANCHOR_FRAMES = 3
-_REANCHOR_M = 0.75
 
 
 @dataclass(frozen=True, slots=True)
@@ -300,8 +292,6 @@ class TargetTracker:
         keep = [sum(ch.recent) + window - len(ch.recent) >= cfg.switch_hits for ch in self._chals]
         track_ratio = self._recent_ratio()
         best: tuple[float, _Challenger, _Candidate] | None = None
-        if self._confirmed and (drifted := self._drifted_onto(hits)) is not None:
-            return self._reanchor(*drifted)
         # While tentative, ``_hits`` counts the track's frames (those of its confirmation window).
         track_mean_score = self._tentative_score_sum / max(1, self._hits)
         for ch, hit, kept in zip(self._chals, hits, keep, strict=True):
@@ -347,34 +337,6 @@ class TargetTracker:
         self._start_s = self._last_meas_s = self._stamp_s
         self._size_ranged = hit.meas.range_source == "size"
         self._hits = sum(self._recent)
-        return hit
-
-    def _drifted_onto(self, hits: list[_Candidate | None]) -> tuple[_Challenger, _Candidate] | None:
-        """The challenger a confirmed track has drifted off onto (see the module doc), or None."""
-        if self._kf is None or len(self._recent) < _REANCHOR_FRAMES:
-            return None
-        x = self._kf.x[:3, 0]
-        for ch, hit in zip(self._chals, hits, strict=True):
-            n = len(ch.recent)
-            if (
-                hit is not None
-                and n >= _REANCHOR_FRAMES
-                and all(ch.recent)
-                and not any(list(self._recent)[-n:])
-                and float(np.linalg.norm(ch.kf.x[:3, 0] - x)) < _REANCHOR_M
-            ):
-                return ch, hit
-        return None
-
-    def _reanchor(self, ch: _Challenger, hit: _Candidate) -> _Candidate:
-        """Move the track onto the challenger's filter, keeping its identity, age and history."""
-        self._kf = ch.kf
-        self._kf_acc = self._new_filter(hit, 9) if self.cfg.leader_accel_filter else None
-        self._chals.clear()
-        self._recent[-1] = True
-        self._last_meas_s = self._stamp_s
-        self._size_ranged = hit.meas.range_source == "size"
-        self._hits += 1
         return hit
 
     def _recent_ratio(self) -> float:
