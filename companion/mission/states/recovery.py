@@ -26,8 +26,8 @@ STATION_KP_1_S = 1.0
 STATION_MAX_M_S = 0.5
 #: A confirmed track this close to the dead-reckoned leader while coasting is the leader again, without
 #: waiting for ``reacquire_min_track_s`` (m): a hovering leader found again after a short miss was left
-#: to start off while the follower waited out the age. At 1 m a false box beside a leader lost against a
-#: tree crown was taken for it.
+#: to start off while the follower waited out the age. Tight: false boxes beside a leader lost against a
+#: tree crown sat 0.9 m from where it was lost.
 FOUND_WHERE_LOST_M = 0.5
 
 
