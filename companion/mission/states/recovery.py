@@ -16,6 +16,7 @@ import numpy as np
 from companion.estimation.leader import TrackStatus
 from companion.kernel.flight import Setpoint, Vec3T, VehicleState
 from companion.kernel.frames import Vec3, wrap_pi
+from companion.mission.formation_commands import clamp_norm
 from companion.mission.states.context import MissionContext
 from companion.mission.types import MissionInputs, MissionState, Reason
 
@@ -85,10 +86,9 @@ class RecoveryPhase:
         """Back to where the follower lost a hovering leader (NED, m/s, horizontal); zero otherwise."""
         if self.c.hold_p_ned_m is None:
             return (0.0, 0.0, 0.0)
-        vn = STATION_KP_1_S * (float(self.c.hold_p_ned_m[0]) - veh.p_ned_m[0])
-        ve = STATION_KP_1_S * (float(self.c.hold_p_ned_m[1]) - veh.p_ned_m[1])
-        k = min(1.0, STATION_MAX_M_S / max(math.hypot(vn, ve), 1e-9))
-        return (k * vn, k * ve, 0.0)
+        e = self.c.hold_p_ned_m - np.array(veh.p_ned_m)
+        v = clamp_norm(STATION_KP_1_S * np.array([e[0], e[1], 0.0]), STATION_MAX_M_S)
+        return (float(v[0]), float(v[1]), 0.0)
 
     def _found_where_lost(self, inp: MissionInputs) -> bool:
         """Whether the track is where the lost leader dead-reckons to (coasting, GPS healthy)."""
