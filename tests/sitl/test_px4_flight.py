@@ -228,10 +228,13 @@ def test_px4_takes_the_external_position_and_flies_velocity_again(tmp_path: Path
     # service's.
     t_s, err_m = _formation_errors(out)
     assert abs(float(err_m.max()) - report["formation_max_deviation_m"]) < 1e-6  # the report's own figure
-    gaps = [(float(a), float(b)) for a, b in itertools.pairwise(t_s) if b - a > 0.5]
-    assert len(gaps) == 2, f"the two pauses, as gaps in the control ticks: {gaps}"
-    at = f"maximum {err_m.max():.2f} m at t = {t_s[int(err_m.argmax())]:.1f} s; pauses {gaps}\n{shown}"
-    assert err_m[t_s <= gaps[0][0]].max() < HELD_M, at
+    # The test's own pauses are the gaps of at least PAUSE_S less a tick; a busy host stalls the process
+    # for shorter gaps of its own (0.5 s has been seen), which count as neither.
+    gaps = [(float(a), float(b)) for a, b in itertools.pairwise(t_s) if b - a > 0.3]
+    pauses = [(a, b) for a, b in gaps if b - a >= PAUSE_S - 0.1]
+    assert len(pauses) >= 2, f"the two pauses, as gaps in the control ticks: {gaps}"
+    at = f"maximum {err_m.max():.2f} m at t = {t_s[int(err_m.argmax())]:.1f} s; gaps {gaps}\n{shown}"
+    assert err_m[t_s <= pauses[0][0]].max() < HELD_M, at
     assert err_m[t_s >= t_s[-1] - REGAINED_WINDOW_S].max() < REGAINED_M, at
     assert err_m.max() < NO_FLY_AWAY_M, at
 
