@@ -152,6 +152,12 @@ class TrackerConfig(Section):
     #: bad depth) but lags a climbing leader; docs/flight.md has what it did to the starts.
     process_accel_std_z_m_s2: float | None = Field(None, gt=0)
     gate_chi2: float = Field(16.27, gt=0)  # chi-square 3 dof, p = 0.001
+    #: A box's height is taken with less weight the further it is off the track's (a Student-t of this
+    #: many degrees of freedom on the height innovation, beyond one sigma; 0: the plain Kalman update).
+    #: One box off in height (d^2 14, inside the gate) kicked the track's vertical rate to 1 m/s, the
+    #: next eight boxes fell outside the gate and the follower dove 0.9 m (circle seed 6, lockstep with
+    #: the real path's timing). The leader's height changes slowly, so the lag this adds there is small.
+    height_outlier_dof: float = Field(1.0, ge=0.0)
     confirm_hits: int = Field(3, ge=1)
     confirm_window: int = Field(5, ge=1)
     coast_timeout_s: float = Field(1.5, gt=0)

@@ -50,6 +50,11 @@ DRAG_RANGE_PER_S = (0.0, 3.0)
 MAX_HEADING_ERROR_RAD = math.radians(30.0)
 #: The fitted heading error is applied only when its one sigma is within this, rad.
 MAX_HEADING_SIGMA_RAD = math.radians(1.5)
+#: ...and only when it is at least this large, rad. Against an exact heading (the project's simulator with
+#: its error off) the fit wandered up to 2.1 deg at a stated sigma of 0.65 deg (its residuals are
+#: correlated over seconds, so the stated sigma is low), and a correction taken then turned every bearing
+#: by 2 deg for the rest of the flight.
+MIN_HEADING_ERROR_RAD = math.radians(3.0)
 #: After this long without GPS the model's velocity is no longer offered, s (its error has grown).
 MAX_COAST_S = 120.0
 
@@ -75,12 +80,13 @@ class EgoModel:
     def heading_trusted(self) -> bool:
         """Whether the heading error is known well enough, and large enough, to correct the bearings with.
 
-        Significant too (three sigma): against an exact heading (the project's simulator with its error
-        off) the fit wandered within about 1 deg of zero at a stated sigma of 0.6-0.9 deg, and correcting
-        by that would only add error.
+        Significant too (three sigma, and at least :data:`MIN_HEADING_ERROR_RAD`): against an exact
+        heading the fit wandered within about 1 deg of zero at a stated sigma of 0.6-0.9 deg, now and then
+        to 2 deg, and correcting by that would only add error.
         """
         sigma = self.heading_sigma_rad
-        return sigma <= MAX_HEADING_SIGMA_RAD and abs(self.heading_error_rad) >= 3.0 * sigma
+        e = abs(self.heading_error_rad)
+        return sigma <= MAX_HEADING_SIGMA_RAD and e >= max(3.0 * sigma, MIN_HEADING_ERROR_RAD)
 
 
 class EgoVelocityObserver:

@@ -36,6 +36,27 @@ def mahalanobis2(y: Vec3, S: Mat3) -> float:
     return quad / det
 
 
+def height_deweighted(R_ned_m2: Mat3, y_down_m: float, s_down_m2: float, dof: float) -> Mat3:
+    """``R`` with its height (down) variance scaled by ``(dof + z^2) / (dof + 1)`` beyond one sigma.
+
+    ``z^2 = y_down^2 / s_down``: the height innovation against its predicted variance. A Student-t's
+    weighting of that one axis: a box whose height is several sigma off moves the track's height (and
+    its vertical rate) a fraction of what a Gaussian update would, and an ordinary one as before. The
+    row and column are scaled by the same factor's square root, so ``R`` stays positive definite.
+    ``dof`` 0 returns ``R`` as it is.
+    """
+    if dof <= 0.0 or s_down_m2 <= 0.0:
+        return R_ned_m2
+    z2 = y_down_m * y_down_m / s_down_m2
+    if z2 <= 1.0:
+        return R_ned_m2
+    k = math.sqrt((dof + z2) / (dof + 1.0))
+    out: Mat3 = R_ned_m2.copy()
+    out[2, :] *= k
+    out[:, 2] *= k
+    return out
+
+
 def new_filter(cfg: TrackerConfig, p_ned_m: Vec3, R_ned_m2: Mat3, n: int) -> KalmanFilter:
     """A filter of ``n`` states (6: p, v; 9: p, v, a) started at a measurement, at rest."""
     kf = KalmanFilter(dim_x=n, dim_z=3)

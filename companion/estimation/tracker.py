@@ -67,7 +67,14 @@ from filterpy.kalman import KalmanFilter
 from companion.config import TrackerConfig
 from companion.estimation.estimate import RelativeEstimate, TrackState
 from companion.estimation.leader import TrackStatus
-from companion.estimation.motion import ego_shift, mahalanobis2, new_filter, process_noise, transition
+from companion.estimation.motion import (
+    ego_shift,
+    height_deweighted,
+    mahalanobis2,
+    new_filter,
+    process_noise,
+    transition,
+)
 from companion.kernel.frames import Mat3, Vec3
 from companion.perception.pose import LeaderMeasurement
 from companion.perception.transform import CameraGeometry, rotate_cov
@@ -378,9 +385,12 @@ class TargetTracker:
         self._stamp_s = stamp_s
 
     def _update(self, kf: KalmanFilter, c: _Candidate) -> None:
+        y_down_m = float(c.p_ned_m[2] - kf.x[2, 0])
+        s_down_m2 = float(kf.P[2, 2] + c.R_ned_m2[2, 2])
+        R = height_deweighted(c.R_ned_m2, y_down_m, s_down_m2, self.cfg.height_outlier_dof)
         for f in (kf, self._kf_acc):
             if f is not None:
-                f.update(c.p_ned_m.reshape(3, 1), R=c.R_ned_m2)
+                f.update(c.p_ned_m.reshape(3, 1), R=R)
                 f.P = 0.5 * (f.P + f.P.T)
         self._size_ranged = c.meas.range_source == "size"
         self._last_meas_s = self._stamp_s

@@ -47,12 +47,25 @@ class HeadingCorrectedLink:
         self._stamp_s: float | None = None
 
     def update(self, model: EgoModel | None, now_s: float) -> None:
-        """Move the applied correction towards a trustworthy fit (towards 0 without one)."""
-        target = model.heading_error_rad if model is not None and model.heading_trusted else self.applied_rad
+        """Move the applied correction towards a trustworthy fit; hold it without a fit (GPS lost).
+
+        A fit no longer trusted holds the correction while it still agrees with it (within three sigma)
+        and takes it back towards itself once it clearly does not: a heading error the fit has stopped
+        seeing is not kept for the rest of the flight.
+        """
+        target = self.applied_rad
+        if model is not None:
+            e, sigma = model.heading_error_rad, model.heading_sigma_rad
+            if model.heading_trusted or abs(e - self.applied_rad) > 3.0 * sigma:
+                target = e if model.heading_trusted else self._released(e)
         dt = 0.0 if self._stamp_s is None else max(0.0, now_s - self._stamp_s)
         self._stamp_s = now_s
         step = MAX_SLEW_RAD_S * dt
         self.applied_rad += max(-step, min(step, target - self.applied_rad))
+
+    def _released(self, e_rad: float) -> float:
+        """Where an untrusted fit that disagrees takes the correction: towards it, never past zero."""
+        return 0.0 if e_rad * self.applied_rad <= 0.0 else e_rad
 
     def snapshot(self) -> VehicleState:
         st = self.link.snapshot()

@@ -64,6 +64,31 @@ def test_an_untrusted_fit_is_not_applied_and_a_lost_model_holds_the_correction()
     assert link.applied_rad == pytest.approx(E)
 
 
+def test_a_fit_that_stops_seeing_the_error_takes_the_correction_back() -> None:
+    # Untrusted and still agreeing (sigma too wide): held. Untrusted and clearly off it (0 deg at a
+    # sigma of 0.5 deg, 8 deg away): moved back at the slew rate, and not past zero.
+    link, _ = _settled()
+    link.update(replace(_model(2.0), heading_error_rad=math.radians(6.0)), 50.5)
+    assert link.applied_rad == pytest.approx(E)
+    near_zero = replace(_model(0.5), heading_error_rad=math.radians(0.5))
+    assert not near_zero.heading_trusted
+    link.update(near_zero, 52.5)
+    assert link.applied_rad == pytest.approx(E - 2.0 * MAX_SLEW_RAD_S)
+    other_side = replace(_model(0.5), heading_error_rad=math.radians(-1.0))
+    for i in range(40):
+        link.update(other_side, 53.0 + i * 0.5)
+    assert link.applied_rad == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_small_error_is_never_applied_however_tight_its_fit() -> None:
+    link = HeadingCorrectedLink(_Link())  # type: ignore[arg-type]
+    small = replace(_model(0.3), heading_error_rad=math.radians(2.0))  # 6.7 sigma, under 3 deg
+    assert not small.heading_trusted
+    for i in range(100):
+        link.update(small, i * 0.5)
+    assert link.applied_rad == 0.0
+
+
 def test_setpoints_reach_px4_in_its_own_heading_frame() -> None:
     link, raw = _settled()
     asyncio.run(link.set_setpoint(VelocityBodySetpoint((2.0, 0.0, 0.1), 0.05)))

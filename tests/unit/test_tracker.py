@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from companion.config import TrackerConfig
 from companion.estimation.leader import TrackStatus
+from companion.estimation.motion import height_deweighted
 from companion.estimation.tracker import TargetTracker
 from companion.kernel.camera import MountConfig
 from companion.kernel.frames import R_from_euler
@@ -271,6 +272,49 @@ def test_height_has_its_own_process_noise() -> None:
     down_z, east_z = run(cfg.model_copy(update={"process_accel_std_z_m_s2": 0.7}))
     assert down_z < 0.7 * down_same
     assert east_z == pytest.approx(east_same, rel=1e-9)
+
+
+def test_a_box_off_in_height_moves_the_height_less_and_the_rest_as_before() -> None:
+    # A hovering leader tracked for 2 s, then one box 0.08 m low (inside the gate) or 0.08 m to the
+    # right: with height_outlier_dof the low box kicks the vertical rate less; the one to the right moves
+    # the track sideways as the plain update does.
+    def kicked(cfg: TrackerConfig, offset_cam_m: np.ndarray) -> np.ndarray:
+        rng = np.random.default_rng(5)
+        tracker = TargetTracker(cfg, CAM)
+        for k in range(60):
+            tracker.step(k * DT, [meas(np.array([0.0, 0.0, 5.0]) + rng.normal(0.0, 0.01, 3), k * DT)], LEVEL)
+        t = 60 * DT
+        st_ = tracker.step(t, [meas(np.array([0.0, 0.0, 5.0]) + offset_cam_m, t)], LEVEL)
+        assert st_.estimate is not None
+        assert st_.measurement is not None  # taken, not gated out
+        return np.asarray(st_.estimate.v_ned_rel_m_s)
+
+    plain = TrackerConfig()
+    robust = plain.model_copy(update={"height_outlier_dof": 1.0})
+    low = np.array([0.0, 0.08, 0.0])  # camera y is down
+    right = np.array([0.08, 0.0, 0.0])
+    assert kicked(plain, low)[2] > 0.15  # m/s down, from one box
+    assert kicked(robust, low)[2] < 0.5 * kicked(plain, low)[2]
+    assert kicked(robust, right)[1] == pytest.approx(kicked(plain, right)[1], rel=1e-9)  # east, m/s
+
+
+@given(
+    y_down_m=st.floats(-2.0, 2.0),
+    s_down_m2=st.floats(1e-4, 1.0),
+    dof=st.floats(0.0, 10.0),
+)
+@settings(max_examples=200, deadline=None)
+def test_height_deweighting_keeps_r_positive_definite_and_never_shrinks_it(
+    y_down_m: float, s_down_m2: float, dof: float
+) -> None:
+    R = np.array([[0.04, 0.01, 0.005], [0.01, 0.03, 0.002], [0.005, 0.002, 0.02]])
+    out = height_deweighted(R, y_down_m, s_down_m2, dof)
+    assert np.allclose(out, out.T)
+    assert np.all(np.linalg.eigvalsh(out) > 0.0)
+    assert out[2, 2] >= R[2, 2]
+    assert np.array_equal(out[:2, :2], R[:2, :2])
+    if dof == 0.0 or y_down_m * y_down_m <= s_down_m2:
+        assert np.array_equal(out, R)
 
 
 def _accelerating_leader(t_s: float) -> np.ndarray:
