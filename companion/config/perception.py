@@ -156,8 +156,9 @@ class TrackerConfig(Section):
     #: many degrees of freedom on the height innovation, beyond one sigma; 0: the plain Kalman update).
     #: One box off in height (d^2 14, inside the gate) kicked the track's vertical rate to 1 m/s, the
     #: next eight boxes fell outside the gate and the follower dove 0.9 m (circle seed 6, lockstep with
-    #: the real path's timing). The leader's height changes slowly, so the lag this adds there is small.
-    height_outlier_dof: float = Field(1.0, ge=0.0)
+    #: the real path's timing); 1 takes that out, but is left off: in a formation flight the outer
+    #: follower drew a long loss of the leader with it (docs/flight.md).
+    height_outlier_dof: float = Field(0.0, ge=0.0)
     confirm_hits: int = Field(3, ge=1)
     confirm_window: int = Field(5, ge=1)
     coast_timeout_s: float = Field(1.5, gt=0)

@@ -289,9 +289,9 @@ def test_a_box_off_in_height_moves_the_height_less_and_the_rest_as_before() -> N
         assert st_.measurement is not None  # taken, not gated out
         return np.asarray(st_.estimate.v_ned_rel_m_s)
 
-    robust = TrackerConfig()
-    assert robust.height_outlier_dof == 1.0  # the shipped default
-    plain = robust.model_copy(update={"height_outlier_dof": 0.0})
+    plain = TrackerConfig()
+    assert plain.height_outlier_dof == 0.0  # the shipped default
+    robust = plain.model_copy(update={"height_outlier_dof": 1.0})
     low = np.array([0.0, 0.08, 0.0])  # camera y is down
     right = np.array([0.08, 0.0, 0.0])
     assert kicked(plain, low)[2] > 0.15  # m/s down, from one box
