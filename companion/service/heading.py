@@ -55,17 +55,15 @@ class HeadingCorrectedLink:
         """
         target = self.applied_rad
         if model is not None:
-            e, sigma = model.heading_error_rad, model.heading_sigma_rad
-            if model.heading_trusted or abs(e - self.applied_rad) > 3.0 * sigma:
-                target = e if model.heading_trusted else self._released(e)
+            e = model.heading_error_rad
+            if model.heading_trusted:
+                target = e
+            elif abs(e - self.applied_rad) > 3.0 * model.heading_sigma_rad:
+                target = 0.0 if e * self.applied_rad <= 0.0 else e  # towards the fit, never past zero
         dt = 0.0 if self._stamp_s is None else max(0.0, now_s - self._stamp_s)
         self._stamp_s = now_s
         step = MAX_SLEW_RAD_S * dt
         self.applied_rad += max(-step, min(step, target - self.applied_rad))
-
-    def _released(self, e_rad: float) -> float:
-        """Where an untrusted fit that disagrees takes the correction: towards it, never past zero."""
-        return 0.0 if e_rad * self.applied_rad <= 0.0 else e_rad
 
     def snapshot(self) -> VehicleState:
         st = self.link.snapshot()
