@@ -219,7 +219,9 @@ class FlightService:
         v = self.raw_link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
             self._attitude_stamp_s = v.attitude_stamp_s
-            self.link.update(self.ego.model() if self.machine.gps_ok else None, v.attitude_stamp_s)
+            said = self.link.update(self.ego.model() if self.machine.gps_ok else None, v.attitude_stamp_s)
+            if said is not None:
+                log.info("%s", said)
             yaw = v.yaw_rad - self.link.applied_rad
             self.pipeline.attitude.push(v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, yaw))
         if v.velocity_stamp_s > self._velocity_stamp_s:

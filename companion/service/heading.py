@@ -46,13 +46,15 @@ class HeadingCorrectedLink:
         self.applied_rad = 0.0
         self._stamp_s: float | None = None
 
-    def update(self, model: EgoModel | None, now_s: float) -> None:
+    def update(self, model: EgoModel | None, now_s: float) -> str | None:
         """Move the applied correction towards a trustworthy fit; hold it without a fit (GPS lost).
 
         A fit no longer trusted holds the correction while it still agrees with it (within three sigma)
         and takes it back towards itself once it clearly does not: a heading error the fit has stopped
-        seeing is not kept for the rest of the flight.
+        seeing is not kept for the rest of the flight. Returns a line for the operator when a correction
+        starts or ends (it turns every bearing the camera gives), else None.
         """
+        was_on = self.applied_rad != 0.0
         target = self.applied_rad
         if model is not None:
             e = model.heading_error_rad
@@ -64,6 +66,16 @@ class HeadingCorrectedLink:
         self._stamp_s = now_s
         step = MAX_SLEW_RAD_S * dt
         self.applied_rad += max(-step, min(step, target - self.applied_rad))
+        if was_on == (self.applied_rad != 0.0):
+            return None
+        if was_on:
+            return "heading correction off: the fit no longer sees PX4's heading error"
+        sigma_deg = math.degrees(model.heading_sigma_rad) if model is not None else math.nan
+        return (
+            f"heading correction on: PX4's heading is off the true one by {math.degrees(target):+.1f} deg "
+            f"(fit sigma {sigma_deg:.1f} deg); applying it at "
+            f"{math.degrees(MAX_SLEW_RAD_S):.0f} deg/s"
+        )
 
     def snapshot(self) -> VehicleState:
         st = self.link.snapshot()

@@ -122,3 +122,19 @@ def test_a_body_velocity_flies_the_same_true_direction_as_wanted() -> None:
     want_n = 2.0 * math.cos(true_yaw) - 0.5 * math.sin(true_yaw)
     want_e = 2.0 * math.sin(true_yaw) + 0.5 * math.cos(true_yaw)
     assert (px4_n, px4_e) == pytest.approx((want_n, want_e))
+
+
+def test_the_operator_hears_when_a_correction_starts_and_ends() -> None:
+    link = HeadingCorrectedLink(_Link())  # type: ignore[arg-type]
+    said = [link.update(_model(0.5), i * 0.5) for i in range(4)]
+    assert said[0] is None  # no time has passed: nothing applied yet
+    assert said[1] is not None
+    assert said[1].startswith("heading correction on:")
+    assert "+8.0 deg" in said[1]
+    assert said[2:] == [None, None]
+    gone = replace(_model(0.2), heading_error_rad=math.radians(-1.0))
+    said = [link.update(gone, 2.0 + i * 0.5) for i in range(40)]
+    assert [s for s in said if s is not None] == [
+        "heading correction off: the fit no longer sees PX4's heading error"
+    ]
+    assert link.applied_rad == 0.0
