@@ -52,6 +52,14 @@ class FormationConfig(Section):
     #: The horizontal lead fades below about this acceleration, m/s^2 (scaled by |a|^2 / (|a|^2 + fade^2)):
     #: the estimate's noise while the leader hovers otherwise swings the follower. 0: the full lead always.
     leader_accel_fade_m_s2: float = Field(0.0, ge=0.0, le=5.0)
+    #: The lead's part along the line of sight fades out over this much range error, m, while it would push
+    #: a range error that is already growing further (the follower closing in past its slot while the
+    #: leader's speed-up is still being led): the acceleration estimate trails the leader's, so the lead
+    #: outlives a speed-up by a few tenths of a second and overshot every turn-in of `circle`. 0: the full
+    #: lead always (docs/flight.md).
+    leader_accel_yield_m: float = Field(0.07, ge=0.0, le=5.0)
+    #: ...beyond this much range error, m (the hover's noise leaves the lead alone).
+    leader_accel_yield_dead_m: float = Field(0.03, ge=0.0, le=5.0)
     #: Keep the acceleration lead while the track coasts (no detection). False drops it then: a coasting
     #: estimate's velocity is extrapolated, and the faster lead amplified it (circle seed 3 with tau 0.2 and
     #: the lead kept: 1.34 m, the follower past the leader at 1.51 m).

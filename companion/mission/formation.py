@@ -45,7 +45,7 @@ from companion.mission.formation_commands import (
     integrate,
     low_passed_rate,
 )
-from companion.mission.geometry import FollowerState, Slot, SlotError, faded, slot_error, tilt_from_accel
+from companion.mission.geometry import FollowerState, Slot, SlotError, accel_lead, slot_error, tilt_from_accel
 from companion.mission.join import JoinReference, joined
 from companion.mission.plan_slot import NeighbourNow, SlotTarget
 from companion.mission.safety import (
@@ -228,7 +228,7 @@ class FormationLaw:
             ff = np.zeros(3)
         else:
             ff = cfg.leader_velocity_ff * v_leader
-            ff[:2] += cfg.leader_accel_ff_s * faded(a_leader[:2], cfg.leader_accel_fade_m_s2)
+            ff[:2] += accel_lead(a_leader[:2], err, cfg)
             ff[2] += cfg.leader_accel_ff_z_s * a_leader[2]
 
         kp = cfg.kp_xy if kp_range_1_s is None else kp_range_1_s

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.config import FormationConfig
 from companion.kernel.frames import Vec3, ned_to_heading, wrap_pi
 from companion.mission.safety import G_M_S2
 
@@ -132,4 +133,26 @@ def faded(a_m_s2: Vec3, fade_m_s2: float) -> Vec3:
         return a_m_s2
     n2 = float(np.dot(a_m_s2, a_m_s2))
     out: Vec3 = a_m_s2 * (n2 / (n2 + fade_m_s2 * fade_m_s2))
+    return out
+
+
+def accel_lead(a_h_m_s2: Vec3, err: SlotError, cfg: FormationConfig) -> Vec3:
+    """The leader's horizontal acceleration led as a velocity (m/s, NED x-y): ``leader_accel_ff_s`` of it.
+
+    Faded below ``leader_accel_fade_m_s2``; its part along the line of sight fades out over
+    ``leader_accel_yield_m`` of range error past ``leader_accel_yield_dead_m`` while that part pushes the
+    range error the way it is already growing. A speed-up's lead then comes in whole (the follower falls
+    behind and the lead closes it) and cannot carry the follower past its slot once the leader stops
+    speeding up and the estimate has not seen it yet.
+    """
+    lead = cfg.leader_accel_ff_s * faded(a_h_m_s2, cfg.leader_accel_fade_m_s2)
+    e_m, e_rate = err.e_range_m, err.e_range_rate_m_s
+    if cfg.leader_accel_yield_m <= 0.0 or e_m * e_rate <= 0.0:
+        return lead
+    u = err.u_los[:2]
+    along = float(lead[0] * u[0] + lead[1] * u[1])
+    if along * e_m >= 0.0:  # the lead closes the error
+        return lead
+    cut = min(1.0, max(0.0, abs(e_m) - cfg.leader_accel_yield_dead_m) / cfg.leader_accel_yield_m)
+    out: Vec3 = lead - cut * along * np.asarray(u, dtype=np.float64)
     return out

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from companion.config import FormationConfig, SafetyConfig
 from companion.kernel.frames import heading_to_ned, ned_to_heading
 from companion.mission.formation import FormationLaw
-from companion.mission.geometry import FollowerState, Slot, faded, slot_error, tilt_from_accel
+from companion.mission.geometry import FollowerState, Slot, accel_lead, faded, slot_error, tilt_from_accel
 from companion.mission.safety import (
     G_M_S2,
     SafetyLimits,
@@ -146,6 +146,48 @@ def test_the_lead_fades_on_small_accelerations_and_keeps_large_ones() -> None:
 
     assert lead(0.5, 0.3) == pytest.approx(0.3 * 0.09 / 0.34)
     assert lead(0.0, 0.3) == pytest.approx(0.3)
+
+
+def _lead(a: tuple[float, float], e_m: float, e_rate_m_s: float, **kw: float) -> np.ndarray:
+    """The lead for a slot 5 m north, the leader ``e_m`` past it and moving away at ``e_rate_m_s``."""
+    err = slot_error(
+        Slot(5.0, 0.0, 0.0), np.array([5.0 + e_m, 0.0, 0.0]), np.array([e_rate_m_s, 0.0, 0.0]), 0.0
+    )
+    return np.asarray(accel_lead(np.array(a), err, FormationConfig(**kw)))  # type: ignore[arg-type]
+
+
+def test_the_lead_yields_where_it_would_push_a_growing_range_error_further() -> None:
+    """``leader_accel_yield_m``: a speed-up's lead cannot carry the follower past its slot.
+
+    The follower 0.2 m too close and still closing: the along-sight lead is gone, the part across the
+    line of sight kept; halfway through the fade at 0.065 m; whole while the error shrinks, while the
+    follower is behind (the lead closes that), and with the yield off. A leader slowing down while the
+    follower falls further behind: the braking lead yields the same way.
+    """
+    ff = FormationConfig().leader_accel_ff_s
+    assert _lead((1.0, 0.0), 0.2, 0.3) == pytest.approx([ff, 0.0])
+    assert _lead((1.0, 0.5), -0.2, -0.3) == pytest.approx([0.0, 0.5 * ff])
+    assert _lead((1.0, 0.0), -0.065, -0.3) == pytest.approx([0.5 * ff, 0.0])
+    assert _lead((1.0, 0.0), -0.02, -0.3) == pytest.approx([ff, 0.0])  # the dead band
+    assert _lead((1.0, 0.0), -0.2, 0.3) == pytest.approx([ff, 0.0])
+    assert _lead((1.0, 0.0), -0.2, -0.3, leader_accel_yield_m=0.0) == pytest.approx([ff, 0.0])
+    assert _lead((-1.0, 0.0), 0.2, 0.3) == pytest.approx([0.0, 0.0])
+    assert _lead((-1.0, 0.0), -0.2, -0.3) == pytest.approx([-ff, 0.0])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.tuples(st.floats(-3, 3), st.floats(-3, 3)),
+    st.floats(-2, 2),
+    st.floats(-3, 3),
+)
+def test_a_yielded_lead_only_ever_loses_its_along_sight_part(
+    a: tuple[float, float], e_m: float, e_rate_m_s: float
+) -> None:
+    full = _lead(a, e_m, e_rate_m_s, leader_accel_yield_m=0.0)
+    got = _lead(a, e_m, e_rate_m_s)
+    assert got[1] == pytest.approx(full[1], abs=1e-12)  # across the line of sight (east): untouched
+    assert 0.0 <= got[0] / full[0] <= 1.0 if full[0] != 0.0 else got[0] == 0.0
 
 
 def test_the_range_gain_can_be_given_per_command() -> None:
