@@ -55,9 +55,10 @@ class FormationConfig(Section):
     #: The lead's part along the line of sight fades out over this much range error, m, while it would push
     #: a range error that is already growing further (the follower closing in past its slot while the
     #: leader's speed-up is still being led): the acceleration estimate trails the leader's, so the lead
-    #: outlives a speed-up by a few tenths of a second and overshot every turn-in of `circle`. 0: the full
-    #: lead always (docs/flight.md).
-    leader_accel_yield_m: float = Field(0.07, ge=0.0, le=5.0)
+    #: outlives a speed-up by a few tenths of a second and overshot half the turn-ins of `circle`. 0: the full
+    #: lead always. Opt-in (0.07 measured): with it a follower in `leader-occluded` re-acquired a cloud and
+    #: chased it (docs/flight.md).
+    leader_accel_yield_m: float = Field(0.0, ge=0.0, le=5.0)
     #: ...beyond this much range error, m (the hover's noise leaves the lead alone).
     leader_accel_yield_dead_m: float = Field(0.03, ge=0.0, le=5.0)
     #: Keep the acceleration lead while the track coasts (no detection). False drops it then: a coasting

@@ -153,7 +153,8 @@ def _lead(a: tuple[float, float], e_m: float, e_rate_m_s: float, **kw: float) ->
     err = slot_error(
         Slot(5.0, 0.0, 0.0), np.array([5.0 + e_m, 0.0, 0.0]), np.array([e_rate_m_s, 0.0, 0.0]), 0.0
     )
-    return np.asarray(accel_lead(np.array(a), err, FormationConfig(**kw)))  # type: ignore[arg-type]
+    cfg = FormationConfig(**{"leader_accel_yield_m": 0.07, "leader_accel_yield_dead_m": 0.03, **kw})
+    return np.asarray(accel_lead(np.array(a), err, cfg))
 
 
 def test_the_lead_yields_where_it_would_push_a_growing_range_error_further() -> None:
