@@ -188,7 +188,10 @@ def test_a_yielded_lead_only_ever_loses_its_along_sight_part(
     full = _lead(a, e_m, e_rate_m_s, leader_accel_yield_m=0.0)
     got = _lead(a, e_m, e_rate_m_s)
     assert got[1] == pytest.approx(full[1], abs=1e-12)  # across the line of sight (east): untouched
-    assert 0.0 <= got[0] / full[0] <= 1.0 if full[0] != 0.0 else got[0] == 0.0
+    if full[0] == 0.0:
+        assert got[0] == 0.0
+    else:  # along the line of sight (north): kept, shrunk or gone, never reversed or grown
+        assert 0.0 <= got[0] / full[0] <= 1.0
 
 
 def test_the_range_gain_can_be_given_per_command() -> None:
