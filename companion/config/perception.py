@@ -199,3 +199,14 @@ class TrackerConfig(Section):
     jerk_std_m_s3: float = Field(3.0, gt=0)
     accel_tau_s: float = Field(2.0, gt=0)
     init_accel_std_m_s2: float = Field(1.0, gt=0)
+    #: A track that never had stereo depth and stays over ``far_field_margin_m`` beyond the slot's range
+    #: is dropped once the follower has flown ``far_field_flown_m`` toward it and its range fell by less
+    #: than ``far_field_closure`` of that: something at infinity (a gap between clouds) keeps its bearing
+    #: and its box size however the follower flies, and a follower chasing one climbed 32 m in 30 s.
+    #: Boxes without depth within ``far_field_cone_deg`` of its bearing are then ignored for
+    #: ``far_field_ignore_s``. 0 m flown = off.
+    far_field_flown_m: float = Field(6.0, ge=0.0)
+    far_field_closure: float = Field(0.25, ge=0.0, lt=1.0)
+    far_field_margin_m: float = Field(1.0, ge=0.0)
+    far_field_cone_deg: float = Field(5.0, gt=0.0, lt=90.0)
+    far_field_ignore_s: float = Field(120.0, ge=0.0)

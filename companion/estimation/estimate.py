@@ -116,6 +116,8 @@ class TrackState:
     #: Share of this track's last ``quality_window_frames`` frames that had a detection in its gate
     #: (0 without a track): a phantom built of sporadic false detections stays low.
     recent_hit_ratio: float = 0.0
+    #: The track was dropped at this step as far-field (it never came closer: sky, glare); status LOST.
+    far_field: bool = False
 
     @property
     def usable(self) -> bool:
@@ -143,4 +145,5 @@ class TrackState:
             recent_hit_ratio=float(self.recent_hit_ratio),
             var_ned_rel_m2=(float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])),
             a_ned_leader_m_s2=None if a is None else (float(a[0]), float(a[1]), float(a[2])),
+            far_field=self.far_field,
         )

@@ -46,6 +46,9 @@ class LeaderEstimate:
     #: The leader's own acceleration, NED m/s^2, when the tracker estimates it
     #: (``tracker.leader_accel_filter``).
     a_ned_leader_m_s2: Vec3T | None = None
+    #: The tracker dropped this track as far-field (it never came closer however far the follower flew at
+    #: it: sky, glare); its status is LOST and where it was says nothing of where the leader is.
+    far_field: bool = False
 
     @property
     def usable(self) -> bool:

@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from companion.config import Config, LeaderConfig, PoseConfig, SafetyConfig, TrackerConfig
 from companion.estimation.estimate import TrackState
+from companion.estimation.far_field import FarFieldCheck, FarFieldRejection
 from companion.estimation.identity import LeaderIdentity
 from companion.estimation.leader import ObstacleAhead, TrackStatus
 from companion.estimation.tracker import TargetTracker
@@ -56,6 +57,7 @@ class PerceptionPipeline:
         *,
         safety: SafetyConfig | None = None,
         guard_brake_m_s2: float | None = None,
+        slot_range_m: float | None = None,
     ) -> None:
         self.leader = leader
         #: The depth guard's settings; None or ``depth_guard`` off: :meth:`obstacle` returns None.
@@ -70,6 +72,20 @@ class PerceptionPipeline:
         #: The follower's own velocity from telemetry (ego-motion for the tracker); may stay empty.
         self.velocity = VelocityHistory()
         self.counters = PipelineCounters()
+        #: Drops a track that never comes closer (sky, glare); None without a slot range or when off.
+        self.far_field = (
+            FarFieldCheck(
+                flown_m=tracker.far_field_flown_m,
+                closure_fraction=tracker.far_field_closure,
+                min_range_m=slot_range_m + tracker.far_field_margin_m,
+                cone_deg=tracker.far_field_cone_deg,
+                ignore_s=tracker.far_field_ignore_s,
+            )
+            if slot_range_m is not None and tracker.far_field_flown_m > 0.0
+            else None
+        )
+        #: The far-field drop of the last :meth:`track` call, if it dropped one (for the service log).
+        self.far_field_rejection: FarFieldRejection | None = None
         #: Formations: keeps the track on the leader among look-alike neighbours (None: a lone follower).
         self.identity: LeaderIdentity | None = None
         self.size = (
@@ -100,6 +116,7 @@ class PerceptionPipeline:
             CameraGeometry.from_mount(cfg.camera.mount),
             safety=cfg.safety,
             guard_brake_m_s2=guard_brake_m_s2,
+            slot_range_m=float(np.linalg.norm(cfg.formation.offset_cam_m)),
         )
 
     def measure(self, frame: RgbdFrame, detections: Sequence[Detection]) -> list[LeaderMeasurement]:
@@ -150,13 +167,38 @@ class PerceptionPipeline:
             measurements = [
                 m for m in measurements if ident.keep(*self._ned_rel(m.p_cam_leader_m, m.cov_cam_m2, R))
             ]
-        state = self.tracker.step(stamp_s, measurements, R, self.velocity.v_at(stamp_s))
+        far = self.far_field
+        if far is not None and far.ignoring and measurements:
+            measurements = [
+                m
+                for m in measurements
+                if m.range_source == "depth"
+                or not far.ignores(stamp_s, self.camera.cam_to_ned_rel(m.p_cam_leader_m, R))
+            ]
+        v_ned_m_s = self.velocity.v_at(stamp_s)
+        state = self.tracker.step(stamp_s, measurements, R, v_ned_m_s)
         if ident is not None and state.status == TrackStatus.CONFIRMED and state.estimate is not None:
             est = state.estimate
             if ident.check_track(stamp_s, est.p_ned_rel_m, _sigma_m(est.cov_ned_m2)):
                 # Start again from this frame's measurements that fit the leader.
                 self.tracker.reset()
-                state = self.tracker.step(stamp_s, measurements, R, self.velocity.v_at(stamp_s))
+                state = self.tracker.step(stamp_s, measurements, R, v_ned_m_s)
+        self.far_field_rejection = None
+        if far is not None:
+            meas = state.measurement
+            track_est = state.estimate
+            rejection = far.step(
+                stamp_s,
+                state.track_id,
+                meas is not None and meas.range_source == "depth",
+                None if track_est is None else track_est.p_ned_rel_m,
+                v_ned_m_s,
+            )
+            if rejection is not None:
+                # Told as lost this once (the mission then searches without coasting toward it), then gone.
+                self.far_field_rejection = rejection
+                self.tracker.reset()
+                state = replace(state, status=TrackStatus.LOST, far_field=True)
         if self.size is not None and state.measurement is not None and state.status == TrackStatus.CONFIRMED:
             self.size.update(state.measurement)
         return state

@@ -169,6 +169,8 @@ class FlightService:
         if self.pipeline.identity is not None:
             self.pipeline.identity.set(*self._expect(frame.stamp_s))
         track = self.pipeline.process(frame, result.detections)
+        if self.pipeline.far_field_rejection is not None:
+            log.warning("%s", self.pipeline.far_field_rejection.describe())
         self.stage.after_track(track)
         self.track = track
         est = track.leader_estimate()

@@ -100,6 +100,24 @@ def test_no_estimate_is_not_zero_error() -> None:
     assert m.outcome == "aborted"
 
 
+def test_a_run_ending_in_formation_far_from_its_slot_strayed() -> None:
+    """Ended in FOLLOW, on its slot: completed; ended in FOLLOW 30 m from it (a cloud chased): strayed."""
+    for leader_n_m, outcome in ((5.0, "completed"), (35.0, "strayed")):
+        rec = FlightRecorder()
+        for i in range(10):
+            rec.tick(
+                i * 0.1,
+                (0, 0, -5),
+                (leader_n_m, 0, -5),
+                0.0,
+                None,
+                formation=True,
+                gps_ok=True,
+                state="FOLLOW",
+            )
+        assert compute_metrics(rec.freeze(), OFFSET).outcome == outcome
+
+
 def test_outcomes() -> None:
     rec = circle_flight(n=20)
     rec.landed = True

@@ -572,6 +572,28 @@ def test_coasting_on_a_leader_lost_hovering_holds_station() -> None:
         assert out.setpoint.v_body_m_s[:2] == pytest.approx((expect_n, expect_e), abs=1e-6), v_leader
 
 
+def test_a_track_dropped_as_far_field_is_searched_for_from_where_the_follower_is() -> None:
+    """A track the tracker drops as far-field (a cloud the follower chased at 2 m/s) is not coasted on:
+    the follower stops and searches; the same loss of a real track coasts on at its velocity."""
+    for far_field, expect_v_n in ((True, 0.0), (False, 2.0)):
+        h = Harness(cfg=cfg_with(reacquire_coast_s=2.0))
+        h.to_follow()
+        h.leader_v = (2.0, 0.0, 0.0)
+        h.run(0.2)
+        h.leader_mode = "frozen"
+        h._frozen = dataclasses.replace(
+            leader(h.now_s, TrackStatus.LOST, h.leader_p, h.leader_v), far_field=far_field
+        )
+        h.step()
+        assert h.state == S.REACQUIRE
+        assert ("far-field" in h.last_transition().detail) == far_field
+        outs = h.run(1.5)
+        assert all(o.state == S.REACQUIRE for o in outs)
+        assert all(isinstance(o.setpoint, VelocityBodySetpoint) for o in outs)
+        v_n = [o.setpoint.v_body_m_s[0] for o in outs if isinstance(o.setpoint, VelocityBodySetpoint)]
+        assert v_n[-1] == pytest.approx(expect_v_n, abs=1e-6), far_field
+
+
 def test_reacquire_looks_at_a_candidate_but_does_not_fly_to_it() -> None:
     """While scanning, an unsteady track turns the camera onto it (so it stays in view), nothing more."""
     cfg = cfg_with(reacquire_coast_s=0.5, reacquire_scan_s=10.0)

@@ -58,7 +58,9 @@ TARGETS: Mapping[str, Mapping[str, float]] = {
     },
 }
 FORMATION_STATES = frozenset({"FOLLOW", "FOLLOW_VISION"})
-OUTCOMES = ("completed", "landed_safely", "aborted", "crashed")
+OUTCOMES = ("completed", "strayed", "landed_safely", "aborted", "crashed")
+#: A run that ends in formation this far from its slot (m) followed something else than the leader.
+STRAYED_M = 5.0
 
 
 def offset_cam_to_level_body(offset_cam_m: Sequence[float]) -> F64:
@@ -186,14 +188,18 @@ def join_figures(log: FlightLog, offset_cam_m: Sequence[float]) -> tuple[float |
     return float(t[k]), max(0.0, float(past.max()))
 
 
-def outcome_of(log: FlightLog) -> str:
-    """Completed (ended in formation), landed_safely, aborted (ended otherwise in the air), or crashed."""
+def outcome_of(log: FlightLog, end_error_m: float | None = None) -> str:
+    """How a run ended: completed, strayed, landed_safely, aborted or crashed.
+
+    Completed: in formation; strayed: in formation but over ``STRAYED_M`` from the slot (``end_error_m``,
+    the last formation error, m); aborted: otherwise in the air.
+    """
     if log.crashed:
         return "crashed"
     if log.landed:
         return "landed_safely"
     if log.state and log.state[-1] in FORMATION_STATES:
-        return "completed"
+        return "strayed" if end_error_m is not None and end_error_m > STRAYED_M else "completed"
     return "aborted"
 
 
@@ -218,7 +224,7 @@ def compute_metrics(log: FlightLog, offset_cam_m: Sequence[float]) -> FlightMetr
         perception_latency_ms=percentiles_ms(log.frame_latency_ms),
         frames=n_frames,
         formation_s=float(dt[log.formation].sum()) if log.t_s.size else 0.0,
-        outcome=outcome_of(log),
+        outcome=outcome_of(log, float(form_err[-1]) if form_err.size else None),
         join_s=join_s,
         join_overshoot_m=join_overshoot_m,
     )

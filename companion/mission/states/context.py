@@ -281,7 +281,9 @@ class MissionContext:
         """Leader lost: remember where it was going (coast) and which way to scan, then REACQUIRE."""
         veh = inp.vehicle
         self.attitude_kind = self.flying_attitude()
-        last = self.last_leader
+        # A track dropped as far-field was never the leader: search from here, without coasting toward it.
+        far = inp.leader is not None and inp.leader.far_field
+        last = None if far else self.last_leader
         if last is not None:
             p_rel, v_rel = np.array(last.p_ned_rel_m), np.array(last.v_ned_rel_m_s)
             age = max(0.0, self.now_s - last.stamp_s)

@@ -35,7 +35,7 @@ class FollowPhase:
             self.c.enter_hover(inp)
             return None
         if not est.usable:
-            self.c.enter_reacquire(inp, est.status.value)
+            self.c.enter_reacquire(inp, "far-field track dropped" if est.far_field else est.status.value)
             return None
         return est
 
