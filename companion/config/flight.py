@@ -65,6 +65,15 @@ class FormationConfig(Section):
     #: estimate's velocity is extrapolated, and the faster lead amplified it (circle seed 3 with tau 0.2 and
     #: the lead kept: 1.34 m, the follower past the leader at 1.51 m).
     accel_lead_while_coasting: bool = False
+    #: A leader that shares its autopilot's velocity (``leader.shared_position = "mqtt"``) is led on that
+    #: velocity and its acceleration (the change between consecutive shares, low-passed per share over
+    #: ``shared_accel_tau_s``, the velocity carried forward over the share's age), not on the camera's,
+    #: while a share younger than ``shared_motion_max_age_s`` carries one: the camera's positions
+    #: differentiated twice read a leader's start 0.3-0.5 s late. REACQUIRE coasts on it too. False: the
+    #: camera's estimate alone (a formation plan still takes the shared velocity).
+    lead_on_shared_motion: bool = True
+    shared_accel_tau_s: float = Field(0.1, gt=0.0, le=2.0)
+    shared_motion_max_age_s: float = Field(0.4, gt=0.0, le=2.0)
     #: Bring each leader estimate from its frame's capture instant to the control tick, with the
     #: follower's own motion in between (companion/mission/ego.py). False flies on the estimate as
     #: captured (the paper's way): for comparison campaigns only.

@@ -114,7 +114,7 @@ class FormationLaw:
         self._v_slot_prev = None
         self._a_slot = np.zeros(3)
 
-    def _leader_accel(self, v_leader: Vec3 | None, dt: float, a_track: Vec3T | None = None) -> Vec3:
+    def _leader_accel(self, v_leader: Vec3 | None, dt: float, a_track: Vec3T | Vec3 | None = None) -> Vec3:
         """The leader's acceleration, bounded by the law's acceleration cap.
 
         The tracker's estimate ``a_track`` where it has one (``tracker.leader_accel_filter``), else the
@@ -171,7 +171,7 @@ class FormationLaw:
         follower: FollowerState,
         now_s: float,
         *,
-        a_leader_ned_m_s2: Vec3T | None = None,
+        a_leader_ned_m_s2: Vec3T | Vec3 | None = None,
         obstacle_ned_m: Vec3 | None = None,
         slew_m_s2: float | None = None,
         coasting: bool = False,

@@ -128,6 +128,8 @@ class MissionMachine:
         self.c.transitions = []
         self._absorb(inp.command_results)
         veh = inp.vehicle
+        if self.c.shared_motion is not None:
+            self.c.leader_motion = self.c.shared_motion.update(inp.leader_shared, now_s)
         self._seed_hover_thrust(veh)
         self.c.gps.update(veh, now_s)
         if self.c.gps.ok and veh.position_valid is not False:
@@ -174,6 +176,8 @@ class MissionMachine:
             vision_mode=self.c.vision_mode if self.c.state == MissionState.FOLLOW_VISION else None,
             formation_error_ned_m=None if err is None else (float(err[0]), float(err[1]), float(err[2])),
             operator_refused=refused,
+            led_on_shared_motion=self.c.leader_motion is not None
+            and self.c.state in (MissionState.FOLLOW, MissionState.REACQUIRE),
         )
 
     @property

@@ -7,7 +7,7 @@ these. The mission depends on no module that produces them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from companion.estimation.leader import LeaderEstimate, ObstacleAhead
 from companion.kernel.compat import StrEnum
@@ -266,4 +266,6 @@ class StepOutput:
     formation_error_ned_m: Vec3T | None = None
     #: Why this step refused the operator's request (None: no request, or it was taken).
     operator_refused: str | None = None
-    notes: dict[str, float] = field(default_factory=dict)
+    #: This step flew on the leader's own shared velocity and acceleration
+    #: (``formation.lead_on_shared_motion``).
+    led_on_shared_motion: bool = False

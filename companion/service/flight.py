@@ -358,6 +358,8 @@ class FlightService:
             vehicle=vehicle_summary(v, now_s, getattr(self.raw_link, "system_id", None)),
             leader=self._leader_summary(now_s),
             formation_error_ned_m=out.formation_error_ned_m if out is not None else None,
+            leader_share_age_s=None if self._shared is None else now_s - self._shared.stamp_s,
+            led_on_leader_share=out is not None and out.led_on_shared_motion,
             preflight_problems=self.machine.preflight_problems(v),
         )
 

@@ -72,6 +72,10 @@ class FlightSnapshot:
     leader: LeaderSummary | None = None
     #: Leader position minus the formation slot, NED, m (when the formation law ran).
     formation_error_ned_m: Vec3T | None = None
+    #: How old the leader's last shared position is, s (None: none received), and whether the last step
+    #: flew on the leader's shared motion (``formation.lead_on_shared_motion``).
+    leader_share_age_s: float | None = None
+    led_on_leader_share: bool = False
     #: True once a requested shutdown has reached a safe end (landed and disarmed, or held).
     shutdown_complete: bool = False
     #: On the ground waiting for a start: what keeps the mission from arming now (empty: a start would

@@ -73,6 +73,8 @@ def status_json(
             "step_age_s": _r(clock.now_s() - snap.last_step_s) if snap.last_step_s is not None else None,
             "transitions": transitions,
             "formation_error_ned_m": snap.formation_error_ned_m,
+            "leader_share_age_s": _r(snap.leader_share_age_s),
+            "led_on_leader_share": snap.led_on_leader_share,
         },
         "link": {
             "system_id": v.system_id,

@@ -175,6 +175,8 @@ class Harness:
         self.leader_track_age_s = math.inf
         self.leader_hit_ratio = 1.0
         self.shared: tuple[float, float, float] | None = None
+        #: The velocity the leader shares with its position (NED, m/s), if any.
+        self.shared_v: tuple[float, float, float] | None = None
         #: The depth guard's reading offered each step (relative NED, m) and how old it is, s.
         self.obstacle: tuple[float, float, float] | None = None
         self.obstacle_age_s = 0.0
@@ -210,7 +212,7 @@ class Harness:
         self.ap.advance(DT_S)
         shared = None
         if self.shared is not None:
-            shared = SharedLeaderPosition(stamp_s=self.now_s, p_ned_m=self.shared)
+            shared = SharedLeaderPosition(stamp_s=self.now_s, p_ned_m=self.shared, v_ned_m_s=self.shared_v)
         inp = MissionInputs(
             vehicle=self.ap.state(self.now_s),
             leader=self._leader(),

@@ -572,6 +572,53 @@ def test_coasting_on_a_leader_lost_hovering_holds_station() -> None:
         assert out.setpoint.v_body_m_s[:2] == pytest.approx((expect_n, expect_e), abs=1e-6), v_leader
 
 
+def test_a_leader_that_shares_its_velocity_is_led_on_it() -> None:
+    """The camera still sees the leader hovering in its slot while the leader's shares say it sets off
+    north at 1 m/s^2: half a second later the follower is commanded north, at least the leader's shared
+    speed (0.5 m/s) and then some for its acceleration; with ``lead_on_shared_motion`` off it waits for
+    the camera (a lone follower: no formation plan)."""
+    for on in (True, False):
+        cfg = Config(formation=FormationConfig(lead_on_shared_motion=on))
+        h = Harness(cfg=cfg)
+        h.to_follow()
+        h.shared = (5.0, 0.0, -5.0)
+        h.shared_v = (0.0, 0.0, 0.0)
+        h.run(0.5)
+        t0 = h.now_s
+        out = None
+        for _ in range(10):
+            h.shared_v = (1.0 * (h.now_s + 0.05 - t0), 0.0, 0.0)
+            out = h.step()
+        assert out is not None
+        assert isinstance(out.setpoint, VelocityBodySetpoint)
+        v_n = out.setpoint.v_body_m_s[0]
+        if on:
+            assert v_n > 0.6, v_n
+        else:
+            assert abs(v_n) < 0.1, v_n
+
+
+def test_reacquire_coasts_on_the_leaders_shared_velocity() -> None:
+    """A leader lost while the camera had it hovering, which shares that it flies east at 1.5 m/s, is
+    coasted after at that velocity (not held station on), and keeps being as its shares change."""
+    h = Harness(cfg=cfg_with(reacquire_coast_s=2.0))
+    h.to_follow()
+    h.shared = (5.0, 0.0, -5.0)
+    h.shared_v = (0.0, 1.5, 0.0)
+    h.run(0.2)
+    h.leader_status = TrackStatus.LOST
+    out = h.step()
+    assert h.state == S.REACQUIRE
+    out = h.step()
+    assert isinstance(out.setpoint, VelocityBodySetpoint)
+    assert out.setpoint.v_body_m_s[:2] == pytest.approx((0.0, 1.5), abs=1e-6)
+    h.shared_v = (1.0, 1.0, 0.0)
+    h.run(0.5)
+    out = h.step()
+    assert isinstance(out.setpoint, VelocityBodySetpoint)
+    assert out.setpoint.v_body_m_s[:2] == pytest.approx((1.0, 1.0), abs=1e-6)
+
+
 def test_a_track_dropped_as_far_field_is_searched_for_from_where_the_follower_is() -> None:
     """A track the tracker drops as far-field (a cloud the follower chased at 2 m/s) is not coasted on:
     the follower stops and searches; the same loss of a real track coasts on at its velocity."""

@@ -69,6 +69,8 @@ TRUTH_RATE_HZ = 50.0
 #: How often the leader's companion shares its position, Hz (both harnesses; the service's default share
 #: limits take 2 s of age).
 LEADER_SHARE_HZ = 10.0
+#: How late a share arrives (MQTT between two companions), s.
+LEADER_SHARE_LATENCY_S = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -393,7 +395,7 @@ class LockstepRun:
                 options.auto_label_sequence,
                 options.truth_label_dir,
             )
-        shares = ShareBus(LEADER_SHARE_HZ, 0.0) if f.takes_shares else None
+        shares = ShareBus(LEADER_SHARE_HZ, LEADER_SHARE_LATENCY_S) if f.takes_shares else None
         self.flight = LockstepFlight(world, self.clock, [f], shares=shares, progress=options.progress)
 
     async def run(self) -> RunResult:
@@ -416,6 +418,7 @@ class LockstepRun:
                 "camera_timing": f.camera_timing.summary(),
                 "detector_compute_ms": _percentiles(f.compute_ms),
                 "control_tick_ages_ms": f.observer.timing(),
+                "ticks_led_on_leader_share": f.observer.ticks_led_on_share,
                 "camera_rate_hz": sc.run.camera_rate_hz,
                 "link": {
                     "setpoints_sent": counters.setpoints_sent,

@@ -277,6 +277,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
             "camera_rate_hz": scenario.run.camera_rate_hz,
             "service_latency_ms": latency,
             "control_tick_ages_ms": observer.timing(),
+            "ticks_led_on_leader_share": observer.ticks_led_on_share,
             "frames_received": service.frames() if service is not None else {},
             "run_wall_s": round(time.perf_counter() - wall0, 2),
             "run_cpu_s": {k: round(v - cpu0[k], 2) for k, v in _cpu_s().items()},

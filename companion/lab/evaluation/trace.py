@@ -56,6 +56,9 @@ class RunObserver:
     #: Per tick: the attitude telemetry's age and the leader estimate's age (capture to control), s.
     telemetry_age_s: list[float] = field(default_factory=list)
     estimate_age_s: list[float] = field(default_factory=list)
+    #: Per tick with a leader share: its age (shared to control), s; and the ticks flown on it.
+    share_age_s: list[float] = field(default_factory=list)
+    ticks_led_on_share: int = 0
     _next_snapshot: int = 0
 
     def on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
@@ -68,6 +71,9 @@ class RunObserver:
             self.telemetry_age_s.append(att_age_s)
         if est is not None and est.usable:
             self.estimate_age_s.append(now_s - est.stamp_s)
+        if inputs.leader_shared is not None:
+            self.share_age_s.append(now_s - inputs.leader_shared.stamp_s)
+        self.ticks_led_on_share += out.led_on_shared_motion
         trace = {
             "state": out.state.name,
             "att_age_s": round(att_age_s, 4),
@@ -76,6 +82,7 @@ class RunObserver:
             "v_ned_m_s": [round(c, 3) for c in v.v_ned_m_s],
             "alt_rel_m": round(v.alt_rel_m, 3),
             "setpoint": None if sp is None else {k: getattr(sp, k) for k in type(sp).__slots__},
+            "led_on_share": out.led_on_shared_motion,
         }
         transitions = [
             (tr.stamp_s, tr.from_state.name, tr.to_state.name, tr.reason.name) for tr in out.transitions
@@ -86,11 +93,13 @@ class RunObserver:
     def timing(self) -> dict[str, dict[str, float | None]]:
         """The ages the control ticks saw, ms (p50/p95/max).
 
-        The attitude telemetry's age at the tick, and the leader estimate's age (from its frame's capture).
+        The attitude telemetry's age at the tick, the leader estimate's age (from its frame's capture) and,
+        where the leader shares its position, the share's age (from the leader's fix).
         """
         return {
             "telemetry_age_ms": _pcts_ms(self.telemetry_age_s),
             "leader_estimate_age_ms": _pcts_ms(self.estimate_age_s),
+            "leader_share_age_ms": _pcts_ms(self.share_age_s),
         }
 
     def write_trace(self, path: Path) -> None:

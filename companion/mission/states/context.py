@@ -26,6 +26,7 @@ from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
 from companion.mission.offboard import CommandBook, OffboardStream
 from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
 from companion.mission.safety import SafetyLimits
+from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion
 from companion.mission.types import (
     CommandKind,
     CommandResult,
@@ -132,6 +133,14 @@ class MissionContext:
         #: A formation plan's slot, turned with the leader's shared heading (None: a lone follower).
         slot = cfg.formation.slot_leader_m
         self.slot_turner = SlotTurner(slot) if slot is not None else None
+        f = cfg.formation
+        #: The leader's own motion from its shares (``formation.lead_on_shared_motion``), and this tick's.
+        self.shared_motion = (
+            SharedLeaderMotion(f.shared_accel_tau_s, f.shared_motion_max_age_s, f.max_accel_m_s2)
+            if f.lead_on_shared_motion
+            else None
+        )
+        self.leader_motion: LeaderMotion | None = None
 
     # ------------------------------------------------------------------ plumbing
     def go(self, state: MissionState, reason: Reason, detail: str = "") -> None:
@@ -287,8 +296,9 @@ class MissionContext:
         if last is not None:
             p_rel, v_rel = np.array(last.p_ned_rel_m), np.array(last.v_ned_rel_m_s)
             age = max(0.0, self.now_s - last.stamp_s)
-            v_leader = np.array(veh.v_ned_m_s) + v_rel
-            if math.hypot(v_leader[0], v_leader[1]) < HOVERING_LEADER_M_S:
+            motion = self.leader_motion
+            v_leader = np.array(veh.v_ned_m_s) + v_rel if motion is None else motion.v_ned_m_s.copy()
+            if motion is None and math.hypot(v_leader[0], v_leader[1]) < HOVERING_LEADER_M_S:
                 # Its estimated velocity is noise: coasting on it flew the follower away from its slot.
                 v_leader = np.zeros(3)
                 self.hold_p_ned_m = np.array(veh.p_ned_m)

@@ -50,18 +50,20 @@ class FollowPhase:
         p_rel, v_rel = self.relative_now(est, veh)
         f = self.c.cfg.formation
         steady = self._steady(est)
+        motion = self.c.leader_motion
         cmd = self.c.law.velocity(
             p_rel,
             v_rel,
             self.c.follower(veh, velocity_valid=True),
             self.c.now_s,
-            a_leader_ned_m_s2=est.a_ned_leader_m_s2,
+            a_leader_ned_m_s2=est.a_ned_leader_m_s2 if motion is None else motion.a_ned_m_s2,
             obstacle_ned_m=self.c.obstacle_now(inp),
             slew_m_s2=f.command_slew_steady_m_s2 if steady else f.command_slew_m_s2,
             kp_range_1_s=f.kp_xy_steady if steady else f.kp_xy,
-            coasting=est.status == TrackStatus.COASTING,
+            # The shared motion does not stop when the camera misses the leader.
+            coasting=est.status == TrackStatus.COASTING and motion is None,
             slot_target=self.c.slot_target(inp),
-            v_leader_ned_m_s=self._shared_leader_velocity(inp),
+            v_leader_ned_m_s=self._shared_leader_velocity(inp) if motion is None else motion.v_ned_m_s,
             join=self.c.join.reference(self.c.law.slot, p_rel, veh.yaw_rad, self.c.now_s),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
@@ -110,6 +112,10 @@ class FollowPhase:
         if est is None or shared is None or self.c.ages.age_s(shared.stamp_s, self.c.now_s) > SHARED_STALE_S:
             return None
         p = np.array(shared.p_ned_m) - np.array(est.p_ned_rel_m)
+        if shared.v_ned_m_s is not None:
+            # The leader where it was when the frame was taken, not when it shared its position.
+            dt_s = min(max(est.stamp_s - shared.stamp_s, -SHARED_STALE_S), SHARED_STALE_S)
+            p += np.asarray(shared.v_ned_m_s) * dt_s
         var = np.array(shared.variance_m2) + np.array(est.var_ned_rel_m2)
         veh = inp.vehicle
         return ExternalPosition(

@@ -1,10 +1,10 @@
 """REACQUIRE and HOVER: the leader lost or its estimate stale, in the air.
 
 REACQUIRE coasts on the leader's last velocity (GPS healthy; a leader lost hovering: the follower holds
-where it was), then scans in yaw toward where it was last seen, and takes the leader again on a steady
-track, or sooner on a confirmed one where the leader was lost; HOVER holds on the vehicle's own telemetry
-while perception stalls. Both abort after their timeouts (``reacquire_coast_s + reacquire_scan_s``,
-``stall_hover_s``).
+where it was; the leader's own velocity while fresh shares carry one), then scans in yaw toward where it
+was last seen, and takes the leader again on a steady track, or sooner on a confirmed one where the leader
+was lost; HOVER holds on the vehicle's own telemetry while perception stalls. Both abort after their
+timeouts (``reacquire_coast_s + reacquire_scan_s``, ``stall_hover_s``).
 """
 
 from __future__ import annotations
@@ -72,6 +72,12 @@ class RecoveryPhase:
             # closing on that guess (see FormationLaw.coast_velocity); looking at a candidate instead
             # when there is one, which the separation barrier then also holds off.
             p_leader = self.c.leader_lost_p_ned_m + self.c.leader_lost_v_ned_m_s * t
+            motion = self.c.leader_motion
+            if motion is not None:
+                # The leader's own velocity as it shares it: the dead reckoning goes on from here at it.
+                self.c.leader_lost_v_ned_m_s = motion.v_ned_m_s.copy()
+                self.c.leader_lost_p_ned_m = p_leader - motion.v_ned_m_s * t
+                self.c.hold_p_ned_m = None
             p_rel = p_leader - np.array(veh.p_ned_m) if candidate is None else candidate
             return self.c.law.coast_velocity(
                 self.c.leader_lost_v_ned_m_s,

@@ -1,0 +1,66 @@
+"""The leader's own velocity and acceleration from what it shares, brought to now; pure.
+
+A leader that shares its autopilot's velocity (``leader.shared_position = "mqtt"``: 10 Hz, a tenth of a
+second late) tells the follower when it speeds up far sooner than the camera can: the camera's positions
+have to be differentiated twice, and a filter steady enough to lead on reads a start 0.3-0.5 s late. The
+acceleration here is the change between consecutive shares, low-passed per share, and the shared velocity
+is carried forward by it over the share's age.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.kernel.frames import Vec3
+from companion.mission.types import SharedLeaderPosition
+
+#: Shares further apart than this start the acceleration afresh (a gap in the link), s.
+MAX_SHARE_GAP_S = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderMotion:
+    """The leader's velocity at the control instant and its acceleration, NED (m/s, m/s^2)."""
+
+    v_ned_m_s: Vec3
+    a_ned_m_s2: Vec3
+
+
+class SharedLeaderMotion:
+    """The leader's motion from its shares: ``tau_s`` low-pass per share, unused past ``max_age_s``."""
+
+    def __init__(self, tau_s: float, max_age_s: float, max_accel_m_s2: float) -> None:
+        self.tau_s = tau_s
+        self.max_age_s = max_age_s
+        self.max_accel_m_s2 = max_accel_m_s2
+        self._stamp_s: float | None = None
+        self._v = np.zeros(3)
+        self._a = np.zeros(3)
+
+    def reset(self) -> None:
+        self._stamp_s = None
+        self._a = np.zeros(3)
+
+    def update(self, share: SharedLeaderPosition | None, now_s: float) -> LeaderMotion | None:
+        """The motion at ``now_s`` (same clock as ``share.stamp_s``), or None without a fresh share."""
+        if share is None or share.v_ned_m_s is None:
+            self.reset()
+            return None
+        if share.stamp_s != self._stamp_s:
+            v = np.asarray(share.v_ned_m_s, dtype=np.float64)
+            gap_s = None if self._stamp_s is None else share.stamp_s - self._stamp_s
+            if gap_s is not None and 0.0 < gap_s <= MAX_SHARE_GAP_S:
+                raw = (v - self._v) / gap_s
+                n = float(np.linalg.norm(raw))
+                if n > self.max_accel_m_s2:
+                    raw *= self.max_accel_m_s2 / n
+                self._a += (gap_s / (self.tau_s + gap_s)) * (raw - self._a)
+            else:
+                self._a = np.zeros(3)
+            self._stamp_s, self._v = share.stamp_s, v
+        age_s = now_s - share.stamp_s
+        if not 0.0 <= age_s <= self.max_age_s:
+            return None
+        return LeaderMotion(self._v + self._a * age_s, self._a.copy())

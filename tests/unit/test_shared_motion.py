@@ -1,0 +1,57 @@
+"""The leader's own motion from its shares: the acceleration between them, brought to now, none when stale."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.mission.shared_motion import SharedLeaderMotion
+from companion.mission.types import SharedLeaderPosition
+
+
+def _share(t_s: float, v_n: float) -> SharedLeaderPosition:
+    return SharedLeaderPosition(t_s, (0.0, 0.0, -5.0), v_ned_m_s=(v_n, 0.0, 0.0))
+
+
+def test_a_leader_speeding_up_is_read_within_a_few_shares_and_carried_to_now() -> None:
+    """10 Hz shares of a leader speeding up at 1 m/s^2: the acceleration is 0.85 m/s^2 or more after four
+    shares, and the velocity is brought forward over the share's age (0.1 s late here)."""
+    m = SharedLeaderMotion(tau_s=0.1, max_age_s=0.4, max_accel_m_s2=3.0)
+    out = None
+    for k in range(4):
+        t_s = 10.0 + 0.1 * k
+        out = m.update(_share(t_s, 1.0 * (t_s - 10.0)), t_s + 0.1)
+    assert out is not None
+    assert out.a_ned_m_s2[0] > 0.85
+    assert out.v_ned_m_s[0] == pytest.approx(0.3 + out.a_ned_m_s2[0] * 0.1)
+
+
+def test_the_same_share_seen_again_does_not_change_the_acceleration() -> None:
+    """Control ticks come faster than shares: a share already seen only ages, its acceleration unchanged."""
+    m = SharedLeaderMotion(tau_s=0.1, max_age_s=0.4, max_accel_m_s2=3.0)
+    m.update(_share(10.0, 0.0), 10.0)
+    first = m.update(_share(10.1, 0.1), 10.1)
+    again = m.update(_share(10.1, 0.1), 10.15)
+    assert first is not None
+    assert again is not None
+    assert again.a_ned_m_s2 == pytest.approx(first.a_ned_m_s2)
+    assert again.v_ned_m_s[0] == pytest.approx(0.1 + first.a_ned_m_s2[0] * 0.05)
+
+
+def test_a_stale_share_or_one_without_velocity_gives_nothing() -> None:
+    m = SharedLeaderMotion(tau_s=0.1, max_age_s=0.4, max_accel_m_s2=3.0)
+    assert m.update(_share(10.0, 1.0), 10.5) is None
+    assert m.update(SharedLeaderPosition(10.6, (0.0, 0.0, -5.0)), 10.6) is None
+    assert m.update(None, 10.7) is None
+
+
+def test_a_gap_between_shares_or_a_jump_gives_no_spike() -> None:
+    """Shares 2 s apart start the acceleration afresh; a velocity jump is bounded by the law's cap."""
+    m = SharedLeaderMotion(tau_s=0.1, max_age_s=0.4, max_accel_m_s2=3.0)
+    m.update(_share(10.0, 0.0), 10.0)
+    out = m.update(_share(12.0, 2.0), 12.0)
+    assert out is not None
+    assert np.allclose(out.a_ned_m_s2, 0.0)
+    out = m.update(_share(12.1, 12.0), 12.1)
+    assert out is not None
+    assert float(np.linalg.norm(out.a_ned_m_s2)) <= 3.0
