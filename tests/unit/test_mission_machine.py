@@ -662,6 +662,30 @@ def test_reacquire_looks_at_a_candidate_but_does_not_fly_to_it() -> None:
     assert all(sp.v_body_m_s[:2] == (0.0, 0.0) for sp in sps)
 
 
+def test_reacquire_looks_where_the_leaders_shares_put_it() -> None:
+    """Lost to the right, the leader shares that it is to the left: the scan turns left and stops there
+    (the yaw rate falls as the heading closes on it) instead of sweeping right."""
+    cfg = cfg_with(reacquire_coast_s=0.5, reacquire_scan_s=10.0)
+    h = Harness(cfg=cfg)
+    h.to_follow()
+    h.leader_p = (4.0, 3.0, 0.0)  # last seen to the right: the sweep would turn right
+    h.run(0.2)
+    h.leader_status = TrackStatus.LOST
+    h.step()
+    h.run(0.6)
+    h.shared = (3.0, -4.0, -5.0)
+    h.shared_v = (0.0, 0.0, 0.0)
+    outs = h.run(0.5)
+    sps = [o.setpoint for o in outs if isinstance(o.setpoint, VelocityBodySetpoint)]
+    assert sps
+    assert all(o.state == S.REACQUIRE for o in outs)
+    assert all(sp.yaw_rate_rad_s < 0.0 for sp in sps)
+    h.ap.yaw_rad = math.atan2(-4.0, 3.0)  # facing it
+    sp = h.step().setpoint
+    assert isinstance(sp, VelocityBodySetpoint)
+    assert sp.yaw_rate_rad_s == pytest.approx(0.0, abs=1e-6)
+
+
 def test_reacquire_coasts_then_scans_toward_the_last_bearing_then_aborts() -> None:
     cfg = cfg_with(reacquire_coast_s=2.0, reacquire_scan_s=4.0, leader_lost_action="land")
     h = Harness(cfg=cfg)

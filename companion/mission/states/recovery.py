@@ -2,9 +2,10 @@
 
 REACQUIRE coasts on the leader's last velocity (GPS healthy; a leader lost hovering: the follower holds
 where it was; the leader's own velocity while fresh shares carry one), then scans in yaw toward where it
-was last seen, and takes the leader again on a steady track, or sooner on a confirmed one where the leader
-was lost; HOVER holds on the vehicle's own telemetry while perception stalls. Both abort after their
-timeouts (``reacquire_coast_s + reacquire_scan_s``, ``stall_hover_s``).
+was last seen (or looks where the leader's fresh shares put it), and takes the leader again on a steady
+track, or sooner on a confirmed one where the leader was lost; HOVER holds on the vehicle's own telemetry
+while perception stalls. Both abort after their timeouts (``reacquire_coast_s + reacquire_scan_s``,
+``stall_hover_s``).
 """
 
 from __future__ import annotations
@@ -55,10 +56,14 @@ class RecoveryPhase:
         scanning = t > self.c.m.reacquire_coast_s
         scan_rate = self.c.scan_sign * math.radians(self.c.m.scan_yaw_rate_deg_s) if scanning else 0.0
         candidate = self.c.track.candidate_rel(inp.leader, self.c.now_s)
+        shared = self._shared_leader_rel(inp)
         if candidate is not None and scanning:
             # Look at what the tracker has found, not yet steady, so it stays in view while it proves
             # itself; never fly toward it (a phantom must not pull the follower).
             scan_rate = self._look_rate(candidate, veh.yaw_rad)
+        elif shared is not None and scanning:
+            # The leader says where it is: look there instead of sweeping the horizon.
+            scan_rate = self._look_rate(shared, veh.yaw_rad)
         if self.c.attitude_kind:
             fol = self.c.follower(veh, velocity_valid=False)
             v_down = self._alt_hold_v_down(veh)
@@ -95,6 +100,15 @@ class RecoveryPhase:
         e = self.c.hold_p_ned_m - np.array(veh.p_ned_m)
         v = clamp_norm(STATION_KP_1_S * np.array([e[0], e[1], 0.0]), STATION_MAX_M_S)
         return (float(v[0]), float(v[1]), 0.0)
+
+    def _shared_leader_rel(self, inp: MissionInputs) -> Vec3 | None:
+        """Where the leader's fresh shares put it now, relative to the follower (NED, m; GPS healthy)."""
+        sh, motion = inp.leader_shared, self.c.leader_motion
+        if sh is None or motion is None or not self.c.gps.ok:
+            return None
+        age_s = max(0.0, self.c.now_s - sh.stamp_s)
+        rel: Vec3 = np.asarray(sh.p_ned_m) + motion.v_ned_m_s * age_s - np.asarray(inp.vehicle.p_ned_m)
+        return rel
 
     def _found_where_lost(self, inp: MissionInputs) -> bool:
         """Whether the track is where the lost leader dead-reckons to (coasting, GPS healthy)."""
