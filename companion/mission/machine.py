@@ -176,7 +176,9 @@ class MissionMachine:
             vision_mode=self.c.vision_mode if self.c.state == MissionState.FOLLOW_VISION else None,
             formation_error_ned_m=None if err is None else (float(err[0]), float(err[1]), float(err[2])),
             operator_refused=refused,
+            # FOLLOW and REACQUIRE fly on it in their velocity modes only, which need GPS.
             led_on_shared_motion=self.c.leader_motion is not None
+            and self.c.gps.ok
             and self.c.state in (MissionState.FOLLOW, MissionState.REACQUIRE),
         )
 
