@@ -128,6 +128,7 @@ class MissionMachine:
         self.c.transitions = []
         self._absorb(inp.command_results)
         veh = inp.vehicle
+        self.c.coasted_on_share = False
         if self.c.shared_motion is not None:
             self.c.leader_motion = self.c.shared_motion.update(inp.leader_shared, now_s)
         self._seed_hover_thrust(veh)
@@ -180,6 +181,7 @@ class MissionMachine:
             led_on_shared_motion=self.c.leader_motion is not None
             and self.c.gps.ok
             and self.c.state in (MissionState.FOLLOW, MissionState.REACQUIRE),
+            coasted_on_shared_position=self.c.coasted_on_share and self.c.state == MissionState.FOLLOW,
         )
 
     @property

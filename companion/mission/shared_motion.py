@@ -9,15 +9,19 @@ is carried forward by it over the share's age.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from companion.kernel.flight import Vec3T
 from companion.kernel.frames import Vec3
 from companion.mission.types import SharedLeaderPosition
 
 #: Shares further apart than this start the acceleration afresh (a gap in the link), s.
 MAX_SHARE_GAP_S = 0.5
+#: The camera-to-shares offset is dropped when the camera has not renewed it for this long, s.
+OFFSET_MAX_AGE_S = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,3 +68,52 @@ class SharedLeaderMotion:
         if not 0.0 <= age_s <= self.max_age_s:
             return None
         return LeaderMotion(self._v + self._a * age_s, self._a.copy())
+
+
+def shared_rel_now(
+    share: SharedLeaderPosition, motion: LeaderMotion, p_ned_own_m: Vec3T | Vec3, now_s: float
+) -> Vec3:
+    """Where a fresh share puts the leader now, relative to the follower (NED, m).
+
+    The shared position is carried over its age at the shared velocity; both ends' GPS errors are in it.
+    """
+    age_s = max(0.0, now_s - share.stamp_s)
+    rel: Vec3 = np.asarray(share.p_ned_m) + motion.v_ned_m_s * age_s - np.asarray(p_ned_own_m)
+    return rel
+
+
+class SharedRelativeFix:
+    """The shares' relative position held to the camera's: it stands in while the camera misses (pure).
+
+    The difference between the camera's relative position and the shares' is the two GPS receivers'
+    errors (slow: they drift over tens of seconds) plus the camera's noise; it is averaged over ``tau_s``
+    while the camera sees the leader and added to the shares while it does not. A difference not renewed
+    for ``max_age_s`` is dropped: the receivers' errors have moved on.
+    """
+
+    def __init__(self, tau_s: float, max_age_s: float = OFFSET_MAX_AGE_S) -> None:
+        self.tau_s = tau_s
+        self.max_age_s = max_age_s
+        self._offset_m: Vec3 | None = None
+        self._seen_s = -math.inf
+
+    def reset(self) -> None:
+        self._offset_m = None
+        self._seen_s = -math.inf
+
+    def observe(self, rel_camera_m: Vec3, rel_shared_m: Vec3, now_s: float) -> None:
+        """The camera sees the leader at ``rel_camera_m`` while the shares put it at ``rel_shared_m``."""
+        d = np.asarray(rel_camera_m, dtype=np.float64) - rel_shared_m
+        dt = now_s - self._seen_s
+        if self._offset_m is None or not 0.0 <= dt <= self.max_age_s:
+            self._offset_m = d
+        elif dt > 0.0:
+            self._offset_m = self._offset_m + (dt / (self.tau_s + dt)) * (d - self._offset_m)
+        self._seen_s = now_s
+
+    def fix(self, rel_shared_m: Vec3, now_s: float) -> Vec3 | None:
+        """The leader's relative position from the shares alone (NED, m); None without a recent offset."""
+        if self._offset_m is None or not 0.0 <= now_s - self._seen_s <= self.max_age_s:
+            return None
+        out: Vec3 = rel_shared_m + self._offset_m
+        return out

@@ -269,3 +269,6 @@ class StepOutput:
     #: This step flew on the leader's own shared velocity and acceleration
     #: (``formation.lead_on_shared_motion``).
     led_on_shared_motion: bool = False
+    #: This step flew on where the leader's shares put it while the camera missed it
+    #: (``formation.coast_on_shared_position``).
+    coasted_on_shared_position: bool = False

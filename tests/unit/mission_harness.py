@@ -138,13 +138,14 @@ def leader(
     *,
     track_age_s: float = math.inf,
     hit_ratio: float = 1.0,
+    last_measurement_s: float | None = None,
 ) -> LeaderEstimate:
     return LeaderEstimate(
         stamp_s=now_s,
         status=status,
         p_ned_rel_m=p,
         v_ned_rel_m_s=v,
-        last_measurement_s=now_s,
+        last_measurement_s=now_s if last_measurement_s is None else last_measurement_s,
         track_age_s=track_age_s,
         recent_hit_ratio=hit_ratio,
     )
@@ -174,6 +175,8 @@ class Harness:
         #: The track's age and recent hit ratio offered with a fresh estimate (the tracker's quality).
         self.leader_track_age_s = math.inf
         self.leader_hit_ratio = 1.0
+        #: When the track last had a detection (None: at every step's frame).
+        self.leader_last_measurement_s: float | None = None
         self.shared: tuple[float, float, float] | None = None
         #: The velocity the leader shares with its position (NED, m/s), if any.
         self.shared_v: tuple[float, float, float] | None = None
@@ -201,6 +204,7 @@ class Harness:
                 self.leader_v,
                 track_age_s=self.leader_track_age_s,
                 hit_ratio=self.leader_hit_ratio,
+                last_measurement_s=self.leader_last_measurement_s,
             )
             return self._frozen
         if self.leader_mode == "frozen":

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.mission.shared_motion import SharedLeaderMotion
+from companion.mission.shared_motion import SharedLeaderMotion, SharedRelativeFix
 from companion.mission.types import SharedLeaderPosition
 
 
@@ -55,3 +55,31 @@ def test_a_gap_between_shares_or_a_jump_gives_no_spike() -> None:
     out = m.update(_share(12.1, 12.0), 12.1)
     assert out is not None
     assert float(np.linalg.norm(out.a_ned_m_s2)) <= 3.0
+
+
+def test_the_shares_stand_in_for_the_camera_with_its_offset_from_them() -> None:
+    """GPS puts the shares 0.8 m off the camera's relative position: while the camera sees the leader that
+    offset is learnt (through its noise), and while it misses the shares plus the offset are where the
+    leader is; an offset not renewed for longer than its age limit is not used."""
+    rng = np.random.default_rng(3)
+    fix = SharedRelativeFix(tau_s=2.0, max_age_s=10.0)
+    gps_error = np.array([0.8, -0.3, 0.2])
+    assert fix.fix(np.zeros(3), 0.0) is None
+    for k in range(200):  # 10 s at 20 Hz
+        rel_true = np.array([5.0, 0.1 * np.sin(0.3 * k), 0.0])
+        fix.observe(rel_true + rng.normal(0.0, 0.03, 3), rel_true - gps_error, 0.05 * k)
+    rel_true = np.array([4.0, 1.5, -0.2])  # the leader moved while the camera missed it
+    out = fix.fix(rel_true - gps_error, 10.5)
+    assert out is not None
+    assert np.linalg.norm(out - rel_true) < 0.03
+    assert fix.fix(rel_true - gps_error, 10.0 + 10.1) is None
+
+
+def test_a_camera_seen_again_after_long_renews_the_offset_at_once() -> None:
+    """The receivers' errors move on: after the age limit the first sighting sets the offset afresh."""
+    fix = SharedRelativeFix(tau_s=2.0, max_age_s=10.0)
+    fix.observe(np.array([5.0, 0.0, 0.0]), np.array([4.0, 0.0, 0.0]), 0.0)
+    fix.observe(np.array([5.0, 0.0, 0.0]), np.array([5.5, 0.0, 0.0]), 20.0)
+    out = fix.fix(np.array([5.5, 0.0, 0.0]), 20.1)
+    assert out is not None
+    assert out == pytest.approx([5.0, 0.0, 0.0])

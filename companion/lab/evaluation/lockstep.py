@@ -419,6 +419,7 @@ class LockstepRun:
                 "detector_compute_ms": _percentiles(f.compute_ms),
                 "control_tick_ages_ms": f.observer.timing(),
                 "ticks_led_on_leader_share": f.observer.ticks_led_on_share,
+                "ticks_coasted_on_leader_share": f.observer.ticks_coasted_on_share,
                 "camera_rate_hz": sc.run.camera_rate_hz,
                 "link": {
                     "setpoints_sent": counters.setpoints_sent,

@@ -278,6 +278,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
             "service_latency_ms": latency,
             "control_tick_ages_ms": observer.timing(),
             "ticks_led_on_leader_share": observer.ticks_led_on_share,
+            "ticks_coasted_on_leader_share": observer.ticks_coasted_on_share,
             "frames_received": service.frames() if service is not None else {},
             "run_wall_s": round(time.perf_counter() - wall0, 2),
             "run_cpu_s": {k: round(v - cpu0[k], 2) for k, v in _cpu_s().items()},

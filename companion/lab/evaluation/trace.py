@@ -59,6 +59,7 @@ class RunObserver:
     #: Per tick with a leader share: its age (shared to control), s; and the ticks flown on it.
     share_age_s: list[float] = field(default_factory=list)
     ticks_led_on_share: int = 0
+    ticks_coasted_on_share: int = 0
     _next_snapshot: int = 0
 
     def on_step(self, inputs: MissionInputs, out: StepOutput) -> None:
@@ -74,6 +75,7 @@ class RunObserver:
         if inputs.leader_shared is not None:
             self.share_age_s.append(now_s - inputs.leader_shared.stamp_s)
         self.ticks_led_on_share += out.led_on_shared_motion
+        self.ticks_coasted_on_share += out.coasted_on_shared_position
         trace = {
             "state": out.state.name,
             "att_age_s": round(att_age_s, 4),
@@ -83,6 +85,7 @@ class RunObserver:
             "alt_rel_m": round(v.alt_rel_m, 3),
             "setpoint": None if sp is None else {k: getattr(sp, k) for k in type(sp).__slots__},
             "led_on_share": out.led_on_shared_motion,
+            "coasted_on_share": out.coasted_on_shared_position,
         }
         transitions = [
             (tr.stamp_s, tr.from_state.name, tr.to_state.name, tr.reason.name) for tr in out.transitions

@@ -26,7 +26,7 @@ from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
 from companion.mission.offboard import CommandBook, OffboardStream
 from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
 from companion.mission.safety import SafetyLimits
-from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion
+from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion, SharedRelativeFix
 from companion.mission.types import (
     CommandKind,
     CommandResult,
@@ -140,6 +140,14 @@ class MissionContext:
             if f.lead_on_shared_motion
             else None
         )
+        #: The shares held to the camera, flown while it misses the leader (``coast_on_shared_position``).
+        self.shared_fix = (
+            SharedRelativeFix(f.shared_offset_tau_s)
+            if f.lead_on_shared_motion and f.coast_on_shared_position
+            else None
+        )
+        #: This tick FOLLOW flew on the shares while the camera missed the leader.
+        self.coasted_on_share = False
         self.leader_motion: LeaderMotion | None = None
 
     # ------------------------------------------------------------------ plumbing
@@ -270,6 +278,8 @@ class MissionContext:
     def on_gps_lost(self, inp: MissionInputs) -> None:
         """GPS went bad in flight: vision formation if the policy and the leader allow it, else land."""
         veh = inp.vehicle
+        if self.shared_fix is not None:
+            self.shared_fix.reset()  # the GPS that comes back may put both ends elsewhere
         if self.m.gps_loss_policy == "land":
             self.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
         elif not self.tracked(inp):

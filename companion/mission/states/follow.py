@@ -13,6 +13,7 @@ import numpy as np
 from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.kernel.flight import ExternalPosition, Setpoint, VehicleState
 from companion.kernel.frames import Vec3
+from companion.mission.shared_motion import shared_rel_now
 from companion.mission.states.context import MissionContext
 from companion.mission.types import MissionInputs, MissionState, Reason, VisionMode
 
@@ -20,6 +21,9 @@ from companion.mission.types import MissionInputs, MissionState, Reason, VisionM
 EXTERNAL_PROBATION_S = 1.0
 #: A shared leader position older than this is not used, s.
 SHARED_STALE_S = 1.0
+#: The camera has missed the leader this long before FOLLOW flies on its shares instead, s: the track's
+#: coast is sound over a frame or two.
+SHARE_FIX_AFTER_S = 0.1
 
 
 class FollowPhase:
@@ -48,9 +52,11 @@ class FollowPhase:
         if est is None:
             return None, None, None
         p_rel, v_rel = self.relative_now(est, veh)
+        p_rel, v_rel = self._through_misses(inp, est, p_rel, v_rel)
         f = self.c.cfg.formation
-        steady = self._steady(est)
         motion = self.c.leader_motion
+        steady = self._steady(est)
+        slew_fast = steady or (motion is not None and self.c.link.clean(self.c.now_s))
         cmd = self.c.law.velocity(
             p_rel,
             v_rel,
@@ -58,7 +64,7 @@ class FollowPhase:
             self.c.now_s,
             a_leader_ned_m_s2=est.a_ned_leader_m_s2 if motion is None else motion.a_ned_m_s2,
             obstacle_ned_m=self.c.obstacle_now(inp),
-            slew_m_s2=f.command_slew_steady_m_s2 if steady else f.command_slew_m_s2,
+            slew_m_s2=f.command_slew_steady_m_s2 if slew_fast else f.command_slew_m_s2,
             kp_range_1_s=f.kp_xy_steady if steady else f.kp_xy,
             # The shared motion does not stop when the camera misses the leader.
             coasting=est.status == TrackStatus.COASTING and motion is None,
@@ -67,6 +73,34 @@ class FollowPhase:
             join=self.c.join.reference(self.c.law.slot, p_rel, veh.yaw_rad, self.c.now_s),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
+
+    def _through_misses(
+        self, inp: MissionInputs, est: LeaderEstimate, p_rel: Vec3, v_rel: Vec3
+    ) -> tuple[Vec3, Vec3]:
+        """The relative position and velocity to fly on (NED, m, m/s, at the setpoint's instant).
+
+        The camera's while it sees the leader (its offset from the shares learnt then); where the shares put
+        the leader, with that offset, once the camera has missed it for ``SHARE_FIX_AFTER_S``.
+        """
+        fix, motion, sh = self.c.shared_fix, self.c.leader_motion, inp.leader_shared
+        self.c.coasted_on_share = False
+        if fix is None or motion is None or sh is None:
+            return p_rel, v_rel
+        veh = inp.vehicle
+        v_rel_shared = motion.v_ned_m_s - np.asarray(veh.v_ned_m_s)
+        rel_shared = (
+            shared_rel_now(sh, motion, veh.p_ned_m, self.c.now_s) + v_rel_shared * veh.link_delay_or_zero_s
+        )
+        if est.status == TrackStatus.CONFIRMED:
+            fix.observe(p_rel, rel_shared, self.c.now_s)
+            return p_rel, v_rel
+        if est.stamp_s - est.last_measurement_s < SHARE_FIX_AFTER_S:
+            return p_rel, v_rel
+        p_fix = fix.fix(rel_shared, self.c.now_s)
+        if p_fix is None:
+            return p_rel, v_rel
+        self.c.coasted_on_share = True
+        return p_fix, v_rel_shared
 
     def _shared_leader_velocity(self, inp: MissionInputs) -> Vec3 | None:
         """Formations: the leader's own shared velocity while fresh (None: the law uses the estimate's)."""

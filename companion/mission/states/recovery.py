@@ -18,6 +18,7 @@ from companion.estimation.leader import TrackStatus
 from companion.kernel.flight import Setpoint, Vec3T, VehicleState
 from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.formation_commands import clamp_norm
+from companion.mission.shared_motion import shared_rel_now
 from companion.mission.states.context import MissionContext
 from companion.mission.types import MissionInputs, MissionState, Reason
 
@@ -106,9 +107,7 @@ class RecoveryPhase:
         sh, motion = inp.leader_shared, self.c.leader_motion
         if sh is None or motion is None or not self.c.gps.ok:
             return None
-        age_s = max(0.0, self.c.now_s - sh.stamp_s)
-        rel: Vec3 = np.asarray(sh.p_ned_m) + motion.v_ned_m_s * age_s - np.asarray(inp.vehicle.p_ned_m)
-        return rel
+        return shared_rel_now(sh, motion, inp.vehicle.p_ned_m, self.c.now_s)
 
     def _found_where_lost(self, inp: MissionInputs) -> bool:
         """Whether the track is where the lost leader dead-reckons to (coasting, GPS healthy)."""
