@@ -174,6 +174,16 @@ def render_status(s: dict[str, Any]) -> str:
     if err is not None:
         norm = sum(c * c for c in err) ** 0.5
         rows.append(("formation", f"error {norm:.2f} m from the slot, NED {_fmt(err)} m"))
+    share_age_s = m.get("leader_share_age_s")
+    if share_age_s is not None:
+        flown = (
+            "flying on its position (camera missing the leader)"
+            if m.get("on_leader_share_position")
+            else "leading on its motion"
+            if m.get("led_on_leader_share")
+            else "not flown on"
+        )
+        rows.append(("share", f"leader's last share {1000 * share_age_s:.0f} ms old, {flown}"))
     pos, bat = s.get("position") or {}, s.get("battery") or {}
     rows.append(
         (

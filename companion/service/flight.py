@@ -360,6 +360,7 @@ class FlightService:
             formation_error_ned_m=out.formation_error_ned_m if out is not None else None,
             leader_share_age_s=None if self._shared is None else now_s - self._shared.stamp_s,
             led_on_leader_share=out is not None and out.led_on_shared_motion,
+            on_leader_share_position=out is not None and out.coasted_on_shared_position,
             preflight_problems=self.machine.preflight_problems(v),
         )
 

@@ -76,6 +76,9 @@ class FlightSnapshot:
     #: flew on the leader's shared motion (``formation.lead_on_shared_motion``).
     leader_share_age_s: float | None = None
     led_on_leader_share: bool = False
+    #: ...and whether it flew on where the shares put the leader, the camera missing it
+    #: (``formation.coast_on_shared_position``).
+    on_leader_share_position: bool = False
     #: True once a requested shutdown has reached a safe end (landed and disarmed, or held).
     shutdown_complete: bool = False
     #: On the ground waiting for a start: what keeps the mission from arming now (empty: a start would

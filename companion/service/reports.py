@@ -75,6 +75,7 @@ def status_json(
             "formation_error_ned_m": snap.formation_error_ned_m,
             "leader_share_age_s": _r(snap.leader_share_age_s),
             "led_on_leader_share": snap.led_on_leader_share,
+            "on_leader_share_position": snap.on_leader_share_position,
         },
         "link": {
             "system_id": v.system_id,

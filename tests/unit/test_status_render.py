@@ -38,6 +38,24 @@ def test_status_shows_system_id_altitude_battery_and_formation_error() -> None:
     assert rows["link"].startswith("system 2, up, ")
 
 
+def test_status_says_how_old_the_leaders_share_is_and_what_is_flown_on_it() -> None:
+    """The share row: its age, and whether the follower leads on its motion or flies on its position."""
+
+    def share_row(**mission: object) -> str | None:
+        text = render_status({"mission": {"state": "follow", **mission}})
+        rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
+        return rows.get("share")
+
+    assert share_row() is None
+    assert share_row(leader_share_age_s=0.062, led_on_leader_share=True) == (
+        "leader's last share 62 ms old, leading on its motion"
+    )
+    assert share_row(leader_share_age_s=0.07, led_on_leader_share=True, on_leader_share_position=True) == (
+        "leader's last share 70 ms old, flying on its position (camera missing the leader)"
+    )
+    assert share_row(leader_share_age_s=1.5) == "leader's last share 1500 ms old, not flown on"
+
+
 def test_status_without_telemetry_says_so() -> None:
     text = render_status({"mission": {"state": "wait_link"}, "link": {}, "gps": {}})
     rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
