@@ -83,7 +83,6 @@ class FollowPhase:
         the leader, with that offset, once the camera has missed it for ``SHARE_FIX_AFTER_S``.
         """
         fix, motion, sh = self.c.shared_fix, self.c.leader_motion, inp.leader_shared
-        self.c.coasted_on_share = False
         if fix is None or motion is None or sh is None:
             return p_rel, v_rel
         veh = inp.vehicle
