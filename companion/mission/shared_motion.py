@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.kernel.flight import Vec3T
+from companion.kernel.flight import VehicleState
 from companion.kernel.frames import Vec3
 from companion.mission.types import SharedLeaderPosition
 
@@ -22,6 +22,9 @@ from companion.mission.types import SharedLeaderPosition
 MAX_SHARE_GAP_S = 0.5
 #: The camera-to-shares offset is dropped when the camera has not renewed it for this long, s.
 OFFSET_MAX_AGE_S = 10.0
+#: The follower's own reported position is carried forward at its velocity at most this long, s: a
+#: position report is tens of milliseconds old; an older one is a link in trouble, not a delay to plan on.
+OWN_CARRY_MAX_S = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,14 +74,18 @@ class SharedLeaderMotion:
 
 
 def shared_rel_now(
-    share: SharedLeaderPosition, motion: LeaderMotion, p_ned_own_m: Vec3T | Vec3, now_s: float
+    share: SharedLeaderPosition, motion: LeaderMotion, own: VehicleState, now_s: float
 ) -> Vec3:
     """Where a fresh share puts the leader now, relative to the follower (NED, m).
 
-    The shared position is carried over its age at the shared velocity; both ends' GPS errors are in it.
+    The shared position is carried over its age at the shared velocity, and the follower's own reported
+    position (LOCAL_POSITION_NED, sampled tens of milliseconds ago) over its age at its own velocity: left
+    behind, it put a leader flying at 2 m/s 0.05-0.1 m too far. Both ends' GPS errors are in it.
     """
     age_s = max(0.0, now_s - share.stamp_s)
-    rel: Vec3 = np.asarray(share.p_ned_m) + motion.v_ned_m_s * age_s - np.asarray(p_ned_own_m)
+    own_age_s = min(max(0.0, now_s - own.local_position_stamp_s), OWN_CARRY_MAX_S)
+    p_own = np.asarray(own.p_ned_m) + np.asarray(own.v_ned_m_s) * own_age_s
+    rel: Vec3 = np.asarray(share.p_ned_m) + motion.v_ned_m_s * age_s - p_own
     return rel
 
 

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.mission.shared_motion import SharedLeaderMotion, SharedRelativeFix
+from companion.kernel.flight import VehicleState
+from companion.mission.shared_motion import (
+    OWN_CARRY_MAX_S,
+    LeaderMotion,
+    SharedLeaderMotion,
+    SharedRelativeFix,
+    shared_rel_now,
+)
 from companion.mission.types import SharedLeaderPosition
 
 
@@ -83,3 +90,26 @@ def test_a_camera_seen_again_after_long_renews_the_offset_at_once() -> None:
     out = fix.fix(np.array([5.5, 0.0, 0.0]), 20.1)
     assert out is not None
     assert out == pytest.approx([5.0, 0.0, 0.0])
+
+
+def test_both_ends_are_carried_to_now_the_followers_own_report_only_so_far() -> None:
+    """Leader and follower both fly north at 2 m/s, 5 m apart: the leader's share 0.1 s old and the
+    follower's own position report 0.05 s old still give 5 m; a report older than the carry limit is
+    carried only that far (a link in trouble is not a delay to plan on)."""
+    v = np.array([2.0, 0.0, 0.0])
+    now_s = 20.0
+    share = SharedLeaderPosition(
+        now_s - 0.1, (5.0 + 2.0 * (now_s - 0.1), 0.0, -5.0), v_ned_m_s=(2.0, 0.0, 0.0)
+    )
+    motion = LeaderMotion(v, np.zeros(3))
+
+    def own(age_s: float) -> VehicleState:
+        return VehicleState(
+            p_ned_m=(2.0 * (now_s - age_s), 0.0, -5.0),
+            v_ned_m_s=(2.0, 0.0, 0.0),
+            local_position_stamp_s=now_s - age_s,
+        )
+
+    assert shared_rel_now(share, motion, own(0.05), now_s) == pytest.approx([5.0, 0.0, 0.0])
+    late = shared_rel_now(share, motion, own(1.0), now_s)
+    assert late[0] == pytest.approx(5.0 + 2.0 * (1.0 - OWN_CARRY_MAX_S))

@@ -87,9 +87,7 @@ class FollowPhase:
             return p_rel, v_rel
         veh = inp.vehicle
         v_rel_shared = motion.v_ned_m_s - np.asarray(veh.v_ned_m_s)
-        rel_shared = (
-            shared_rel_now(sh, motion, veh.p_ned_m, self.c.now_s) + v_rel_shared * veh.link_delay_or_zero_s
-        )
+        rel_shared = shared_rel_now(sh, motion, veh, self.c.now_s) + v_rel_shared * veh.link_delay_or_zero_s
         if est.status == TrackStatus.CONFIRMED:
             fix.observe(p_rel, rel_shared, self.c.now_s)
             return p_rel, v_rel

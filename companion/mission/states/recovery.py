@@ -107,7 +107,7 @@ class RecoveryPhase:
         sh, motion = inp.leader_shared, self.c.leader_motion
         if sh is None or motion is None or not self.c.gps.ok:
             return None
-        return shared_rel_now(sh, motion, inp.vehicle.p_ned_m, self.c.now_s)
+        return shared_rel_now(sh, motion, inp.vehicle, self.c.now_s)
 
     def _found_where_lost(self, inp: MissionInputs) -> bool:
         """Whether the track is where the lost leader dead-reckons to (coasting, GPS healthy)."""
