@@ -80,7 +80,7 @@ def shared_rel_now(
 
     The shared position is carried over its age at the shared velocity, and the follower's own reported
     position (LOCAL_POSITION_NED, sampled tens of milliseconds ago) over its age at its own velocity: left
-    behind, it put a leader flying at 2 m/s 0.05-0.1 m too far. Both ends' GPS errors are in it.
+    behind, it put a leader flying at 2 m/s about 0.05 m too far. Both ends' GPS errors are in it.
     """
     age_s = max(0.0, now_s - share.stamp_s)
     own_age_s = min(max(0.0, now_s - own.local_position_stamp_s), OWN_CARRY_MAX_S)
