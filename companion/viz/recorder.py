@@ -231,10 +231,12 @@ class FlightRecorder:
             self._guard(
                 "transition", self._emit, self.builder.transition_records(self._transitions.popleft())
             )
-        while self._steps:
-            self._guard("step", self._step, *self._steps.popleft())
+        # Frames before steps: a frame was captured before the steps queued beside it, and it brings the
+        # camera's intrinsics the scene's frustum is drawn from.
         while self._frames:
             self._guard("frame", self._frame, *self._frames.popleft())
+        while self._steps:
+            self._guard("step", self._step, *self._steps.popleft())
 
     def _guard(self, kind: str, fn: Callable[..., None], *args: Any) -> None:
         try:
