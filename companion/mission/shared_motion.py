@@ -25,6 +25,9 @@ OFFSET_MAX_AGE_S = 10.0
 #: The follower's own reported position is carried forward at its velocity at most this long, s: a
 #: position report is tens of milliseconds old; an older one is a link in trouble, not a delay to plan on.
 OWN_CARRY_MAX_S = 0.25
+#: Through camera misses the camera's last relative position is carried on at the shares' relative
+#: velocity this long; after it, the shares' position with its offset from the camera stands in, s.
+DEAD_RECKON_MAX_S = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,12 +93,18 @@ def shared_rel_now(
 
 
 class SharedRelativeFix:
-    """The shares' relative position held to the camera's: it stands in while the camera misses (pure).
+    """What stands in for the camera while it misses the leader, from the shares (pure).
 
-    The difference between the camera's relative position and the shares' is the two GPS receivers'
-    errors (slow: they drift over tens of seconds) plus the camera's noise; it is averaged over ``tau_s``
-    while the camera sees the leader and added to the shares while it does not. A difference not renewed
-    for ``max_age_s`` is dropped: the receivers' errors have moved on.
+    For up to ``DEAD_RECKON_MAX_S`` of misses: the camera's last relative position carried on at the
+    relative velocity the shares give (the leader's shared velocity minus the follower's own). Both
+    autopilots' position estimates wander against each other by 0.1-0.2 m over a second or two as the
+    vehicles speed up, which shares plus an averaged offset carried into the gap; velocities are steadier,
+    and over a second of misses their error adds a few centimetres.
+
+    Past that, the shares' relative position plus its offset from the camera's: the difference between the
+    two is the two GPS receivers' errors (slow: they drift over tens of seconds) plus the camera's noise,
+    averaged over ``tau_s`` while the camera sees the leader. An offset not renewed for ``max_age_s`` is
+    dropped: the receivers' errors have moved on.
     """
 
     def __init__(self, tau_s: float, max_age_s: float = OFFSET_MAX_AGE_S) -> None:
@@ -103,10 +112,14 @@ class SharedRelativeFix:
         self.max_age_s = max_age_s
         self._offset_m: Vec3 | None = None
         self._seen_s = -math.inf
+        self._carried_m: Vec3 | None = None
+        self._carried_s = -math.inf
 
     def reset(self) -> None:
         self._offset_m = None
         self._seen_s = -math.inf
+        self._carried_m = None
+        self._carried_s = -math.inf
 
     def observe(self, rel_camera_m: Vec3, rel_shared_m: Vec3, now_s: float) -> None:
         """The camera sees the leader at ``rel_camera_m`` while the shares put it at ``rel_shared_m``."""
@@ -117,10 +130,23 @@ class SharedRelativeFix:
         elif dt > 0.0:
             self._offset_m = self._offset_m + (dt / (self.tau_s + dt)) * (d - self._offset_m)
         self._seen_s = now_s
+        self._carried_m = np.array(rel_camera_m, dtype=np.float64)
+        self._carried_s = now_s
 
-    def fix(self, rel_shared_m: Vec3, now_s: float) -> Vec3 | None:
-        """The leader's relative position from the shares alone (NED, m); None without a recent offset."""
+    def fix(self, rel_shared_m: Vec3, v_rel_shared_m_s: Vec3, now_s: float) -> Vec3 | None:
+        """The leader's relative position without the camera (NED, m); None without a recent sighting.
+
+        ``rel_shared_m``: where the shares put the leader now; ``v_rel_shared_m_s``: the leader's shared
+        velocity minus the follower's own (NED, m/s). Call once per control tick while the camera misses.
+        """
         if self._offset_m is None or not 0.0 <= now_s - self._seen_s <= self.max_age_s:
             return None
+        if self._carried_m is not None and now_s - self._seen_s <= DEAD_RECKON_MAX_S:
+            dt = now_s - self._carried_s
+            if dt > 0.0:
+                self._carried_m = self._carried_m + np.asarray(v_rel_shared_m_s, dtype=np.float64) * dt
+                self._carried_s = now_s
+            carried: Vec3 = self._carried_m.copy()
+            return carried
         out: Vec3 = rel_shared_m + self._offset_m
         return out

@@ -54,7 +54,7 @@ from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.heading import HeadingCorrectedLink
 from companion.service.mission_runner import MissionRunner
 from companion.service.ports import FlightSnapshot, LeaderSummary, StateChange, VehicleSummary
-from companion.telemetry.leader import OriginTracker
+from companion.telemetry.leader import OriginTracker, local_at
 from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 from companion.vehicle import failsafe
 from companion.vehicle.link import VehicleLink
@@ -290,8 +290,11 @@ class FlightService:
     def on_leader_position(self, msg: LeaderPositionMsg) -> None:
         """A leader position from MQTT, placed in the follower's local NED frame (the autopilot's own)."""
         v = self.raw_link.snapshot()
+        # The geodetic fix was sampled with the velocity (GLOBAL_POSITION_INT): the local position is
+        # brought to that instant before the two are paired.
+        p_local = local_at(v.p_ned_m, v.v_ned_m_s, v.local_position_stamp_s, v.velocity_stamp_s)
         self._origin.update(
-            v.gps_fix_type, _finite(v.lat_deg), _finite(v.lon_deg), _finite(v.alt_amsl_m), v.p_ned_m
+            v.gps_fix_type, _finite(v.lat_deg), _finite(v.lon_deg), _finite(v.alt_amsl_m), p_local
         )
         origin = self._origin.origin
         if origin is None:

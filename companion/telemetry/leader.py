@@ -50,6 +50,28 @@ class GeoOrigin:
         return lat, lon, self.alt_amsl_m - p_ned_m[2]
 
 
+#: The local position is carried to the geodetic report's sample time over at most this long, s: the two
+#: reports are sampled milliseconds apart; a larger gap is a stale stream, not a delay to bridge.
+MAX_PAIRING_GAP_S = 0.25
+
+
+def local_at(p_ned_m: Vec3T, v_ned_m_s: Vec3T, local_stamp_s: float, at_s: float) -> Vec3T:
+    """The local position sampled at ``local_stamp_s`` carried at ``v_ned_m_s`` to ``at_s`` (NED, m).
+
+    PX4 samples GLOBAL_POSITION_INT and LOCAL_POSITION_NED apart (5-25 ms on the wire); pairing them as
+    they are moves the origin by the vehicle's speed times that gap, a few centimetres at 2 m/s, and
+    jittering report to report.
+    """
+    dt_s = at_s - local_stamp_s
+    if not math.isfinite(dt_s) or abs(dt_s) > MAX_PAIRING_GAP_S:
+        return p_ned_m
+    return (
+        p_ned_m[0] + v_ned_m_s[0] * dt_s,
+        p_ned_m[1] + v_ned_m_s[1] * dt_s,
+        p_ned_m[2] + v_ned_m_s[2] * dt_s,
+    )
+
+
 def origin_from_fix(lat_deg: float, lon_deg: float, alt_amsl_m: float, p_ned_m: Vec3T) -> GeoOrigin:
     """The NED origin implied by one simultaneous geodetic fix and local position of the same vehicle."""
     here = GeoOrigin(lat_deg, lon_deg, alt_amsl_m)

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.telemetry.leader import GeoOrigin, OriginTracker, origin_from_fix
+from companion.telemetry.leader import MAX_PAIRING_GAP_S, GeoOrigin, OriginTracker, local_at, origin_from_fix
 
 
 @given(
@@ -38,3 +38,13 @@ def test_origin_is_kept_through_gps_loss() -> None:
     tr.update(1, 0.0, 0.0, 0.0, (0.0, 0.0, 0.0))  # no fix: ignored
     assert tr.origin.lat_deg == pytest.approx(47.0)
     assert origin_from_fix(47.0, 8.0, 500.0, (0.0, 0.0, 0.0)) == GeoOrigin(47.0, 8.0, 500.0)
+
+
+def test_the_local_position_is_brought_to_the_geodetic_reports_sample_time() -> None:
+    """At 2 m/s north a local report 20 ms older than the geodetic one is 0.04 m behind it; a gap past the
+    pairing limit is a stale stream and is not bridged."""
+    p, v = (10.0, 0.0, -5.0), (2.0, 0.0, 0.0)
+    assert local_at(p, v, 100.00, 100.02) == pytest.approx((10.04, 0.0, -5.0))
+    assert local_at(p, v, 100.02, 100.00) == pytest.approx((9.96, 0.0, -5.0))
+    assert local_at(p, v, 100.0, 100.0 + MAX_PAIRING_GAP_S + 0.1) == p
+    assert local_at(p, v, float("-inf"), 100.0) == p

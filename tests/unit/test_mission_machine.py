@@ -601,9 +601,10 @@ def test_a_leader_that_shares_its_velocity_is_led_on_it() -> None:
 
 def test_while_the_camera_misses_a_sharing_leader_the_follower_flies_on_its_shares() -> None:
     """The shares put the leader 0.8 m further and 0.3 m left of where the camera sees it (GPS errors).
-    When the camera then misses the leader and the shares say it has moved 1 m right, the follower turns
-    right (the shares plus their offset from the camera: 11 deg off the nose) instead of holding on the
-    track's coast; with ``coast_on_shared_position`` off it holds on the coast."""
+    When the camera then misses the leader and the shares say it flies right at 2 m/s, the follower turns
+    right after it (the camera's last position carried on at the shares' relative velocity: about 0.8 m
+    right after 0.4 s) instead of holding on the track's coast; with ``coast_on_shared_position`` off it
+    holds on the coast."""
     for on in (True, False):
         cfg = Config(formation=FormationConfig(coast_on_shared_position=on))
         h = Harness(cfg=cfg)
@@ -615,15 +616,15 @@ def test_while_the_camera_misses_a_sharing_leader_the_follower_flies_on_its_shar
         assert not h.outputs[-1].coasted_on_shared_position
         h.leader_status = TrackStatus.COASTING
         h.leader_last_measurement_s = h.now_s
-        h.shared = tuple(np.add(p_own, (5.8, 0.7, 0.0)))
-        h.run(0.3)
+        h.shared_v = (0.0, 2.0, 0.0)
+        h.run(0.35)
         out = h.step()
         assert isinstance(out.setpoint, VelocityBodySetpoint)
         assert out.formation_error_ned_m is not None
         assert out.coasted_on_shared_position is on
         if on:
             assert out.setpoint.yaw_rate_rad_s > 0.15, out.setpoint
-            assert out.formation_error_ned_m[1] == pytest.approx(1.0, abs=0.05)
+            assert out.formation_error_ned_m[1] == pytest.approx(0.8, abs=0.05)
         else:
             assert abs(out.setpoint.yaw_rate_rad_s) < 0.01, out.setpoint
             assert abs(out.formation_error_ned_m[1]) < 0.01

@@ -7,6 +7,7 @@ import pytest
 
 from companion.kernel.flight import VehicleState
 from companion.mission.shared_motion import (
+    DEAD_RECKON_MAX_S,
     OWN_CARRY_MAX_S,
     LeaderMotion,
     SharedLeaderMotion,
@@ -64,22 +65,43 @@ def test_a_gap_between_shares_or_a_jump_gives_no_spike() -> None:
     assert float(np.linalg.norm(out.a_ned_m_s2)) <= 3.0
 
 
-def test_the_shares_stand_in_for_the_camera_with_its_offset_from_them() -> None:
-    """GPS puts the shares 0.8 m off the camera's relative position: while the camera sees the leader that
-    offset is learnt (through its noise), and while it misses the shares plus the offset are where the
-    leader is; an offset not renewed for longer than its age limit is not used."""
+def test_through_a_short_gap_the_cameras_last_position_is_carried_on_at_the_shared_relative_velocity() -> (
+    None
+):
+    """GPS puts the shares 0.8 m off and drifts them by 0.15 m while the camera misses the leader for a
+    second: the camera's last relative position carried at the shares' relative velocity stays on the
+    leader; the shares plus their averaged offset would be off by the drift."""
+    fix = SharedRelativeFix(tau_s=2.0, max_age_s=10.0)
+    gps_error = np.array([0.8, -0.3, 0.2])
+    assert fix.fix(np.zeros(3), np.zeros(3), 0.0) is None
+    for k in range(200):  # 10 s at 20 Hz, the leader 5 m ahead
+        fix.observe(np.array([5.0, 0.0, 0.0]), np.array([5.0, 0.0, 0.0]) - gps_error, 0.05 * k)
+    v_rel = np.array([-0.5, 0.2, 0.0])  # the follower closes, the leader drifts right
+    rel_true = np.array([5.0, 0.0, 0.0])
+    drift = np.zeros(3)
+    out = None
+    for k in range(1, 21):
+        rel_true = rel_true + v_rel * 0.05
+        drift = drift + np.array([0.15, 0.0, 0.0]) / 20
+        out = fix.fix(rel_true - gps_error + drift, v_rel, 9.95 + 0.05 * k)
+    assert out is not None
+    assert out == pytest.approx(rel_true, abs=1e-9)
+
+
+def test_past_the_dead_reckoning_the_shares_stand_in_with_their_offset_from_the_camera() -> None:
+    """The offset is learnt through the camera's noise; after ``DEAD_RECKON_MAX_S`` of misses the shares
+    plus it are where the leader is; an offset not renewed for longer than its age limit is not used."""
     rng = np.random.default_rng(3)
     fix = SharedRelativeFix(tau_s=2.0, max_age_s=10.0)
     gps_error = np.array([0.8, -0.3, 0.2])
-    assert fix.fix(np.zeros(3), 0.0) is None
-    for k in range(200):  # 10 s at 20 Hz
+    for k in range(200):
         rel_true = np.array([5.0, 0.1 * np.sin(0.3 * k), 0.0])
         fix.observe(rel_true + rng.normal(0.0, 0.03, 3), rel_true - gps_error, 0.05 * k)
     rel_true = np.array([4.0, 1.5, -0.2])  # the leader moved while the camera missed it
-    out = fix.fix(rel_true - gps_error, 10.5)
+    out = fix.fix(rel_true - gps_error, np.zeros(3), 9.95 + DEAD_RECKON_MAX_S + 0.1)
     assert out is not None
     assert np.linalg.norm(out - rel_true) < 0.03
-    assert fix.fix(rel_true - gps_error, 10.0 + 10.1) is None
+    assert fix.fix(rel_true - gps_error, np.zeros(3), 9.95 + 10.1) is None
 
 
 def test_a_camera_seen_again_after_long_renews_the_offset_at_once() -> None:
@@ -87,7 +109,7 @@ def test_a_camera_seen_again_after_long_renews_the_offset_at_once() -> None:
     fix = SharedRelativeFix(tau_s=2.0, max_age_s=10.0)
     fix.observe(np.array([5.0, 0.0, 0.0]), np.array([4.0, 0.0, 0.0]), 0.0)
     fix.observe(np.array([5.0, 0.0, 0.0]), np.array([5.5, 0.0, 0.0]), 20.0)
-    out = fix.fix(np.array([5.5, 0.0, 0.0]), 20.1)
+    out = fix.fix(np.array([5.5, 0.0, 0.0]), np.zeros(3), 20.0 + DEAD_RECKON_MAX_S + 0.1)
     assert out is not None
     assert out == pytest.approx([5.0, 0.0, 0.0])
 

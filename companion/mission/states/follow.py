@@ -79,8 +79,9 @@ class FollowPhase:
     ) -> tuple[Vec3, Vec3]:
         """The relative position and velocity to fly on (NED, m, m/s, at the setpoint's instant).
 
-        The camera's while it sees the leader (its offset from the shares learnt then); where the shares put
-        the leader, with that offset, once the camera has missed it for ``SHARE_FIX_AFTER_S``.
+        The camera's while it sees the leader; once the camera has missed it for ``SHARE_FIX_AFTER_S``, the
+        camera's last relative position carried on at the shares' relative velocity (after a longer gap, the
+        shares' position with its offset from the camera: ``SharedRelativeFix``).
         """
         fix, motion, sh = self.c.shared_fix, self.c.leader_motion, inp.leader_shared
         if fix is None or motion is None or sh is None:
@@ -93,7 +94,7 @@ class FollowPhase:
             return p_rel, v_rel
         if est.stamp_s - est.last_measurement_s < SHARE_FIX_AFTER_S:
             return p_rel, v_rel
-        p_fix = fix.fix(rel_shared, self.c.now_s)
+        p_fix = fix.fix(rel_shared, v_rel_shared, self.c.now_s)
         if p_fix is None:
             return p_rel, v_rel
         self.c.coasted_on_share = True
