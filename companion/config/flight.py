@@ -75,10 +75,11 @@ class FormationConfig(Section):
     shared_accel_tau_s: float = Field(0.1, gt=0.0, le=2.0)
     shared_motion_max_age_s: float = Field(0.4, gt=0.0, le=2.0)
     #: While the camera misses a leader led on its shares (above) for longer than a frame or two, FOLLOW
-    #: flies on where the shares put it, moved by their mean offset from the camera's position over
-    #: ``shared_offset_tau_s`` while the camera saw it (both ends' GPS errors; docs/flight.md). The
-    #: track's constant-velocity coast drifts off a turning leader by decimetres a second. False: the
-    #: coast alone.
+    #: flies on the camera's last relative position carried on at the shares' relative velocity, and
+    #: after 2 s on where the shares put the leader, moved by their mean offset from the camera's
+    #: position over ``shared_offset_tau_s`` while the camera saw it (both ends' GPS errors;
+    #: docs/flight.md). The track's constant-velocity coast drifts off a turning leader by decimetres a
+    #: second. False: the coast alone.
     coast_on_shared_position: bool = True
     shared_offset_tau_s: float = Field(2.0, gt=0.0, le=30.0)
     #: Bring each leader estimate from its frame's capture instant to the control tick, with the
