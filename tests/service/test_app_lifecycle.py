@@ -325,16 +325,21 @@ async def test_mqtt_telemetry_and_commands_through_the_service(tmp_path: Path) -
 
         svc._mqtt_credentials = load_mqtt_credentials(svc.cfg.mqtt)
         got: list[tuple[str, dict[str, Any]]] = []
+        subscribed = asyncio.Event()
 
         async def collect() -> None:
             async with aiomqtt.Client("127.0.0.1", broker.port) as c:
                 await c.subscribe("wingman/follower1/#", qos=1)
+                subscribed.set()
                 async for m in c.messages:
                     assert isinstance(m.payload, bytes)
                     got.append((str(m.topic).rsplit("/", 1)[1], json.loads(m.payload)))
 
         async with compat.TaskGroup() as tg:
             col = tg.create_task(collect())
+            # Events are not retained: the first state change is only seen by a subscriber
+            # that is already there when the service starts.
+            await asyncio.wait_for(subscribed.wait(), 10.0)
             task = tg.create_task(svc.run())
             await wait_until(lambda: any(t == "pose" for t, _ in got) and any(t == "health" for t, _ in got))
             async with aiomqtt.Client("127.0.0.1", broker.port) as gcs:
