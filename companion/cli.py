@@ -14,7 +14,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from companion import __version__
-from companion.commands import autolabel, bench, config_cmd, detector, replay, run, sim, status
+from companion.commands import autolabel, bench, config_cmd, detector, deviation, replay, run, sim, status
 from companion.kernel import compat
 from companion.kernel.cli import describe_commands
 from companion.kernel.errors import CompanionError, first_companion_error
@@ -22,7 +22,7 @@ from companion.kernel.errors import CompanionError, first_companion_error
 log = logging.getLogger("companion")
 
 #: The command modules, in --help order (each imports its heavy parts only when it runs).
-COMMAND_MODULES = (run, status, config_cmd, sim, bench, detector, replay, autolabel)
+COMMAND_MODULES = (run, status, config_cmd, sim, deviation, bench, detector, replay, autolabel)
 
 Handler = Callable[[argparse.Namespace], int]
 

@@ -231,7 +231,15 @@ def write_run_without_plots(
     from companion.lab.evaluation.report import build_report, write_report  # noqa: PLC0415
 
     metrics = compute_metrics(result.log, cfg.formation.offset_cam_m)
-    report = build_report(name, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **extra})
+    report = build_report(
+        name,
+        seed,
+        result.log,
+        metrics,
+        wall_s=wall_s,
+        extra={**result.extra, **extra},
+        offset_cam_m=cfg.formation.offset_cam_m,
+    )
     write_report(out_dir, report)
     save_log(result.log, out_dir / "flight_log.npz")
     if result.trace is not None:

@@ -173,6 +173,7 @@ def lockstep_follower(
         observer.on_step(inputs, out)
         f, ld = world.truth(name), world.truth("leader")
         est = inputs.leader
+        seen = observer.ticks[-1]
         scorer.tick(
             clock.now_s(),
             f.p_ned_m,
@@ -180,6 +181,8 @@ def lockstep_follower(
             f.q_ned_body_wxyz,
             ld.p_ned_m,
             None if est is None or not est.usable else est.p_ned_rel_m,
+            yaw_service_rad=seen.yaw_service_rad,
+            v_cmd_ned_m_s=seen.v_cmd_ned_m_s,
         )
 
     flight.observers.append(Callbacks(step=on_step, transition=on_transition))
@@ -355,6 +358,7 @@ class LockstepFlight:
             p_est,
             latency_ms=compute_ms,
             rgb=item.frame.rgb if f.scorer.wants_snapshot(stamp_s) else None,
+            range_meas_m=f.observer.frames[-1].range_meas_m,
         )
 
 

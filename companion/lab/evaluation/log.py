@@ -16,10 +16,10 @@ from numpy.typing import NDArray
 F64 = NDArray[np.float64]
 Vec3T = tuple[float, float, float]
 _NAN3: Vec3T = (float("nan"), float("nan"), float("nan"))
-# t, follower, leader, yaw, estimate, formation, gps_ok, state, follower velocity
-_Tick = tuple[float, Vec3T, Vec3T, float, Vec3T, bool, bool, str, Vec3T]
-# t, visible, detected, false positive, latency, estimate, truth, follower yaw, formation
-_Frame = tuple[float, bool, bool, bool, float, Vec3T, Vec3T, float, bool]
+# t, follower, leader, yaw, estimate, formation, gps_ok, state, follower velocity, service's yaw, command
+_Tick = tuple[float, Vec3T, Vec3T, float, Vec3T, bool, bool, str, Vec3T, float, Vec3T]
+# t, visible, detected, false positive, latency, estimate, truth, follower yaw, formation, measured range
+_Frame = tuple[float, bool, bool, bool, float, Vec3T, Vec3T, float, bool, float]
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,7 +46,7 @@ class FlightLog:
     gps_ok: NDArray[np.bool_]  # N, the follower's true GPS availability (fault schedule)
     state: list[str]  # N, mission state names
     v_ned_follower_m_s: F64  # N x 3, truth
-    # per camera frame
+    # per camera frame (the service-side tick series follow the frame arrays: they have defaults)
     frame_t_s: F64  # M
     frame_leader_visible: NDArray[np.bool_]  # M, truth: some of the leader is in the image
     frame_detected: NDArray[np.bool_]  # M, the detector's box matched the truth box (IoU >= 0.5)
@@ -58,6 +58,12 @@ class FlightLog:
     frame_rel_true_ned_m: F64 = field(default_factory=lambda: np.empty((0, 3)))  # M x 3, truth
     frame_yaw_follower_rad: F64 = field(default_factory=lambda: np.empty(0))  # M, truth
     frame_formation: NDArray[np.bool_] = field(default_factory=lambda: np.empty(0, dtype=bool))  # M
+    #: M: the range of the measurement that updated the track at the frame (camera to leader), m; NaN: none.
+    frame_range_meas_m: F64 = field(default_factory=lambda: np.empty(0))
+    #: N: the heading the service flew on (the autopilot's, less any correction), rad; NaN: unknown.
+    yaw_service_rad: F64 = field(default_factory=lambda: np.empty(0))
+    #: N x 3: the velocity setpoint in NED as the service meant it; NaN for an attitude setpoint or none.
+    v_cmd_ned_m_s: F64 = field(default_factory=lambda: np.empty((0, 3)))
     transitions: list[Transition] = field(default_factory=list)
     gps_loss_t_s: float | None = None
     crashed: bool = False
@@ -87,6 +93,8 @@ class FlightRecorder:
         gps_ok: bool,
         state: str,
         v_ned_follower_m_s: Vec3T = (0.0, 0.0, 0.0),
+        yaw_service_rad: float = float("nan"),
+        v_cmd_ned_m_s: Vec3T | None = None,
     ) -> None:
         """Record one control tick."""
         self._ticks.append(
@@ -100,6 +108,8 @@ class FlightRecorder:
                 gps_ok,
                 state,
                 v_ned_follower_m_s,
+                yaw_service_rad,
+                v_cmd_ned_m_s if v_cmd_ned_m_s is not None else _NAN3,
             )
         )
 
@@ -115,6 +125,7 @@ class FlightRecorder:
         rel_true_ned_m: Vec3T | None = None,
         yaw_follower_rad: float = float("nan"),
         formation: bool = False,
+        range_meas_m: float = float("nan"),
     ) -> None:
         """Record one camera frame's detection outcome, and optionally its estimate, against the truth."""
         self._frames.append(
@@ -128,6 +139,7 @@ class FlightRecorder:
                 rel_true_ned_m if rel_true_ned_m is not None else _NAN3,
                 yaw_follower_rad,
                 formation,
+                range_meas_m,
             )
         )
 
@@ -138,9 +150,9 @@ class FlightRecorder:
     def freeze(self) -> FlightLog:
         """Arrays of everything recorded so far."""
         n = len(self._ticks)
-        cols = list(zip(*self._ticks, strict=True)) if n else [()] * 9
+        cols = list(zip(*self._ticks, strict=True)) if n else [()] * 11
         m = len(self._frames)
-        fcols = list(zip(*self._frames, strict=True)) if m else [()] * 9
+        fcols = list(zip(*self._frames, strict=True)) if m else [()] * 10
 
         def vec(i: int) -> F64:
             return np.array(cols[i], dtype=np.float64).reshape(n, 3)
@@ -167,6 +179,9 @@ class FlightRecorder:
             frame_rel_true_ned_m=fvec(6),
             frame_yaw_follower_rad=np.array(fcols[7], dtype=np.float64),
             frame_formation=np.array(fcols[8], dtype=bool),
+            frame_range_meas_m=np.array(fcols[9], dtype=np.float64),
+            yaw_service_rad=np.array(cols[9], dtype=np.float64),
+            v_cmd_ned_m_s=vec(10),
             transitions=list(self.transitions),
             gps_loss_t_s=self.gps_loss_t_s,
             crashed=self.crashed,

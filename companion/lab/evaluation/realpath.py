@@ -102,10 +102,25 @@ def score(observer: RunObserver, truth: TruthTrack, scorer: RunScorer, end_s: fl
             row = truth.at(t_s)
             fp, fv, fq = follower_of(row)
             lp, _, _ = leader_of(row)
-            scorer.tick(t_s, fp, fv, fq, lp, item.rel_est_ned_m)
+            scorer.tick(
+                t_s,
+                fp,
+                fv,
+                fq,
+                lp,
+                item.rel_est_ned_m,
+                yaw_service_rad=item.yaw_service_rad,
+                v_cmd_ned_m_s=item.v_cmd_ned_m_s,
+            )
         else:
             scorer.frame(
-                t_s, item.truth, item.detections, item.rel_est_ned_m, latency_ms=item.compute_ms, rgb=item.rgb
+                t_s,
+                item.truth,
+                item.detections,
+                item.rel_est_ned_m,
+                latency_ms=item.compute_ms,
+                rgb=item.rgb,
+                range_meas_m=item.range_meas_m,
             )
 
 

@@ -15,6 +15,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from companion.lab.evaluation.deviation import split_deviation, split_markdown
 from companion.lab.evaluation.log import FlightLog
 from companion.lab.evaluation.metrics import PAPER_ROW_NAMES, PAPER_TABLE, TARGETS, FlightMetrics
 
@@ -46,8 +47,13 @@ def build_report(
     *,
     wall_s: float,
     extra: Mapping[str, Any] | None = None,
+    offset_cam_m: Sequence[float] | None = None,
 ) -> dict[str, Any]:
-    """The report dict: the contract keys first, then targets and extras."""
+    """The report dict: the contract keys first, then targets and extras.
+
+    With the slot's ``offset_cam_m`` it also keeps where the largest deviation came from
+    (:func:`~companion.lab.evaluation.deviation.split_deviation`).
+    """
     m = asdict(metrics)
     report: dict[str, Any] = {
         "scenario": scenario,
@@ -82,6 +88,8 @@ def build_report(
         }
     if extra:
         report.update(extra)
+    if offset_cam_m is not None:
+        report["deviation_split"] = split_deviation(log, offset_cam_m)
     return report
 
 
@@ -146,6 +154,9 @@ def report_markdown(report: Mapping[str, Any]) -> str:
     if report["transitions"]:
         lines += ["", "## Mission transitions", "", "| t (s) | from | to | reason |", "|---|---|---|---|"]
         lines += [f"| {t:.2f} | {a} | {b} | {r} |" for t, a, b, r in report["transitions"]]
+    split = report.get("deviation_split")
+    if split:
+        lines += ["", *split_markdown(split)]
     lines += _autopilot_markdown(report.get("autopilot"))
     plots = report.get("plots")
     if plots:

@@ -150,8 +150,15 @@ class RunScorer:
         q_ned_follower_wxyz: ArrayLike,
         p_ned_leader_m: ArrayLike,
         rel_est_ned_m: ArrayLike | None,
+        *,
+        yaw_service_rad: float = math.nan,
+        v_cmd_ned_m_s: ArrayLike | None = None,
     ) -> None:
-        """One control step: the truth at the step and the estimate the mission held (None: none)."""
+        """One control step: the truth at the step and the estimate the mission held (None: none).
+
+        ``yaw_service_rad`` and ``v_cmd_ned_m_s``: the heading the service flew on and its velocity setpoint
+        in NED (None for an attitude setpoint), for the split of the deviation.
+        """
         self.recorder.tick(
             t_s,
             _vec(p_ned_follower_m),
@@ -162,6 +169,8 @@ class RunScorer:
             gps_ok=self.gps_ok(t_s),
             state=self.state,
             v_ned_follower_m_s=_vec(v_ned_follower_m_s),
+            yaw_service_rad=yaw_service_rad,
+            v_cmd_ned_m_s=None if v_cmd_ned_m_s is None else _vec(v_cmd_ned_m_s),
         )
 
     def frame(
@@ -173,8 +182,12 @@ class RunScorer:
         *,
         latency_ms: float = math.nan,
         rgb: RgbImage | None = None,
+        range_meas_m: float = math.nan,
     ) -> None:
-        """One processed frame: its truth (at its stamp, sim time), the detections, the estimate after it."""
+        """One processed frame: its truth (at its stamp, sim time), the detections, the estimate after it.
+
+        ``range_meas_m``: the range of the measurement that updated the track at this frame (NaN: none).
+        """
         self.frames_seen += 1
         visible, detected, fp = judge_detections(truth, detections)
         rel_true: Vec3T | None = None
@@ -195,6 +208,7 @@ class RunScorer:
             rel_true_ned_m=rel_true,
             yaw_follower_rad=yaw,
             formation=self.formation(stamp_s),
+            range_meas_m=range_meas_m,
         )
         if (
             rgb is not None

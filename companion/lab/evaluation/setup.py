@@ -162,7 +162,13 @@ def write_run(
     offset = cfg.formation.offset_cam_m
     metrics = compute_metrics(result.log, offset)
     report = build_report(
-        scenario, seed, result.log, metrics, wall_s=wall_s, extra={**result.extra, **(extra or {})}
+        scenario,
+        seed,
+        result.log,
+        metrics,
+        wall_s=wall_s,
+        extra={**result.extra, **(extra or {})},
+        offset_cam_m=offset,
     )
     report["plots"] = write_plots(result.log, offset, result.snapshots, out_dir / "plots", scenario)
     write_report(out_dir, report)

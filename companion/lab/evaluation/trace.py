@@ -9,6 +9,7 @@ truth beside the estimate) for a post-mortem.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,8 @@ from typing import Any
 import numpy as np
 
 from companion.kernel.camera import GroundTruth, RgbdFrame
+from companion.kernel.flight import Setpoint, VelocityBodySetpoint, VelocityNedSetpoint
+from companion.kernel.frames import heading_to_ned
 from companion.mission.types import MissionInputs, StepOutput
 from companion.perception.types import Detection, DetectorResult
 
@@ -29,6 +32,11 @@ class TraceTick:
     transitions: list[tuple[float, str, str, str]]
     #: For the run's trace file: the estimate's age, the setpoint, the vehicle's velocity and height.
     trace: dict[str, Any] = field(default_factory=dict)
+    #: The heading the service flew on (PX4's, less any heading correction), rad.
+    yaw_service_rad: float = math.nan
+    #: The velocity setpoint in NED as the service meant it (its heading applied); None for an attitude
+    #: setpoint or none, m/s.
+    v_cmd_ned_m_s: tuple[float, float, float] | None = None
 
 
 @dataclass(slots=True)
@@ -43,6 +51,8 @@ class TraceFrame:
     rgb: np.ndarray | None
     #: For the trace file: what the tracker did with this frame.
     track: dict[str, Any] = field(default_factory=dict)
+    #: The range of the measurement that updated the track at this frame (camera to leader), m; NaN: none.
+    range_meas_m: float = math.nan
 
 
 @dataclass(slots=True)
@@ -91,7 +101,10 @@ class RunObserver:
             (tr.stamp_s, tr.from_state.name, tr.to_state.name, tr.reason.name) for tr in out.transitions
         ]
         rel = est.p_ned_rel_m if est is not None and est.usable else None
-        self.ticks.append(TraceTick(now_s, rel, transitions, trace))
+        trace["yaw_rad"] = round(v.yaw_rad, 5)
+        self.ticks.append(
+            TraceTick(now_s, rel, transitions, trace, v.yaw_rad, velocity_command_ned(sp, v.yaw_rad))
+        )
 
     def timing(self) -> dict[str, dict[str, float | None]]:
         """The ages the control ticks saw, ms (p50/p95/max).
@@ -131,6 +144,8 @@ class RunObserver:
 
     def on_frame(self, frame: RgbdFrame, result: DetectorResult, track: Any, process_ms: float) -> None:
         est = track.leader_estimate()
+        meas = track.measurement
+        range_meas_m = math.nan if meas is None else float(np.linalg.norm(meas.p_cam_leader_m))
         timing = result.timing
         detector_ms = (
             0.0 if timing is None else timing.preprocess_ms + timing.inference_ms + timing.postprocess_ms
@@ -153,10 +168,22 @@ class RunObserver:
                     "status": track.status.value,
                     "candidates": track.n_candidates,
                     "size_rejected": track.n_size_rejected,
-                    "updated": track.measurement is not None,
+                    "updated": meas is not None,
+                    "range_m": None if meas is None else round(range_meas_m, 3),
                 },
+                range_meas_m,
             )
         )
+
+
+def velocity_command_ned(sp: Setpoint | None, yaw_rad: float) -> tuple[float, float, float] | None:
+    """A velocity setpoint in NED, m/s: a body-frame one turned by the service's heading ``yaw_rad``."""
+    if isinstance(sp, VelocityNedSetpoint):
+        return sp.v_ned_m_s
+    if isinstance(sp, VelocityBodySetpoint):
+        n, e, d = (float(c) for c in heading_to_ned(np.asarray(sp.v_body_m_s, dtype=np.float64), yaw_rad))
+        return (n, e, d)
+    return None
 
 
 def _pcts_ms(values_s: list[float]) -> dict[str, float | None]:
