@@ -127,7 +127,9 @@ class InnerLoop:
             ex, ey, ez = -ex, -ey, -ez
         rx = 2.0 * ex * g.roll_p
         ry = 2.0 * ey * g.pitch_p
-        rz = 2.0 * ez * g.yaw_p
+        # PX4 divides MC_YAW_P by the yaw weight (AttitudeControl::setProportionalGain), so a small heading
+        # error turns at MC_YAW_P times it whatever the weight.
+        rz = 2.0 * ez * (g.yaw_p / yw if yw > 1e-4 else g.yaw_p)
         if not math.isnan(yawspeed_ff_rad_s):  # not NaN: world yaw rate as body rates, R^T e_z
             rx += 2.0 * (x * z - w * y) * yawspeed_ff_rad_s
             ry += 2.0 * (y * z + w * x) * yawspeed_ff_rad_s
@@ -281,7 +283,7 @@ class InnerLoop:
             ex, ey, ez = -ex, -ey, -ez
         sp_p = 2.0 * ex * g.roll_p
         sp_q = 2.0 * ey * g.pitch_p
-        sp_r = 2.0 * ez * g.yaw_p
+        sp_r = 2.0 * ez * (g.yaw_p / yw if yw > 1e-4 else g.yaw_p)  # as attitude_to_rates
         if not math.isnan(yawspeed_ff_rad_s):
             sp_p += 2.0 * (x * z - w * y) * yawspeed_ff_rad_s
             sp_q += 2.0 * (y * z + w * x) * yawspeed_ff_rad_s
