@@ -36,6 +36,10 @@ class WorldConfig(Section):
     heading_bias_deg: float = Field(0.0, ge=0.0, le=45.0)
     heading_wander_deg: float = Field(0.0, ge=0.0, le=45.0)
     heading_wander_tau_s: float = Field(15.0, gt=0.0, le=3600.0)
+    #: A further isotropic linear drag on every vehicle, per unit mass (1/s: N/(m/s) per kg), on the
+    #: air-relative velocity. 0: the airframe's own (a few degrees of tilt at 3 m/s). PX4 SIH's quadrotor
+    #: has 1.0 (SIH_KDV 1 N/(m/s) on 1 kg): 11 deg of tilt at 2 m/s (config/profiles/px4-sih.toml).
+    linear_drag_per_s: float = Field(0.0, ge=0.0, le=5.0)
 
     @field_validator("physics_rate_hz")
     @classmethod

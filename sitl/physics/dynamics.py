@@ -35,6 +35,8 @@ MODEL_ROOT = Path(str(importlib.resources.files("sitl") / "models"))
 MODEL_NAME = "wingman_quad"
 
 _FT = 0.3048
+#: Newtons in one pound-force.
+_LBF_N = 4.4482216
 GRAVITY_M_S2 = 9.80665
 
 
@@ -116,6 +118,7 @@ class QuadDynamics:
         spawn_ned_m: Where the vehicle starts, world NED (down is ignored: it starts on the ground).
         spawn_yaw_rad: Initial heading.
         dt_s: Physics time step.
+        linear_drag_per_s: A further isotropic linear drag per unit mass (1/s), on the air-relative velocity.
     """
 
     def __init__(
@@ -124,6 +127,7 @@ class QuadDynamics:
         spawn_ned_m: tuple[float, float, float],
         spawn_yaw_rad: float,
         dt_s: float,
+        linear_drag_per_s: float = 0.0,
     ) -> None:
         self._world = world
         self.dt_s = dt_s
@@ -139,6 +143,8 @@ class QuadDynamics:
             fdm["ic/h-agl-ft"] = (QUAD.rest_height_m + 0.005) / _FT
             fdm["ic/psi-true-deg"] = math.degrees(spawn_yaw_rad) % 360.0
             fdm.set_dt(dt_s)
+            # N/(m/s) in JSBSim's lbf per ft/s.
+            fdm["aero/extra-linear-drag-lbf_fps"] = linear_drag_per_s * QUAD.mass_kg * _FT / _LBF_N
             if not fdm.run_ic():
                 raise RuntimeError("JSBSim rejected the initial conditions")
         self._fdm = fdm

@@ -93,6 +93,8 @@ class World:
         speed_factor: float = 1.0,
         epoch_unix_s: float = DEFAULT_EPOCH_UNIX_S,
     ) -> None:
+        if scenario is not None and scenario.world:
+            cfg = cfg.model_copy(update={"world": scenario.world_config(cfg.world)})
         self.cfg = cfg
         self.scenario = scenario
         if seed is None:
@@ -112,7 +114,13 @@ class World:
         for i, vc in enumerate(cfg.vehicles):
             faults = scenario.faults(vc.name) if scenario is not None else None
             s = streams[i * 5 : i * 5 + 5]
-            dyn = QuadDynamics(self.projection, vc.spawn_ned_m, math.radians(vc.spawn_yaw_deg), self.dt_s)
+            dyn = QuadDynamics(
+                self.projection,
+                vc.spawn_ned_m,
+                math.radians(vc.spawn_yaw_deg),
+                self.dt_s,
+                linear_drag_per_s=cfg.world.linear_drag_per_s,
+            )
             gps = GpsSensor(
                 self.projection,
                 np.random.default_rng(s[0]),

@@ -88,6 +88,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from companion.kernel.config import Section, format_validation_error, read_toml
 from companion.kernel.errors import ConfigError
+from sitl.config import WorldConfig
 from sitl.physics.gps import GpsFailure, GpsJump, GpsNoise, GpsOutage
 from sitl.physics.wind import WindParams
 from sitl.world.trajectory import Circle, FigureEight, SpeedProfile, Straight, Trajectory, Waypoints
@@ -301,6 +302,9 @@ class Scenario(Section):
     visual: dict[str, Any] = Field(default_factory=dict)
     #: Opaque to the simulator: service config overrides (``companion sim`` validates them).
     companion: dict[str, Any] = Field(default_factory=dict)
+    #: The simulator's ``[world]`` keys this scenario changes (an airframe's drag, the heading estimate's
+    #: error: e.g. ``config/timing/px4-sih.toml``), applied over the simulator's config.
+    world: dict[str, Any] = Field(default_factory=dict)
     #: Opaque to the simulator: a formation of followers (``companion sim`` flies one service per follower).
     formation: dict[str, Any] = Field(default_factory=dict)
 
@@ -311,8 +315,20 @@ class Scenario(Section):
             raise ValueError(f"unsupported scenario schema {v} (this simulator reads {SCHEMA_VERSION})")
         return v
 
+    @field_validator("world")
+    @classmethod
+    def _world_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
+        WorldConfig.model_validate(v)  # each key a [world] key of the simulator, each value in its range
+        return v
+
     def faults(self, vehicle: str) -> VehicleFaultSpec:
         return self.vehicles.get(vehicle, VehicleFaultSpec())
+
+    def world_config(self, base: WorldConfig) -> WorldConfig:
+        """``base`` with this scenario's ``[world]`` keys over it."""
+        if not self.world:
+            return base
+        return WorldConfig.model_validate({**base.model_dump(), **self.world})
 
     @property
     def gps_loss_s(self) -> float | None:
