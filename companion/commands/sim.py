@@ -35,7 +35,13 @@ def register(sub: Any) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/sim"), help="output folder")
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed factor (real path)")
     p.add_argument("--duration", type=float, default=None, help="formation time in s (scenario default)")
-    p.add_argument("--jobs", type=int, default=2, help="runs side by side for 'all' and --seeds (default 2)")
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="lockstep runs side by side for 'all' and --seeds (default 2); real-path runs (and every PX4 "
+        "run) fly one at a time",
+    )
     p.add_argument(
         "--harness",
         choices=("real", "lockstep"),
@@ -113,10 +119,19 @@ def _sim(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     harness = args.harness or ("lockstep" if args.seeds or _is_formation(args.scenario) else "real")
-    if args.autopilot == "px4" and (args.harness == "lockstep" or args.seeds is not None):
-        raise SystemExit("companion sim: --autopilot px4 flies the real path only (no --seeds, no lockstep)")
-    if args.autopilot == "px4" and args.harness is None:
+    if args.autopilot == "px4" and args.harness == "lockstep":
+        raise SystemExit("companion sim: --autopilot px4 flies the real path only (PX4 runs in real time)")
+    if args.autopilot == "px4" and args.jobs is not None and args.jobs > 1:
+        raise SystemExit(
+            "companion sim: --autopilot px4 flies one run at a time (PX4 SITL runs in real time on this "
+            "host and each instance takes its own ports); drop --jobs"
+        )
+    if args.autopilot == "px4":
         harness = "real"
+    if args.jobs is None:
+        args.jobs = 2
+    if args.jobs < 1:
+        raise SystemExit("companion sim: --jobs must be at least 1")
     common: dict[str, Any] = {
         "harness": harness,
         "autopilot": args.autopilot,

@@ -69,14 +69,15 @@ class RunSpec:
 
 
 #: The tables a timing profile may set.
-TIMING_TABLES = ("timing", "vehicles")
+TIMING_TABLES = ("timing", "vehicles", "world")
 
 
 def read_timing_profile(path: Path) -> tuple[Path, dict[str, Any]]:
     """A timing profile (``config/timing/*.toml``): its absolute path and tables; errors in one line each.
 
-    It may hold ``[timing]`` (the lockstep harness's camera pipeline) and ``[vehicles.NAME.link]`` (MAVLink
-    latency, jitter and loss on that vehicle's links, both harnesses), nothing else.
+    It may hold ``[timing]`` (the lockstep harness's camera pipeline), ``[vehicles.NAME.link]`` (MAVLink
+    latency, jitter and loss on that vehicle's links, both harnesses) and ``[world]`` (the simulator's world:
+    an airframe's drag, the heading estimate's error), nothing else.
     """
     if not path.is_file():
         raise ConfigError(str(path), ["no such timing profile"])
@@ -366,17 +367,12 @@ async def _run_children(
             for c in group:
                 tg.create_task(one(c), name=f"sim.{c.name}")
 
-    real = [c for c in children if c.spec.harness == "real"]
-    lockstep = [c for c in children if c.spec.harness == "lockstep"]
-    if real and lockstep:
-        # Mixed harnesses ('all'): the real-path runs alone, one at a time (they run in real time and must
-        # keep their camera and control rates), then the lockstep runs ``jobs`` at a time. A niced lockstep
-        # run beside the real path still delayed the follower's start by ~0.25 s on two cores (straight
-        # seed 1: 0.353 m against 0.247 m alone; measured with companion sim).
-        await lane(real, 1)
-        await lane(lockstep, jobs)
-    else:
-        await lane(children, jobs)
+    # The real-path runs fly alone, one at a time (they run in real time and must keep their camera and
+    # control rates; two PX4 runs at once also raced for the same free ports), then the lockstep runs
+    # ``jobs`` at a time. A niced lockstep run beside the real path still delayed the follower's start by
+    # ~0.25 s on two cores (straight seed 1: 0.353 m against 0.247 m alone; measured with companion sim).
+    await lane([c for c in children if c.spec.harness == "real"], 1)
+    await lane([c for c in children if c.spec.harness == "lockstep"], jobs)
     return children
 
 

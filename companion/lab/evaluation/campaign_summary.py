@@ -28,6 +28,7 @@ SEED_KEYS = (
     "outcomes",
     "leader_identity_swaps",
     "identity_swaps_detected",
+    "host",
 )
 
 
@@ -142,6 +143,7 @@ def monte_carlo_markdown(summary: dict[str, Any]) -> str:
             f"{summary['follower_max_deviation_m']:.2f} m (over 0.6 m: {summary['followers_over_0_6_m']} of "
             f"{sum(summary['follower_outcomes'].values())}).",
         ]
+    lines += _per_seed(summary)
     if summary.get("failed"):
         lines += ["", "Runs without a report: " + "; ".join(summary["failed"])]
     executor = f" ({summary['executor']} executor)" if summary.get("executor") else ""
@@ -150,3 +152,29 @@ def monte_carlo_markdown(summary: dict[str, Any]) -> str:
     )
     lines += ["", f"Wall time: {summary['wall_s']:.0f} s{executor}{resumed}."]
     return "\n".join(lines) + "\n"
+
+
+def _per_seed(summary: dict[str, Any]) -> list[str]:
+    """Each seed's outcome and figures; on the real path, whether the host starved it."""
+    runs = summary.get("runs_by_seed") or {}
+    if not runs:
+        return []
+    lines = [
+        "",
+        "| run | outcome | relative position RMSE (m) | max deviation (m) | host |",
+        "|---|---|---|---|---|",
+    ]
+    starved = 0
+    for name, r in runs.items():
+        host = r.get("host") or {}
+        why = host.get("starved_because")
+        starved += bool(why)
+        note = "n/a" if why is None else ("starved: " + "; ".join(why) if why else "ok")
+        rmse, dev = r.get("relative_position_rmse_m"), r.get("formation_max_deviation_m")
+        lines.append(
+            f"| {name} | {r.get('outcome')} | {'n/a' if rmse is None else f'{rmse:.3f}'} | "
+            f"{'n/a' if dev is None else f'{dev:.3f}'} | {note} |"
+        )
+    if any((r.get("host") or {}).get("starved_because") is not None for r in runs.values()):
+        lines += ["", f"Runs the host starved: {starved} of {len(runs)}."]
+    return lines

@@ -180,7 +180,7 @@ def split_deviation(
         "autopilot_lag_s": _r(lag_s(v_cmd_sel, log.v_ned_follower_m_s, dt), 2),
         **_frame_figures(log, (t[idx[0]], t[idx[-1]])),
         "large_errors": _attribute(log, dev, a_lead_h),
-        "ticks": _tick_figures(t[idx]),
+        "ticks": _tick_figures(t[(t >= t[idx[0]]) & (t <= t[idx[-1]])]),
     }
     return {
         "slot_cam_m": [float(c) for c in offset_cam_m],
@@ -270,7 +270,7 @@ def _attribute(log: FlightLog, dev: F64, a_lead_h: F64) -> dict[str, Any]:
 
 
 def _tick_figures(t_formation: F64) -> dict[str, float | None]:
-    """How regular the control ticks were (sim s): their interval's median, p99 and max."""
+    """How regular the control ticks over the formation were (sim s): their interval's p50, p99 and max."""
     if t_formation.size < 3:
         return {"interval_p50_ms": None, "interval_p99_ms": None, "interval_max_ms": None}
     d = np.diff(t_formation) * 1e3

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.config import Config
+from companion.lab.evaluation.host import HostLoad
 from companion.lab.evaluation.lockstep import LEADER_SHARE_HZ, RunResult
 from companion.lab.evaluation.procs import REPO, Broker, Child, SimRunError
 from companion.lab.evaluation.procs import SitlPorts as Ports
@@ -220,6 +221,8 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     )
     wall0 = time.perf_counter()
     cpu0 = _cpu_s()
+    host = HostLoad()
+    host.start()
     sim_clock: SimClock | None = None
     service: Any = None
     try:
@@ -297,6 +300,7 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
             "frames_received": service.frames() if service is not None else {},
             "run_wall_s": round(time.perf_counter() - wall0, 2),
             "run_cpu_s": {k: round(v - cpu0[k], 2) for k, v in _cpu_s().items()},
+            "host": host.stop(sum(_cpu_s().values()) - sum(cpu0.values())),
             "sim_end_s": round(end_s, 2),
             "autopilot": read_autopilot_log(work_dir / "autopilot.jsonl", options.autopilot, work_dir),
         }

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.lab.evaluation.deviation import split_deviation, split_markdown
+from companion.lab.evaluation.host import starved
 from companion.lab.evaluation.log import FlightLog
 from companion.lab.evaluation.metrics import PAPER_ROW_NAMES, PAPER_TABLE, TARGETS, FlightMetrics
 
@@ -90,6 +91,8 @@ def build_report(
         report.update(extra)
     if offset_cam_m is not None:
         report["deviation_split"] = split_deviation(log, offset_cam_m)
+    if isinstance(report.get("host"), dict):
+        report["host"]["starved_because"] = starved(report["host"], report)
     return report
 
 
@@ -154,6 +157,15 @@ def report_markdown(report: Mapping[str, Any]) -> str:
     if report["transitions"]:
         lines += ["", "## Mission transitions", "", "| t (s) | from | to | reason |", "|---|---|---|---|"]
         lines += [f"| {t:.2f} | {a} | {b} | {r} |" for t, a, b, r in report["transitions"]]
+    host = report.get("host")
+    if host:
+        why = host.get("starved_because") or []
+        lines += [
+            "",
+            f"Host: {host.get('cores')} cores, {_fmt(host.get('machine_busy_frac'))} busy over the run, "
+            f"other work {_fmt(host.get('others_cpu_frac'))} of it; "
+            + ("**starved**: " + "; ".join(why) + "." if why else "the run was not held back."),
+        ]
     split = report.get("deviation_split")
     if split:
         lines += ["", *split_markdown(split)]
