@@ -127,6 +127,24 @@ class FormationConfig(Section):
     neighbour_ids: tuple[str, ...] = ()
     #: How fast an error across the line of sight to the slot is corrected, 1/s (the range has ``kp_xy``).
     kp_slot_1_s: float = Field(1.5, ge=0.0, le=5.0)
+    #: A lone follower (no ``slot_leader_m``) moves around the leader to trail it: the angle between the line
+    #: of sight and the leader's course is flown out at this rate, 1/s (0: the follower keeps its place in
+    #: NED and the leader's turns bring it beside or in front of the follower, whose camera then looks at a
+    #: leader flown at backwards; on PX4 SIH's drag that tilt put the leader out of the image).
+    trail_gain_1_s: float = Field(0.8, ge=0.0, le=5.0)
+    #: Send the velocity in NED with an acceleration feed-forward (the leader's acceleration and the thrust
+    #: the learnt drag takes at the commanded velocity) and an absolute yaw, as PX4's offboard setpoints
+    #: accept; false: a body-frame velocity and yaw rate, no feed-forward (docs/flight.md).
+    acceleration_feedforward: bool = False
+    #: ...at most this fast across the line of sight, m/s, and in full only once the leader is faster than
+    #: ``trail_min_speed_m_s`` + 0.5 m/s (faded in from ``trail_min_speed_m_s``: a hovering leader has no
+    #: course).
+    trail_max_m_s: float = Field(1.5, ge=0.0, le=10.0)
+    trail_min_speed_m_s: float = Field(0.5, ge=0.0)
+    #: ...and only past this angle between the line of sight and the leader's course, deg: within it the
+    #: follower keeps its place in NED (45: the leader is never flown at backwards and keeps at least a
+    #: third of its speed forward in the follower's frame, nose down, where the camera looks up at it).
+    trail_free_deg: float = Field(45.0, ge=0.0, le=180.0)
     #: The slot's own acceleration (as it turns with the leader) fed forward as a velocity lead, s; the
     #: same reason as ``leader_accel_ff_s``. 0 turns it off.
     slot_accel_ff_s: float = Field(0.35, ge=0.0, le=2.0)

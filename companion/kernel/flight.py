@@ -160,11 +160,13 @@ class VehicleState:
 class VelocityNedSetpoint:
     """Offboard velocity in local NED with an absolute yaw (PX4 position controller tracks both).
 
-    Needs PX4's local velocity to be valid: never use it after a GPS loss.
+    ``a_ned_m_s2``: an acceleration PX4 adds to its velocity loop's output (feed-forward), NED m/s^2; None
+    sends none. Needs PX4's local velocity to be valid: never use it after a GPS loss.
     """
 
     v_ned_m_s: Vec3T
     yaw_rad: float
+    a_ned_m_s2: Vec3T | None = None
 
 
 @dataclass(frozen=True, slots=True)

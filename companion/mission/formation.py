@@ -33,7 +33,7 @@ import math
 import numpy as np
 
 from companion.config import FormationConfig
-from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint
+from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint, VelocityNedSetpoint
 from companion.kernel.frames import Vec3, heading_to_ned, ned_to_heading, wrap_pi
 from companion.mission.formation_commands import (
     NO_ERROR,
@@ -44,10 +44,19 @@ from companion.mission.formation_commands import (
     clamp_norm,
     integrate,
     low_passed_rate,
+    ned_with_feedforward,
 )
-from companion.mission.geometry import FollowerState, Slot, SlotError, accel_lead, slot_error, tilt_from_accel
+from companion.mission.geometry import (
+    FollowerState,
+    Slot,
+    SlotError,
+    accel_lead,
+    slot_error,
+    tilt_from_accel,
+    trail_velocity,
+)
 from companion.mission.join import JoinReference, joined
-from companion.mission.plan_slot import NeighbourNow, SlotTarget
+from companion.mission.plan_slot import NeighbourNow, SlotTarget, slot_velocity
 from companion.mission.safety import (
     SafetyLimits,
     altitude_limit,
@@ -238,10 +247,14 @@ class FormationLaw:
         if ff_join is not None:
             raw += ff_join
         if slot_target is not None:
-            raw += self._slot_velocity(np.asarray(p_ned_rel_m, dtype=np.float64), err.u_los, slot_target)
+            raw += slot_velocity(
+                np.asarray(p_ned_rel_m, dtype=np.float64), err.u_los, slot_target, cfg.kp_slot_1_s
+            )
             raw[:2] += cfg.slot_accel_ff_s * self._slot_accel(slot_target, dt)[:2]
         else:
             self._v_slot_prev = None
+            if v_leader is not None and join is None:
+                raw += trail_velocity(err, err.e_range_m + self.slot.range_h_m, v_leader, cfg)
 
         v = clamp_speed(raw, lim)
         if self._v_prev is not None:
@@ -278,9 +291,13 @@ class FormationLaw:
             self._non_finite()
             v = v_body = np.zeros(3)
             yaw_rate = 0.0
-        sp = VelocityBodySetpoint(
-            v_body_m_s=(float(v_body[0]), float(v_body[1]), float(v_body[2])), yaw_rate_rad_s=yaw_rate
-        )
+        sp: VelocityBodySetpoint | VelocityNedSetpoint
+        if cfg.acceleration_feedforward:
+            sp = ned_with_feedforward(v, a_leader, follower, yaw_rate * self.YAW_LEAD_S, cfg.max_accel_m_s2)
+        else:
+            sp = VelocityBodySetpoint(
+                v_body_m_s=(float(v_body[0]), float(v_body[1]), float(v_body[2])), yaw_rate_rad_s=yaw_rate
+            )
         return VelocityCommand(sp, (float(v[0]), float(v[1]), float(v[2])), yaw_rate, err)
 
     def _non_finite(self) -> None:
@@ -322,19 +339,6 @@ class FormationLaw:
         self._v_slot_prev = v
         return self._a_slot
 
-    def _slot_velocity(self, p_rel: Vec3, u_los: Vec3, target: SlotTarget) -> Vec3:
-        """The follower's velocity that flies out the error across the line of sight to a turning slot.
-
-        The range is the radial law's; this adds ``kp_slot`` times the cross-range error and the slot's
-        own motion (the relative velocity the slot asks for, with the follower's sign), horizontal only.
-        """
-        e = p_rel - np.asarray(target.p_ned_rel_m)
-        e[2] = 0.0
-        e_cross = e - float(np.dot(e, u_los)) * u_los
-        v = self.cfg.kp_slot_1_s * e_cross - np.asarray(target.v_ned_rel_m_s)
-        v[2] = 0.0
-        return v
-
     def attitude(
         self,
         p_ned_rel_m: Vec3,
@@ -357,7 +361,7 @@ class FormationLaw:
         v_rel_des = -(cfg.kp_xy_attitude * err.e_range_m + self._i_range_m_s) * err.u_los
         if slot_target is not None:
             # The follower's velocity for the slot is minus the relative velocity it needs.
-            v_rel_des = v_rel_des - self._slot_velocity(p, err.u_los, slot_target)
+            v_rel_des = v_rel_des - slot_velocity(p, err.u_los, slot_target, cfg.kp_slot_1_s)
         dv = v_rel - v_rel_des
         dv[2] = 0.0
         dv_h = ned_to_heading(dv, follower.yaw_rad)

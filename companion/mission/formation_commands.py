@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint
-from companion.kernel.frames import Vec3
+from companion.kernel.flight import AttitudeSetpoint, Vec3T, VelocityBodySetpoint, VelocityNedSetpoint
+from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.geometry import FollowerState, SlotError
 from companion.mission.plan_slot import NeighbourNow, SlotTarget
 from companion.mission.safety import SafetyLimits, altitude_limit, geofence_limit, separation_limit
@@ -53,7 +54,7 @@ def all_finite(*values: object) -> bool:
 class VelocityCommand:
     """The velocity law's output: the setpoint to send and what went into it."""
 
-    setpoint: VelocityBodySetpoint
+    setpoint: VelocityBodySetpoint | VelocityNedSetpoint
     v_ned_m_s: Vec3T
     yaw_rate_rad_s: float
     error: SlotError
@@ -110,3 +111,37 @@ def bounded_velocity(  # noqa: PLR0917 (the law's state passed in, so this stays
     v = geofence_limit(v, follower.p_ned_m, limits)
     v[2] = altitude_limit(float(v[2]), follower.alt_rel_m, limits)
     return v
+
+
+def ned_with_feedforward(
+    v_ned_m_s: Vec3,
+    a_leader_ned_m_s2: Vec3,
+    follower: FollowerState,
+    yaw_lead_rad: float,
+    max_accel_m_s2: float,
+) -> VelocityNedSetpoint:
+    """A velocity setpoint in NED with the acceleration PX4 should add to its velocity loop.
+
+    PX4's velocity loop is a PID with no model of drag: at a new speed its integrator must first build up
+    the tilt the drag asks for (on SIH's 1 /s drag the velocity trailed the command by about a second and
+    1.3 m/s RMS in ``circle``). The feed-forward is the leader's acceleration (the law's estimate) plus the
+    thrust the learnt drag needs at the commanded velocity (``drag * v - push``), horizontal, at most
+    ``max_accel_m_s2`` plus the drag's part. The yaw is absolute: the heading now plus ``yaw_lead_rad``
+    (PX4 turns at MC_YAW_P times the error, so a lead of ``rate / MC_YAW_P`` flies that rate).
+    """
+    a = np.zeros(3)
+    a[:2] = np.asarray(a_leader_ned_m_s2, dtype=np.float64)[:2]
+    n = math.hypot(a[0], a[1])
+    if n > max_accel_m_s2:
+        a[:2] *= max_accel_m_s2 / n
+    drag = follower.airframe
+    if drag is not None:
+        a[0] += drag.drag_per_s * float(v_ned_m_s[0]) - drag.push_ne_m_s2[0]
+        a[1] += drag.drag_per_s * float(v_ned_m_s[1]) - drag.push_ne_m_s2[1]
+    if not np.all(np.isfinite(a)):
+        a = np.zeros(3)
+    return VelocityNedSetpoint(
+        v_ned_m_s=(float(v_ned_m_s[0]), float(v_ned_m_s[1]), float(v_ned_m_s[2])),
+        yaw_rad=wrap_pi(follower.yaw_rad + yaw_lead_rad),
+        a_ned_m_s2=(float(a[0]), float(a[1]), 0.0),
+    )

@@ -17,6 +17,7 @@ import numpy as np
 from companion.config import FormationConfig
 from companion.kernel.frames import Vec3, ned_to_heading, wrap_pi
 from companion.mission.safety import G_M_S2
+from companion.mission.types import AirframeDrag
 
 #: Below this horizontal range the line-of-sight bearing is meaningless (m).
 MIN_BEARING_RANGE_M = 0.5
@@ -112,6 +113,8 @@ class FollowerState:
     p_ned_m: Vec3 | None = None
     roll_rad: float = 0.0
     pitch_rad: float = 0.0
+    #: The airframe's drag as learnt in flight; None before (the law then feeds no drag forward).
+    airframe: AirframeDrag | None = None
 
 
 def tilt_from_accel(a_ned_m_s2: Vec3, yaw_rad: float) -> tuple[float, float]:
@@ -155,4 +158,34 @@ def accel_lead(a_h_m_s2: Vec3, err: SlotError, cfg: FormationConfig) -> Vec3:
         return lead
     cut = min(1.0, max(0.0, abs(e_m) - cfg.leader_accel_yield_dead_m) / cfg.leader_accel_yield_m)
     out: Vec3 = lead - cut * along * np.asarray(u, dtype=np.float64)
+    return out
+
+
+#: The trailing term fades in over this much leader speed above ``trail_min_speed_m_s``, m/s.
+TRAIL_FADE_M_S = 0.5
+
+
+def trail_velocity(err: SlotError, range_h_m: float, v_leader_ned_m_s: Vec3, cfg: FormationConfig) -> Vec3:
+    """The velocity across the line of sight (NED m/s) that brings a lone follower behind its leader.
+
+    The slot fixes the range and the bearing in the follower's frame, not where round the leader the
+    follower sits. Left free, a turning leader (``circle``) ends beside and then in front of the follower,
+    which then flies backwards at the leader's speed, nose up: a front camera loses the leader below its
+    image on a draggy airframe. This flies out the angle ``d`` between the line of sight and the leader's
+    course at ``trail_gain_1_s``: ``k r sin d`` across the line of sight (the full cap once ``d`` is past
+    90 deg), capped at ``trail_max_m_s`` and faded in with the leader's speed.
+    """
+    v = np.asarray(v_leader_ned_m_s, dtype=np.float64)
+    speed = math.hypot(v[0], v[1])
+    w = min(1.0, max(0.0, (speed - cfg.trail_min_speed_m_s) / TRAIL_FADE_M_S))
+    out = np.zeros(3)
+    if w <= 0.0 or cfg.trail_gain_1_s <= 0.0 or cfg.trail_max_m_s <= 0.0:
+        return out
+    d = wrap_pi(err.bearing_rad - math.atan2(v[1], v[0]))
+    past = min(max(abs(d) - math.radians(cfg.trail_free_deg), 0.0), 0.5 * math.pi)
+    pull = math.copysign(math.sin(past), d)
+    cross = float(np.clip(cfg.trail_gain_1_s * range_h_m * pull, -cfg.trail_max_m_s, cfg.trail_max_m_s))
+    # Right of the line of sight: moving that way turns the bearing to the leader down (anticlockwise).
+    u = err.u_los
+    out[0], out[1] = -u[1] * cross * w, u[0] * cross * w
     return out

@@ -126,3 +126,17 @@ def neighbours_now(
         p = np.asarray(n.p_ned_m, dtype=np.float64) + v_n * age - p_own
         out.append(NeighbourNow(p, v_n, v_n - v_own))
     return out
+
+
+def slot_velocity(p_rel_m: Vec3, u_los: Vec3, target: SlotTarget, kp_slot_1_s: float) -> Vec3:
+    """The follower's velocity that flies out the error across the line of sight to a turning slot, m/s.
+
+    The range is the radial law's; this adds ``kp_slot_1_s`` times the cross-range error and the slot's
+    own motion (the relative velocity the slot asks for, with the follower's sign), horizontal only.
+    """
+    e = p_rel_m - np.asarray(target.p_ned_rel_m)
+    e[2] = 0.0
+    e_cross = e - float(np.dot(e, u_los)) * u_los
+    v: Vec3 = kp_slot_1_s * e_cross - np.asarray(target.v_ned_rel_m_s)
+    v[2] = 0.0
+    return v

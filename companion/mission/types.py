@@ -15,6 +15,18 @@ from companion.kernel.flight import ExternalPosition, Setpoint, Severity, Vec3T,
 
 
 @dataclass(frozen=True, slots=True)
+class AirframeDrag:
+    """The follower's drag as learnt in flight (companion/estimation/ego_velocity.py).
+
+    Horizontal, per unit mass: holding a velocity ``v`` (NED m/s) takes ``drag_per_s * v - push_ne_m_s2``
+    of thrust acceleration (m/s^2), ``push_ne_m_s2`` being the steady wind's push.
+    """
+
+    drag_per_s: float
+    push_ne_m_s2: tuple[float, float]
+
+
+@dataclass(frozen=True, slots=True)
 class SharedLeaderPosition:
     """The leader's own position, shared over MAVLink or MQTT, in the follower's local NED frame, m."""
 
@@ -115,6 +127,8 @@ class MissionInputs:
     #: A one-shot operator request, delivered on one step only; the step checks it and answers it
     #: (``StepOutput.operator_refused``).
     operator: OperatorRequest | None = None
+    #: The follower's drag, once learnt (None before): the velocity law's acceleration feed-forward.
+    airframe: AirframeDrag | None = None
 
 
 class MissionState(StrEnum):

@@ -42,6 +42,7 @@ from companion.kernel.flight import NEVER_S, Vec3T, VehicleState
 from companion.kernel.frames import Mat3, R_from_euler, Vec3, quat_from_euler
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
+    AirframeDrag,
     MissionInputs,
     OperatorRequest,
     SharedLeaderPosition,
@@ -234,6 +235,10 @@ class FlightService:
             if self.machine.gps_ok and v.position_valid is not False:
                 if R is not None:
                     ego.learn(stamp_s, v.v_ned_m_s, R)
+                    m = ego.model()
+                    self.runner.submit_airframe(
+                        None if m is None else AirframeDrag(m.drag_per_s, m.push_ne_m_s2)
+                    )
                 self._v_aided = v.v_ned_m_s
                 self._ego_said = False
                 self.pipeline.velocity.push(stamp_s, v.v_ned_m_s)

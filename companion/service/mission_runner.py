@@ -21,6 +21,7 @@ from companion.kernel.errors import CommandRejectedError, CompanionError, LinkLo
 from companion.kernel.flight import Setpoint, Severity
 from companion.mission.machine import MissionMachine
 from companion.mission.types import (
+    AirframeDrag,
     Command,
     CommandKind,
     CommandResult,
@@ -86,6 +87,7 @@ class MissionRunner:
         self._shared: SharedLeaderPosition | None = None
         self._obstacle: ObstacleAhead | None = None
         self._neighbours: dict[str, SharedNeighbour] = {}
+        self._airframe: AirframeDrag | None = None
         self._start = False
         self._takeover = False
         self._shutdown = False
@@ -105,6 +107,10 @@ class MissionRunner:
 
     def submit_leader_shared(self, position: SharedLeaderPosition) -> None:
         self._shared = position
+
+    def submit_airframe(self, airframe: AirframeDrag | None) -> None:
+        """The follower's drag as learnt so far (None: not yet); latest value wins."""
+        self._airframe = airframe
 
     def submit_obstacle(self, obstacle: ObstacleAhead | None) -> None:
         """The depth guard's reading for the latest frame (None: nothing near); latest value wins."""
@@ -221,6 +227,7 @@ class MissionRunner:
             shutdown_requested=self._shutdown,
             command_results=results,
             operator=operator,
+            airframe=self._airframe,
         )
         out = self.machine.step(inputs, now_s)
         self.last_output = out

@@ -26,7 +26,7 @@ def setpoint_values(setpoint: Setpoint) -> tuple[float, ...]:
     if isinstance(setpoint, VelocityBodySetpoint):
         return (*setpoint.v_body_m_s, setpoint.yaw_rate_rad_s)
     if isinstance(setpoint, VelocityNedSetpoint):
-        return (*setpoint.v_ned_m_s, setpoint.yaw_rad)
+        return (*setpoint.v_ned_m_s, setpoint.yaw_rad, *(setpoint.a_ned_m_s2 or ()))
     a: AttitudeSetpoint = setpoint
     return (a.roll_rad, a.pitch_rad, a.yaw_rad, a.thrust_norm)
 

@@ -46,7 +46,7 @@ from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.plugins.action import Action, ActionResult
 from mavsdk.plugins.mocap import AngleBody, Covariance, Mocap, PositionBody, VisionPositionEstimate
-from mavsdk.plugins.offboard import Attitude, Offboard, OffboardResult, VelocityBodyYawspeed, VelocityNedYaw
+from mavsdk.plugins.offboard import Offboard, OffboardResult
 from mavsdk.plugins.server_utility import ServerUtility
 
 from companion.config import LinkConfig
@@ -55,13 +55,10 @@ from companion.kernel.clock import Clock
 from companion.kernel.compat import Self
 from companion.kernel.errors import CommandRejectedError, LinkLostError, WrongVehicleError
 from companion.kernel.flight import (
-    AttitudeSetpoint,
     ExternalPosition,
     Setpoint,
     Severity,
     VehicleState,
-    VelocityBodySetpoint,
-    VelocityNedSetpoint,
 )
 from companion.kernel.stall import StallAwareAge
 from companion.vehicle import failsafe
@@ -77,6 +74,7 @@ from companion.vehicle.mavsdk_glue import (
     route_mavsdk_log,
     settle,
 )
+from companion.vehicle.mavsdk_setpoints import set_offboard_setpoint
 from companion.vehicle.mavsdk_telemetry import MavsdkTelemetry
 
 log = logging.getLogger("companion.vehicle")
@@ -395,24 +393,7 @@ class MavsdkVehicleLink:
         require_finite_setpoint(setpoint)
         offboard = self._require(self._offboard)
         try:
-            if isinstance(setpoint, VelocityBodySetpoint):
-                f, r, d = setpoint.v_body_m_s
-                offboard.set_velocity_body(
-                    VelocityBodyYawspeed(f, r, d, math.degrees(setpoint.yaw_rate_rad_s))
-                )
-            elif isinstance(setpoint, VelocityNedSetpoint):
-                n, e, d = setpoint.v_ned_m_s
-                offboard.set_velocity_ned(VelocityNedYaw(n, e, d, math.degrees(setpoint.yaw_rad)))
-            else:
-                a: AttitudeSetpoint = setpoint
-                offboard.set_attitude(
-                    Attitude(
-                        math.degrees(a.roll_rad),
-                        math.degrees(a.pitch_rad),
-                        math.degrees(a.yaw_rad),
-                        a.thrust_norm,
-                    )
-                )
+            set_offboard_setpoint(offboard, setpoint)
         except MavsdkError as exc:
             raise CommandRejectedError("set_setpoint", result_name(exc)) from exc
         self._last_setpoint_s = self.clock.now_s()

@@ -72,10 +72,8 @@ OFFBOARD_GRACE_S = 3.0
 HOME_REQUEST_PERIOD_S = 2.0
 _HEARTBEAT_PERIOD_S = 1.0
 
-# POSITION_TARGET_TYPEMASK as MAVSDK's offboard plugin sets it.
-_IGNORE_POS = 1 | 2 | 4
-_IGNORE_ACC = 64 | 128 | 256
-_IGNORE_YAW, _IGNORE_YAW_RATE = 1024, 2048
+# POSITION_TARGET_TYPEMASK as MAVSDK's offboard plugin sets it (with an acceleration: position NaN, unmasked).
+_IGNORE_POS, _IGNORE_ACC, _IGNORE_YAW, _IGNORE_YAW_RATE = 1 | 2 | 4, 64 | 128 | 256, 1024, 2048
 VELOCITY_BODY_MASK = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW
 VELOCITY_NED_MASK = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW_RATE
 #: SET_ATTITUDE_TARGET: body rates ignored, attitude + thrust used.
@@ -448,9 +446,10 @@ class MessageVehicleLink:
                 setpoint.yaw_rate_rad_s,
             )  # fmt: skip
         if isinstance(setpoint, VelocityNedSetpoint):
-            n, e, d = setpoint.v_ned_m_s
+            (n, e, d), acc, nan = setpoint.v_ned_m_s, setpoint.a_ned_m_s2, math.nan
+            mask, pos = (VELOCITY_NED_MASK, (0, 0, 0)) if acc is None else (_IGNORE_YAW_RATE, (nan, nan, nan))
             return mavlink.MAVLink_set_position_target_local_ned_message(
-                0, ts, tc, mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_NED_MASK, 0, 0, 0, n, e, d, 0, 0, 0,
+                0, ts, tc, mavlink.MAV_FRAME_LOCAL_NED, mask, *pos, n, e, d, *(acc or (0, 0, 0)),
                 setpoint.yaw_rad, 0,
             )  # fmt: skip
         a: AttitudeSetpoint = setpoint

@@ -122,6 +122,7 @@ def setpoint_fields(sp: Setpoint | None) -> dict[str, Any]:
             "setpoint_kind": "velocity_ned",
             "setpoint_v_m_s": rounded(sp.v_ned_m_s),
             "setpoint_yaw_rad": sp.yaw_rad,
+            "setpoint_a_m_s2": None if sp.a_ned_m_s2 is None else rounded(sp.a_ned_m_s2),
         }
     if isinstance(sp, VelocityBodySetpoint):
         return {

@@ -608,3 +608,55 @@ def test_the_depth_guard_slides_past_an_obstacle_beside_the_path_without_braking
         np.array([7.0, 0.0, 0.0]), np.zeros(3), fol, 0.0, obstacle_ned_m=np.array([3.0, 0.9, 0.0])
     )
     assert clear.v_ned_m_s == pytest.approx(free.v_ned_m_s)
+
+
+# ---------------------------------------------------------------------- trailing and feed-forward
+def test_a_leader_flying_across_the_line_of_sight_is_trailed() -> None:
+    """Leader 5 m north flying east at 3 m/s: the follower also slides west, to end up behind it."""
+    moving_east = hover(v=(0.0, 3.0, 0.0))
+    held = law(trail_gain_1_s=0.0).velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), moving_east, 0.0)
+    assert held.v_ned_m_s == pytest.approx((0.0, 3.0, 0.0))
+    trailed = law().velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), moving_east, 0.0)
+    # 90 deg off the course, 45 deg past the free band: k r sin(45 deg) = 2.8 m/s, capped at 1.5 m/s.
+    assert trailed.v_ned_m_s == pytest.approx((0.0, 3.0 - 1.5, 0.0))
+
+
+def test_trailing_leaves_a_leader_within_the_free_angle_or_hovering_alone() -> None:
+    # 30 deg off the course: within trail_free_deg (45), the follower keeps its place in NED.
+    v = (3.0 * math.cos(math.radians(30.0)), 3.0 * math.sin(math.radians(30.0)), 0.0)
+    cmd = law().velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=v), 0.0)
+    assert cmd.v_ned_m_s == pytest.approx(v)
+    slow = (0.0, 0.4, 0.0)  # under trail_min_speed_m_s: no course to trail
+    cmd = law().velocity(np.array([5.0, 0.0, 0.0]), np.zeros(3), hover(v=slow), 0.0)
+    assert cmd.v_ned_m_s == pytest.approx(slow)
+
+
+def test_the_feedforward_setpoint_carries_the_drag_at_the_command_and_an_absolute_yaw() -> None:
+    from companion.kernel.flight import VelocityNedSetpoint
+    from companion.mission.types import AirframeDrag
+
+    follower = FollowerState(
+        yaw_rad=0.3,
+        v_ned_m_s=np.array([2.0, 0.0, 0.0]),
+        v_down_m_s=0.0,
+        alt_rel_m=10.0,
+        p_ned_m=np.zeros(3),
+        airframe=AirframeDrag(drag_per_s=1.0, push_ne_m_s2=(0.2, -0.1)),
+    )
+    p_rel = 5.0 * np.array([math.cos(0.3), math.sin(0.3), 0.0])
+    lw = law(acceleration_feedforward=True)
+    cmd = lw.velocity(p_rel, np.zeros(3), follower, 0.0)
+    sp = cmd.setpoint
+    assert isinstance(sp, VelocityNedSetpoint)
+    assert sp.v_ned_m_s == pytest.approx(cmd.v_ned_m_s)
+    assert sp.a_ned_m_s2 is not None
+    # Holding the commanded velocity against the drag, less the wind's push; no leader acceleration yet.
+    expect = (1.0 * cmd.v_ned_m_s[0] - 0.2, 1.0 * cmd.v_ned_m_s[1] + 0.1, 0.0)
+    assert sp.a_ned_m_s2 == pytest.approx(expect)
+    assert sp.yaw_rad == pytest.approx(0.3 + cmd.yaw_rate_rad_s * FormationLaw.YAW_LEAD_S)
+    # Without a learnt drag only the leader's acceleration would be fed forward (none here).
+    no_drag = law(acceleration_feedforward=True).velocity(
+        p_rel, np.zeros(3), hover(yaw=0.3, v=(2.0, 0.0, 0.0)), 0.0
+    )
+    assert isinstance(no_drag.setpoint, VelocityNedSetpoint)
+    assert no_drag.setpoint.a_ned_m_s2 == pytest.approx((0.0, 0.0, 0.0))

@@ -28,6 +28,7 @@ from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
 from companion.mission.safety import SafetyLimits
 from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion, SharedRelativeFix
 from companion.mission.types import (
+    AirframeDrag,
     CommandKind,
     CommandResult,
     MissionInputs,
@@ -189,7 +190,9 @@ class MissionContext:
     def tracked(self, inp: MissionInputs, *, confirmed_only: bool = False) -> bool:
         return self.track.tracked(inp.leader, self.now_s, confirmed_only=confirmed_only)
 
-    def follower(self, veh: VehicleState, *, velocity_valid: bool) -> FollowerState:
+    def follower(
+        self, veh: VehicleState, *, velocity_valid: bool, airframe: AirframeDrag | None = None
+    ) -> FollowerState:
         return FollowerState(
             yaw_rad=veh.yaw_rad,
             v_ned_m_s=np.array(veh.v_ned_m_s) if velocity_valid else None,
@@ -198,6 +201,7 @@ class MissionContext:
             p_ned_m=np.array(veh.p_ned_m) if velocity_valid else None,
             roll_rad=veh.roll_rad,
             pitch_rad=veh.pitch_rad,
+            airframe=airframe,
         )
 
     def slot_target(self, inp: MissionInputs) -> SlotTarget | None:

@@ -60,7 +60,7 @@ class FollowPhase:
         cmd = self.c.law.velocity(
             p_rel,
             v_rel,
-            self.c.follower(veh, velocity_valid=True),
+            self.c.follower(veh, velocity_valid=True, airframe=inp.airframe),
             self.c.now_s,
             a_leader_ned_m_s2=est.a_ned_leader_m_s2 if motion is None else motion.a_ned_m_s2,
             obstacle_ned_m=self.c.obstacle_now(inp),
@@ -188,7 +188,7 @@ class FollowPhase:
                 vcmd = self.c.law.velocity(
                     p_rel,
                     v_rel,
-                    self.c.follower(veh, velocity_valid=True),
+                    self.c.follower(veh, velocity_valid=True, airframe=inp.airframe),
                     self.c.now_s,
                     a_leader_ned_m_s2=est.a_ned_leader_m_s2,
                     obstacle_ned_m=self.c.obstacle_now(inp),
@@ -211,7 +211,7 @@ class FollowPhase:
                     vcmd = self.c.law.velocity(
                         p_rel,
                         v_rel,
-                        self.c.follower(veh, velocity_valid=True),
+                        self.c.follower(veh, velocity_valid=True, airframe=inp.airframe),
                         self.c.now_s,
                         a_leader_ned_m_s2=est.a_ned_leader_m_s2,
                         obstacle_ned_m=self.c.obstacle_now(inp),
