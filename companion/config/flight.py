@@ -228,6 +228,9 @@ class SafetyConfig(Section):
     depth_guard_max_range_m: float = Field(9.0, gt=0.5, le=20.0)
     depth_guard_window_frac: tuple[float, float] = (0.6, 0.3)
     depth_guard_min_px: int = Field(8, ge=1)
+    #: An obstacle counts once this many frames in a row see it (one within ``min_separation_m`` at once):
+    #: one frame's depth 2 m short where the leader is read as an obstacle 3 m ahead.
+    depth_guard_confirm_frames: int = Field(2, ge=1, le=10)
     #: What comes within this of the path the follower will fly (formation.path_approach) is passed with
     #: this much room at least, m: the follower steps aside from it, or brakes when it is dead ahead
     #: (``depth_guard_hit_radius_m``). 0.8 and 0.6 gave the same visibility runs (lockstep, seeds 1-8),

@@ -35,6 +35,11 @@ from companion.perception.size_range import SizeCalibrator
 from companion.perception.transform import AttitudeHistory, CameraGeometry, VelocityHistory
 from companion.perception.types import Detection
 
+#: The depth guard's sightings confirm each other when this close in time (s) and place (NED, m): the
+#: follower's own motion between two 15 Hz frames at 3 m/s is 0.2 m.
+OBSTACLE_CONFIRM_GAP_S = 0.25
+OBSTACLE_CONFIRM_M = 0.5
+
 
 @dataclass(slots=True)
 class PipelineCounters:
@@ -98,6 +103,8 @@ class PerceptionPipeline:
             else None
         )
         self._last_R_ned_body: Mat3 = np.eye(3)
+        #: The depth guard's last sighting and how many frames in a row have seen it there.
+        self._obstacle_seen: tuple[ObstacleAhead, int] | None = None
         self._att_key: tuple[float, float | None] = (math.nan, None)
         self._att_R: Mat3 | None = None
 
@@ -246,9 +253,30 @@ class PerceptionPipeline:
             exclude_range_m=exclude_range,
         )
         if p_cam is None:
+            self._obstacle_seen = None
             return None
         p_ned = R_ned_body @ self.camera.cam_to_body(p_cam)
-        return ObstacleAhead(frame.stamp_s, (float(p_ned[0]), float(p_ned[1]), float(p_ned[2])))
+        return self._confirmed(
+            ObstacleAhead(frame.stamp_s, (float(p_ned[0]), float(p_ned[1]), float(p_ned[2])))
+        )
+
+    def _confirmed(self, ob: ObstacleAhead) -> ObstacleAhead | None:
+        """``ob`` once ``depth_guard_confirm_frames`` frames in a row have seen it in about the same place.
+
+        One frame's depth can be wrong where the leader is: a range 2 m short there read as an obstacle 3 m
+        ahead, and the separation barrier (which no slew holds back) reversed the follower at once. A real
+        obstacle stays; within ``min_separation_m`` one frame is enough.
+        """
+        g = self.safety
+        seen = self._obstacle_seen
+        n = 1
+        if seen is not None and 0.0 < ob.stamp_s - seen[0].stamp_s <= OBSTACLE_CONFIRM_GAP_S:
+            moved = math.dist(ob.p_ned_rel_m, seen[0].p_ned_rel_m)
+            n = seen[1] + 1 if moved <= OBSTACLE_CONFIRM_M else 1
+        self._obstacle_seen = (ob, n)
+        assert g is not None  # noqa: S101 (only called with the guard on)
+        near = math.hypot(*ob.p_ned_rel_m) < g.min_separation_m
+        return ob if near or n >= g.depth_guard_confirm_frames else None
 
     def _guard_range_m(self, g: SafetyConfig, stamp_s: float, R_ned_body: Mat3) -> float:
         """The depth guard's range at this frame: the stopping distance toward the camera's axis, m."""

@@ -19,7 +19,7 @@ import json
 import logging
 import sys
 from asyncio.subprocess import PIPE
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol, Self
@@ -28,6 +28,7 @@ from companion.kernel.camera import MountConfig
 from companion.kernel.camera_wire import PREFIX, DepthEncoding
 from companion.kernel.errors import CameraError
 from sitl.render.config import CameraModel, VisualConfig, visual_from_mapping
+from sitl.render.faults import DepthGlitches
 from sitl.render.geometry import PoseTruth
 from sitl.render.worker import READY, pose_to_json
 
@@ -68,6 +69,7 @@ class CameraServer:
         seed: int = 0,
         depth_encoding: DepthEncoding = "u16_mm",
         wait_until: Callable[[float], Awaitable[None]] | None = None,
+        depth_glitches: Sequence[tuple[float, float]] = (),
     ) -> None:
         self.socket_path = Path(socket_path)
         self.truth_fn = truth_fn
@@ -81,6 +83,7 @@ class CameraServer:
         self._wait_until = wait_until or self._poll_until
         #: Fault injection: while True the camera delivers nothing (a stalled driver), time goes on.
         self.stalled = False
+        self._glitches = DepthGlitches(depth_glitches)
         self.frames_sent = 0
         self.frames_dropped = 0
         self._clients: set[asyncio.StreamWriter] = set()
@@ -181,7 +184,12 @@ class CameraServer:
         """One frame from the worker, as the raw wire message (prefix + header, rgb, depth)."""
         assert self._proc is not None  # noqa: S101 (inside the context)
         assert self._proc.stdin is not None  # noqa: S101 (PIPE)
-        req = {"t": t_s, "f": pose_to_json(follower), "l": None if leader is None else pose_to_json(leader)}
+        req = {
+            "t": t_s,
+            "f": pose_to_json(follower),
+            "l": None if leader is None else pose_to_json(leader),
+            "dz": self._glitches.take(t_s),
+        }
         self._proc.stdin.write(json.dumps(req).encode() + b"\n")
         out = self._worker_out()
         try:

@@ -4,8 +4,9 @@ moderngl holds the GIL while the GL driver works (a 30-80 ms frame on llvmpipe),
 real-time simulator sharing the process; so :class:`sitl.render.server.CameraServer` renders here.
 
 Protocol. stdin: one JSON line of configuration (``camera``, ``visual``, ``mount``, ``seed``,
-``depth``), then one JSON line per frame: ``{"t": t_s, "f": pose, "l": pose or null}`` with
-``pose = {"p": [n, e, d], "q": [w, x, y, z], "w": [p, q, r] or null}``. stdout: ``b"RDY1"`` once the
+``depth``), then one JSON line per frame: ``{"t": t_s, "f": pose, "l": pose or null, "dz": m}`` with
+``pose = {"p": [n, e, d], "q": [w, x, y, z], "w": [p, q, r] or null}`` (``dz``, optional: a depth glitch
+on the leader, sitl/render/faults.py). stdout: ``b"RDY1"`` once the
 renderer is up, then one message per request in the wire format of
 :mod:`companion.kernel.camera_wire`, ready to forward to clients as is. EOF on stdin ends it.
 """
@@ -21,6 +22,7 @@ import numpy as np
 from companion.kernel.camera import MountConfig
 from companion.kernel.camera_wire import encode_frame
 from sitl.render.config import CameraModel, VisualConfig
+from sitl.render.faults import offset_leader_depth
 from sitl.render.geometry import PoseTruth, VehiclePose
 from sitl.render.renderer import Renderer
 
@@ -61,6 +63,8 @@ def main() -> int:
             req = json.loads(line)
             leader = None if req["l"] is None else pose_from_json(req["l"])
             frame = renderer.render(pose_from_json(req["f"]), leader, float(req["t"]))
+            if req.get("dz"):
+                frame = offset_leader_depth(frame, float(req["dz"]))
             for part in encode_frame(frame, cfg["depth"]):
                 out.write(part)
             out.flush()

@@ -242,11 +242,28 @@ class LinkSpec(Section):
         return self.loss == 0 and self.latency_ms == 0 and self.jitter_ms == 0 and not self.windows
 
 
+class DepthGlitchSpec(Section):
+    """One camera frame whose depth of the leader reads ``offset_m`` off (negative: nearer)."""
+
+    at_s: float = Field(ge=0.0)
+    offset_m: float = Field(ge=-20.0, le=20.0)
+
+
+class CameraFaultSpec(Section):
+    """The follower's camera: depth glitches on the leader (sitl/render/faults.py)."""
+
+    depth_glitches: tuple[DepthGlitchSpec, ...] = ()
+
+    def glitches(self) -> list[tuple[float, float]]:
+        return [(g.at_s, g.offset_m) for g in self.depth_glitches]
+
+
 class VehicleFaultSpec(Section):
     """All faults of one vehicle."""
 
     gps: GpsSpec = GpsSpec()
     link: LinkSpec = LinkSpec()
+    camera: CameraFaultSpec = CameraFaultSpec()
 
 
 class TimingSpec(Section):

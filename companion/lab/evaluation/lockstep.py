@@ -61,6 +61,7 @@ from companion.perception.types import DetectorResult, DetectStage
 from companion.service.flight import Callbacks, FlightService
 from companion.vehicle.external_vision import ev_position_bits_for
 from companion.vehicle.message_link import MessageVehicleLink
+from sitl.render.faults import DepthGlitches, offset_leader_depth
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +140,8 @@ class LockstepFollower:
     compute_ms: list[float] = field(default_factory=list)
     frame_hooks: list[FrameHook] = field(default_factory=list)
     autolabel: AutoLabelCheck | None = None
+    #: The scenario's depth glitches on this follower's camera (sitl/render/faults.py).
+    glitches: DepthGlitches = field(default_factory=lambda: DepthGlitches(()))
 
 
 def lockstep_follower(
@@ -188,7 +191,10 @@ def lockstep_follower(
     flight.observers.append(Callbacks(step=on_step, transition=on_transition))
     takes_shares = cfg.leader.shared_position == "mqtt" or cfg.formation.slot_leader_m is not None
     timing = CameraTiming(world.scenario.timing, world.seed, stream=stream)
-    return LockstepFollower(name, cfg, link, flight, stage, renderer, scorer, timing, observer, takes_shares)
+    glitches = DepthGlitches(world.scenario.faults(name).camera.glitches())
+    return LockstepFollower(
+        name, cfg, link, flight, stage, renderer, scorer, timing, observer, takes_shares, glitches=glitches
+    )
 
 
 class LockstepFlight:
@@ -331,6 +337,8 @@ class LockstepFlight:
         leader = None if world.scenario.run.leader_hidden(t_s) else world.truth("leader")
         others = [world.truth(n) for n in self._others[f.name]]
         frame = f.renderer.render(world.truth(f.name), leader, t_s, others=others)
+        if dz := f.glitches.take(t_s):
+            frame = offset_leader_depth(frame, dz)
         c0 = time.perf_counter()
         result = f.stage.detect(frame)
         f.in_flight.append(InFlight(due_s, frame, result, (time.perf_counter() - c0) * 1e3))

@@ -163,5 +163,6 @@ async def _camera(sim: Any, settings: dict[str, Any]) -> None:
         mount=MountConfig.model_validate(settings["mount"]),
         seed=int(settings["seed"]),
         wait_until=sim.wait_until,
+        depth_glitches=scenario.faults("follower").camera.glitches(),
     ) as server:
         await server.run()
