@@ -45,11 +45,13 @@ from companion.mission.formation_commands import (
     integrate,
     low_passed_rate,
     ned_with_feedforward,
+    slewed,
 )
 from companion.mission.geometry import (
     FollowerState,
     Slot,
     SlotError,
+    accel_from_tilt,
     accel_lead,
     slot_error,
     tilt_from_accel,
@@ -86,7 +88,7 @@ class FormationLaw:
     KV_XY_1_S = 1.8
     #: Its integral, in the heading frame (1/s^2): the acceleration a steady turn needs is constant there.
     KI_V_XY_1_S2 = 0.6
-    I_ACC_LIMIT_M_S2 = 2.0
+    I_ACC_LIMIT_M_S2 = 3.0
     #: An absolute yaw setpoint makes PX4 turn at MC_YAW_P (2.8/s) times the error, so a setpoint this far
     #: ahead of the desired yaw in time turns at the desired rate (1 / MC_YAW_P, s).
     YAW_LEAD_S = 1.0 / 2.8
@@ -258,18 +260,9 @@ class FormationLaw:
 
         v = clamp_speed(raw, lim)
         if self._v_prev is not None:
-            # Horizontal and vertical slew apart: only the horizontal follows the leader's speed changes;
-            # a fast vertical slew swung the height under a lossy link (measured in lockstep).
             step_s = dt if dt > 0.0 else FIRST_SLEW_DT_S
-            slew = cfg.command_slew_m_s2 if slew_m_s2 is None else slew_m_s2
-            dv = v - self._v_prev
-            n_h = math.hypot(dv[0], dv[1])
-            max_h = slew * step_s
-            if n_h > max_h:
-                dv[:2] *= max_h / n_h
-            max_z = cfg.command_slew_m_s2 * step_s
-            dv[2] = min(max(dv[2], -max_z), max_z)
-            v = self._v_prev + dv
+            slew_h = cfg.command_slew_m_s2 if slew_m_s2 is None else slew_m_s2
+            v = slewed(v, self._v_prev, step_s, slew_h, cfg.command_slew_m_s2)
         p = np.asarray(p_ned_rel_m, dtype=np.float64)
         v = bounded_velocity(v, p, v_leader, follower, self.limits, self.neighbours, obstacle_ned_m)
         # Separation wins over max speed: a leader rushing at us may push the command past it.
@@ -365,6 +358,9 @@ class FormationLaw:
         dv = v_rel - v_rel_des
         dv[2] = 0.0
         dv_h = ned_to_heading(dv, follower.yaw_rad)
+        if dt == 0.0:  # start from the tilt flown now (from level, 2 m/s on SIH's drag fell 0.6 m behind)
+            a_now = np.asarray(accel_from_tilt(follower.roll_rad, follower.pitch_rad))
+            self._i_acc_heading = clamp_norm(a_now, self.I_ACC_LIMIT_M_S2)
         a_h = self.KV_XY_1_S * dv_h[:2] + self._i_acc_heading
         a = heading_to_ned(np.array([a_h[0], a_h[1], 0.0]), follower.yaw_rad)
         a_max = min(cfg.max_accel_m_s2, lim.max_horizontal_accel_m_s2)

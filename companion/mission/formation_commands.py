@@ -145,3 +145,20 @@ def ned_with_feedforward(
         yaw_rad=wrap_pi(follower.yaw_rad + yaw_lead_rad),
         a_ned_m_s2=(float(a[0]), float(a[1]), 0.0),
     )
+
+
+def slewed(v: Vec3, v_prev: Vec3, step_s: float, slew_h_m_s2: float, slew_z_m_s2: float) -> Vec3:
+    """``v`` moved from ``v_prev`` by at most ``slew * step_s``: the horizontal and the vertical apart.
+
+    Only the horizontal follows the leader's speed changes at a fast slew; a fast vertical slew swung the
+    height under a lossy link (measured in lockstep).
+    """
+    dv = v - v_prev
+    n_h = math.hypot(dv[0], dv[1])
+    max_h = slew_h_m_s2 * step_s
+    if n_h > max_h:
+        dv[:2] *= max_h / n_h
+    max_z = slew_z_m_s2 * step_s
+    dv[2] = min(max(dv[2], -max_z), max_z)
+    out: Vec3 = v_prev + dv
+    return out

@@ -125,6 +125,12 @@ def tilt_from_accel(a_ned_m_s2: Vec3, yaw_rad: float) -> tuple[float, float]:
     return roll, pitch
 
 
+def accel_from_tilt(roll_rad: float, pitch_rad: float) -> tuple[float, float]:
+    """Forward and right acceleration (heading frame, m/s^2) a tilt gives level: tilt_from_accel inverted."""
+    c = math.cos(pitch_rad)
+    return -G_M_S2 * math.tan(pitch_rad), G_M_S2 * math.tan(roll_rad) / (c if abs(c) > 0.2 else 0.2)
+
+
 def faded(a_m_s2: Vec3, fade_m_s2: float) -> Vec3:
     """``a`` scaled by ``|a|^2 / (|a|^2 + fade^2)``: kept where it stands out of the noise, faded below.
 

@@ -660,3 +660,16 @@ def test_the_feedforward_setpoint_carries_the_drag_at_the_command_and_an_absolut
     )
     assert isinstance(no_drag.setpoint, VelocityNedSetpoint)
     assert no_drag.setpoint.a_ned_m_s2 == pytest.approx((0.0, 0.0, 0.0))
+
+
+def test_the_attitude_law_starts_from_the_tilt_flown_at_the_switch() -> None:
+    """GPS lost while holding 2 m/s against a 1 /s drag (11 deg nose down): the first attitude keeps it."""
+    pitch = -math.atan2(2.0, G_M_S2)
+    flying = FollowerState(
+        yaw_rad=0.0, v_ned_m_s=None, v_down_m_s=0.0, alt_rel_m=10.0, p_ned_m=None, pitch_rad=pitch
+    )
+    at_slot = np.array([5.0, 0.0, 0.0])
+    cmd = law().attitude(at_slot, np.zeros(3), flying, 0.0)
+    assert cmd.setpoint.pitch_rad == pytest.approx(pitch, abs=1e-6)
+    level = FollowerState(yaw_rad=0.0, v_ned_m_s=None, v_down_m_s=0.0, alt_rel_m=10.0, p_ned_m=None)
+    assert law().attitude(at_slot, np.zeros(3), level, 0.0).setpoint.pitch_rad == pytest.approx(0.0, abs=1e-9)
