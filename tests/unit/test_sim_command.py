@@ -229,3 +229,58 @@ def test_a_run_finds_the_shipped_weights_from_any_folder(
     assert model.is_absolute()
     assert model == (Path(__file__).resolve().parents[2] / "models" / "leader_detector.pt")
     assert cfg.formation.plan == ""  # nothing named, nothing resolved
+
+
+def test_px4_runs_alone_even_when_every_run_is_real(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``all --autopilot px4`` is four real-path runs: two at once raced for the same free PX4 ports."""
+    running: set[str] = set()
+    most = [0]
+
+    async def fake_child(child: Any, env: Any, line: Any, children: Any) -> None:
+        running.add(child.name)
+        most[0] = max(most[0], len(running))
+        await asyncio.sleep(0.01)
+        running.discard(child.name)
+        child.done = True
+
+    monkeypatch.setattr(campaign, "_run_child", fake_child)
+    specs = [
+        RunSpec(name, 1, tmp_path / name, harness="real", autopilot="px4")  # type: ignore[arg-type]
+        for name in ("straight", "circle", "gps-loss", "visibility")
+    ]
+    asyncio.run(campaign._run_children(specs, 2, ProgressLine(io.StringIO(), len(specs)), {}))
+    assert most[0] == 1
+
+
+def test_jobs_with_px4_is_refused_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from companion.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["sim", "--scenario", "straight", "--seeds", "1-2", "--autopilot", "px4", "--jobs", "2"])
+    assert "one run at a time" in str(exc.value)
+    assert "\n" not in str(exc.value)
+
+
+def test_a_campaign_page_lists_each_seed_with_the_hosts_verdict() -> None:
+    stats = {"min": 0.1, "p5": 0.1, "p50": 0.2, "p95": 0.3, "max": 0.3}
+    md = monte_carlo_markdown(
+        {
+            "scenario": "circle",
+            "runs": 2,
+            "harness": "real",
+            "outcomes": {"completed": 2},
+            "formation_max_deviation_m": stats,
+            "wall_s": 190.0,
+            "failed": [],
+            "runs_by_seed": {
+                "seed-001": {"outcome": "completed", "relative_position_rmse_m": 0.31,
+                             "formation_max_deviation_m": 0.55, "host": {"starved_because": []}},
+                "seed-002": {"outcome": "completed", "relative_position_rmse_m": 0.40,
+                             "formation_max_deviation_m": 1.9,
+                             "host": {"starved_because": ["other work took 40% of the machine"]}},
+            },
+        }
+    )  # fmt: skip
+    assert "| seed-001 | completed | 0.310 | 0.550 | ok |" in md
+    assert "| seed-002 | completed | 0.400 | 1.900 | starved: other work took 40% of the machine |" in md
+    assert "Runs the host starved: 1 of 2." in md
