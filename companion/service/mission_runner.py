@@ -280,7 +280,11 @@ class MissionRunner:
     async def _execute_commands(self) -> None:
         while True:
             cmd = await self._commands.get()
-            self._results.append(await self._execute(cmd))
+            # Awaited first: ``self._results.append`` taken before the await would append to the list that
+            # a tick swapped out meanwhile, and a result of a command that spanned a tick was lost (a refused
+            # offboard start then looked in flight for COMMAND_STALE_S, and the follower hovered 10 s).
+            result = await self._execute(cmd)
+            self._results.append(result)
 
     async def _execute(self, cmd: Command) -> CommandResult:
         log.info("mission: command %s", cmd.kind.value)

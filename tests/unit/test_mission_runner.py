@@ -273,3 +273,27 @@ async def test_an_operator_start_is_answered_with_what_the_mission_did() -> None
     assert (
         await _ask(runner, _req("start")) == "start refused: the mission is already under way (state arming)"
     )
+
+
+async def test_the_result_of_a_command_that_spans_ticks_reaches_the_machine() -> None:
+    """A command answered after a tick swapped the results list: its result must not be lost."""
+    clock = MonotonicClock()
+    ap = FakeAutopilot()
+    ap.fly()
+    link = RecordingLink(ap, clock)
+
+    async def slow_hold() -> None:
+        await asyncio.sleep(0.1)
+        await link._cmd(CommandKind.HOLD)
+
+    link.hold = slow_hold  # type: ignore[method-assign]
+    machine = MissionMachine(Config())
+    runner = MissionRunner(link, machine, clock, rate_hz=50.0)
+    async with compat.timeout(10), compat.TaskGroup() as tg:
+        executor = tg.create_task(runner._execute_commands(), name="test.commands")
+        runner._commands.put_nowait(Command(CommandKind.HOLD))
+        for _ in range(15):  # ticks every 20 ms while the command takes 100 ms
+            await runner.tick()
+            await asyncio.sleep(0.02)
+        executor.cancel()
+    assert CommandKind.HOLD in machine.c.book.last_result
