@@ -73,11 +73,13 @@ def _pole_seen(v_ned_m_s: tuple[float, float, float] | None) -> bool:
     if v_ned_m_s is not None:
         pipeline.velocity.push(0.0, v_ned_m_s)
         pipeline.velocity.push(1.0, v_ned_m_s)
-    frame = RgbdFrame(
-        np.zeros((480, 640, 3), np.uint8), depth_with((300, 140, 340, 340, 7.0)), K, stamp_s=0.5
-    )
-    state = pipeline.track(0.5, [])
-    return pipeline.obstacle(frame, state) is not None
+    seen = False
+    for stamp_s in (0.5, 0.567):  # two frames: the guard acts on what two frames in a row see
+        frame = RgbdFrame(
+            np.zeros((480, 640, 3), np.uint8), depth_with((300, 140, 340, 340, 7.0)), K, stamp_s=stamp_s
+        )
+        seen = pipeline.obstacle(frame, pipeline.track(stamp_s, [])) is not None
+    return seen
 
 
 def test_flying_fast_at_a_pole_the_guard_sees_it_beyond_its_resting_range() -> None:
@@ -85,3 +87,22 @@ def test_flying_fast_at_a_pole_the_guard_sees_it_beyond_its_resting_range() -> N
     assert not _pole_seen((0.5, 0.0, 0.0))
     assert _pole_seen((3.6, 0.0, 0.0))  # 7 m is inside the 9 m it now looks out to
     assert not _pole_seen((0.0, 3.6, 0.0))  # flying sideways: not toward it
+
+
+def test_one_frames_obstacle_waits_for_a_second_unless_it_is_within_the_separation() -> None:
+    """One frame's depth 2 m short where the leader is read as an obstacle 3 m ahead: not acted on alone."""
+    cfg = Config()
+    pipeline = PerceptionPipeline.from_config(cfg, guard_brake_m_s2=None)
+    pipeline.attitude.push(0.0, (1.0, 0.0, 0.0, 0.0))
+    pipeline.attitude.push(2.0, (1.0, 0.0, 0.0, 0.0))
+
+    def frame(stamp_s: float, depth_m: float) -> bool:
+        f = RgbdFrame(
+            np.zeros((480, 640, 3), np.uint8), depth_with((300, 140, 340, 340, depth_m)), K, stamp_s=stamp_s
+        )
+        return pipeline.obstacle(f, pipeline.track(stamp_s, [])) is not None
+
+    assert not frame(0.5, 3.0)  # alone
+    assert not frame(1.5, 3.0)  # a second later: not the same sighting, alone again
+    assert frame(1.567, 3.0)  # the next frame sees it there too
+    assert frame(1.8, 1.5)  # within min_separation_m (2 m): at once
