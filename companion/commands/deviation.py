@@ -37,7 +37,9 @@ def _deviation(args: argparse.Namespace) -> int:
         raise SystemExit(f"companion deviation: no flight_log.npz in {run} or its seed-* folders")
     splits: dict[str, Any] = {}
     for r in runs:
-        splits[r.name] = split_deviation(load_log(r / "flight_log.npz"), _slot(r), window_s)
+        splits[r.name] = split_deviation(
+            _with_commands(load_log(r / "flight_log.npz"), r), _slot(r), window_s
+        )
     if args.json:
         print(json.dumps(splits if len(runs) > 1 else splits[runs[0].name], indent=2))
         return 0
@@ -51,6 +53,38 @@ def _deviation(args: argparse.Namespace) -> int:
         row = split_row(split)
         print(f"| {name} | " + " | ".join("n/a" if row.get(c) is None else str(row[c]) for c in cols) + " |")
     return 0
+
+
+def _with_commands(log: Any, run: Path) -> Any:
+    """A log from a version that did not keep the velocity command: taken from the run's trace.jsonl.
+
+    The trace has each tick's body-frame setpoint but not the service's heading, so the command is turned
+    into NED with the true one, and the perception part then holds the autopilot's heading error too.
+    """
+    import math
+
+    import numpy as np
+
+    trace = run / "trace.jsonl"
+    n = len(log.t_s)
+    if log.v_cmd_ned_m_s.shape == (n, 3) or not trace.is_file():
+        return log
+    v_cmd = np.full((n, 3), np.nan)
+    by_t = {}
+    for line in trace.read_text().splitlines():
+        row = json.loads(line)
+        sp = row.get("setpoint") if "tick" in row else None
+        if sp and "v_body_m_s" in sp:
+            by_t[round(float(row["tick"]), 4)] = sp["v_body_m_s"]
+    for i, t in enumerate(log.t_s):
+        v = by_t.get(round(float(t), 4))
+        if v is not None:
+            c, s = math.cos(log.yaw_follower_rad[i]), math.sin(log.yaw_follower_rad[i])
+            v_cmd[i] = (c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
+    log.v_cmd_ned_m_s = v_cmd
+    if log.yaw_service_rad.size != n:
+        log.yaw_service_rad = log.yaw_follower_rad.copy()
+    return log
 
 
 def _slot(run: Path) -> list[float]:

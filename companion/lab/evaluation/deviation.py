@@ -74,13 +74,25 @@ def _r(x: float | None, digits: int = 3) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), digits)
 
 
+def rate(x: F64, t: F64, k: int = 2) -> F64:
+    """``dx/dt`` per sample (rows of ``x`` over times ``t``) from the samples ``k`` either side.
+
+    Over a few ticks, not one: ticks on the real path can share a stamp or come 1 ms apart.
+    """
+    n = len(t)
+    out = np.zeros_like(x)
+    if n < 2:
+        return out
+    lo, hi = np.clip(np.arange(n) - k, 0, n - 1), np.clip(np.arange(n) + k, 0, n - 1)
+    dt = t[hi] - t[lo]
+    ok = dt > 1e-6
+    out[ok] = (x[hi[ok]] - x[lo[ok]]) / dt[ok, None]
+    return out
+
+
 def leader_velocity(log: FlightLog) -> F64:
     """The leader's true velocity (NED m/s) per tick, differentiated from its positions."""
-    t = log.t_s
-    if len(t) < 3:
-        return np.zeros_like(log.p_ned_leader_m)
-    out: F64 = np.gradient(log.p_ned_leader_m, t, axis=0)
-    return out
+    return rate(log.p_ned_leader_m, log.t_s)
 
 
 def lag_s(v_cmd: F64, v_act: F64, dt_s: float) -> float | None:
@@ -153,7 +165,7 @@ def split_deviation(
 
     # Context of the maximum.
     v_lead = leader_velocity(log)
-    a_lead = np.gradient(v_lead, t, axis=0) if len(t) >= 3 else np.zeros_like(v_lead)
+    a_lead = rate(v_lead, t)
     a_lead_h = np.linalg.norm(a_lead[:, :2], axis=1)
     fr = _frame_figures(log, (t[k0], t[k]))
     at_max = {
@@ -219,7 +231,10 @@ def _frame_figures(log: FlightLog, span_s: tuple[float, float]) -> dict[str, Any
     took = m & np.isfinite(rng_meas) & np.isfinite(rng_true)
     r_err = rng_meas[took] - rng_true[took]
     visible = m & log.frame_leader_visible
-    missed = visible & ~np.isfinite(rng_meas) if rng_meas.size else visible & False
+    if log.frame_range_meas_m.size != len(ft):  # a log that did not keep the measurements
+        return {"range_outliers_taken": None, "range_error_max_m": None, "frames_in_view": int(visible.sum()),
+                "frames_missed_in_view": None, "longest_gap_s": None}  # fmt: skip
+    missed = visible & ~np.isfinite(rng_meas)
     gaps = _gaps(ft[m & np.isfinite(rng_meas)]) if took.any() else []
     return {
         "range_outliers_taken": int(np.sum(np.abs(r_err) > OUTLIER_M)),
