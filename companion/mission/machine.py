@@ -40,6 +40,7 @@ from companion.kernel.frames import Vec3
 from companion.mission.ego import HOLD_S as EGO_STALE_S
 from companion.mission.formation import FormationLaw
 from companion.mission.geometry import Slot
+from companion.mission.next_step import next_step
 from companion.mission.offboard import OffboardStream
 from companion.mission.safety import SafetyLimits
 from companion.mission.states import (
@@ -53,6 +54,7 @@ from companion.mission.states import (
     MissionContext,
     RecoveryPhase,
 )
+from companion.mission.states.launch import ARM_ATTEMPTS
 from companion.mission.types import (
     CommandKind,
     CommandResult,
@@ -348,6 +350,10 @@ class MissionMachine:
         if st == MissionState.LANDED:
             return "landed and disarming: start again once disarmed"
         return f"the mission is already under way (state {st.value})"
+
+    def next_step(self) -> str:
+        """What the mission does next from its state and what it waits for (the tail of an answer)."""
+        return next_step(self.c.state, self.c.m, arm_attempts=ARM_ATTEMPTS)
 
     def withdraw_start(self) -> None:
         """Forget a start that was not acted on (the operator was told it was refused)."""

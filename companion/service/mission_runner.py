@@ -20,6 +20,7 @@ from companion.kernel.clock import Clock
 from companion.kernel.errors import CommandRejectedError, CompanionError, LinkLostError
 from companion.kernel.flight import Setpoint, Severity
 from companion.mission.machine import MissionMachine
+from companion.mission.next_step import slot_next_step
 from companion.mission.types import (
     AirframeDrag,
     Command,
@@ -169,14 +170,16 @@ class MissionRunner:
             answer.set_result(f"{name} refused: {out.operator_refused}")
         elif req.command == OperatorCommand.SET_OFFSET and req.offset_cam_m is not None:
             log.info("mission: operator set the slot to %s (camera frame, m)", req.offset_cam_m)
-            answer.set_result(f"slot set to {tuple(round(c, 2) for c in req.offset_cam_m)}")
+            slot = tuple(round(c, 2) for c in req.offset_cam_m)
+            answer.set_result(f"slot set to {slot}. Next: {slot_next_step(out.state)}")
         elif out.transitions:
             moves = "; ".join(
                 f"{t.from_state.value} -> {t.to_state.value} ({t.reason.value}"
                 + (f": {t.detail})" if t.detail else ")")
                 for t in out.transitions
             )
-            answer.set_result(f"{name}: {moves}")
+            after = self.machine.next_step()
+            answer.set_result(f"{name}: {moves}" + (f". Next: {after}" if after else ""))
         else:
             if req.command == OperatorCommand.START:
                 self.machine.withdraw_start()  # never kept to act later

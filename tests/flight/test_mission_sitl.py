@@ -261,6 +261,9 @@ async def test_an_operators_hold_then_start_follows_again(tmp_path: Path) -> Non
         await f.reach(S.PX4_LAND, timeout_s=3.0)
 
     await fly(tmp_path, cfg, HOVER_SCENARIO, body)
-    assert answers[0] == "hold: follow -> px4_hold (operator asked to hold)"
+    assert answers[0] == (
+        "hold: follow -> px4_hold (operator asked to hold). Next: PX4 holds position until companion start "
+        "(follow again) or companion command land"
+    )
     assert answers[1].startswith("start: px4_hold -> acquire (operator asked to follow again: from px4_hold)")
     assert answers[2] == "start refused: the mission is already under way (state follow)"

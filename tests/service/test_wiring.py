@@ -138,12 +138,17 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
             feeder.cancel()
     assert code == 0
     assert answers == [
-        {"ok": True, "detail": "hold: follow -> px4_hold (operator asked to hold)"},
+        {
+            "ok": True,
+            "detail": "hold: follow -> px4_hold (operator asked to hold). Next: PX4 holds position until "
+            "companion start (follow again) or companion command land",
+        },
         {"ok": False, "detail": "hold refused: already holding (PX4 Hold); companion start follows again"},
         {
             "ok": True,
             "detail": "start: px4_hold -> acquire (operator asked to follow again: from px4_hold); "
-            "acquire -> follow (leader acquired)",
+            "acquire -> follow (leader acquired). Next: follows the leader until companion command hold "
+            "or land",
         },
         {"ok": False, "detail": "start refused: the mission is already under way (state follow)"},
     ]

@@ -1054,9 +1054,30 @@ def test_restart_after_disarm_needs_a_new_start_request() -> None:
     h.start = False
     h.step()
     h.start = True
+    out = h.step()
+    # One start goes on through preflight to arming in the same tick: no second start needed.
+    assert [(t.to_state, t.reason) for t in out.transitions] == [
+        (S.PREFLIGHT, R.START_REQUESTED),
+        (S.ARMING, R.PREFLIGHT_OK),
+    ]
+    assert h.state == S.ARMING
+
+
+def test_one_start_after_a_landing_arms_and_flies_again() -> None:
+    h = Harness()
+    h.to_follow()
+    h.operator = OperatorCommand.LAND
     h.step()
-    assert h.last_transition().reason == R.START_REQUESTED
-    assert h.state == S.PREFLIGHT
+    h.ap.landed = LandedState.ON_GROUND
+    h.run_until(S.DISARMED, timeout_s=30)
+    h.run(2.0)
+    assert h.state == S.DISARMED
+    _operator_start(h)
+    out = h.step()
+    assert [t.to_state for t in out.transitions] == [S.PREFLIGHT, S.ARMING]
+    assert h.machine.next_step().startswith("arms (up to 3 tries), takes off to 5 m")
+    h.run_until(S.FOLLOW, timeout_s=60)
+    assert not h.machine.c.start_latched  # spent: a later landing waits for a new start
 
 
 # ---------------------------------------------------------------------- shutdown

@@ -216,7 +216,9 @@ async def test_operator_commands_are_answered_with_the_ticks_verdict() -> None:
     assert runner._operator is None
     assert (await _ask(runner, _req("hold"))).startswith("hold refused: hold needs GPS")
     runner.machine.state = MissionState.FOLLOW
-    assert await _ask(runner, _req("set_offset", (0.0, 0.0, 6.0))) == "slot set to (0.0, 0.0, 6.0)"
+    assert await _ask(runner, _req("set_offset", (0.0, 0.0, 6.0))) == (
+        "slot set to (0.0, 0.0, 6.0). Next: kept; the follower flies it once it follows the leader"
+    )
     assert runner.machine.law.slot.forward_m == 6.0
     assert (await _ask(runner, _req("set_offset", (0.0, 0.0, 1.0)))).startswith(
         "set_offset refused: slot 1.0 m"
@@ -269,7 +271,11 @@ async def test_an_operator_start_is_answered_with_what_the_mission_did() -> None
     answer = asyncio.ensure_future(runner.command(_req("start")))
     await asyncio.sleep(0)
     await runner.tick()
-    assert await answer == "start: preflight -> arming (preflight checks passed)"
+    assert await answer == (
+        "start: preflight -> arming (preflight checks passed). Next: arms (up to 3 tries), takes off to 5 m "
+        "(within 40 s), then waits up to 60 s (mission.acquire_timeout_s) for a confirmed track of the "
+        "leader, then follows; without one PX4 lands"
+    )
     assert (
         await _ask(runner, _req("start")) == "start refused: the mission is already under way (state arming)"
     )

@@ -2,8 +2,8 @@
 
 PREFLIGHT arms on an operator's start once GPS and home are good; a companion (re)started in flight
 OBSERVEs until told to take over. ACQUIRE waits in the air for a confirmed track, then enters the
-formation (:mod:`companion.mission.states.follow`). DISARMED waits for the next start; LINK_LOST waits for
-the link and then says where the vehicle is.
+formation (:mod:`companion.mission.states.follow`). DISARMED waits for the next start, which goes on
+through PREFLIGHT to arming; LINK_LOST waits for the link and then says where the vehicle is.
 """
 
 from __future__ import annotations
@@ -130,8 +130,9 @@ class LaunchPhase:
             self.c.go(MissionState.LANDED, Reason.TOUCHDOWN, "landed while acquiring")
 
     def disarmed(self, veh: VehicleState) -> None:
+        # The start stays latched: PREFLIGHT arms on it in the same tick once its checks pass, so one
+        # start after a landing flies again.
         if self.c.start_latched and not self.c.shutting_down and self.c.link_ok(veh):
-            self.c.start_latched = False
             self.c.go(MissionState.PREFLIGHT, Reason.START_REQUESTED)
 
     def link_lost(self, veh: VehicleState) -> None:
