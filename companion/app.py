@@ -31,7 +31,7 @@ from typing import Any
 from companion.config import Config
 from companion.kernel import compat
 from companion.kernel.clock import Clock
-from companion.mission.types import OperatorCommand, OperatorRequest
+from companion.mission.types import OperatorCommand, OperatorRequest, OperatorVerdict
 from companion.service.ground_station import GroundStation
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
@@ -257,10 +257,12 @@ class FollowerService:
         """``start`` over the status socket: what the mission did with it, or why it refused."""
         assert self._parts is not None  # noqa: S101
         if self.stopping:
-            reply = f"start refused: the service is stopping ({self._stop_reason})"
+            verdict = OperatorVerdict(
+                OperatorCommand.START, False, f"the service is stopping ({self._stop_reason})"
+            )
         else:
-            reply = await self._parts.mission.command(OperatorRequest(OperatorCommand.START))
-        return self._answered("start", reply)
+            verdict = await self._parts.mission.command(OperatorRequest(OperatorCommand.START))
+        return self._answered(verdict)
 
     async def _operator_command(self, req: Mapping[str, Any]) -> dict[str, Any]:
         """A command from the status socket (operator.py's JSON): through the mission machine's checks."""
@@ -268,17 +270,17 @@ class FollowerService:
         cmd = parse_command(req)
         if isinstance(cmd, str):
             return {"ok": False, "detail": cmd}
-        return self._answered(cmd.command.value, await self._parts.mission.command(cmd))
+        return self._answered(await self._parts.mission.command(cmd))
 
-    def _answered(self, name: str, reply: str) -> dict[str, Any]:
+    def _answered(self, verdict: OperatorVerdict) -> dict[str, Any]:
         """The status socket's answer to an operator, also on MQTT's ``events`` as an MQTT command's is."""
-        ok = " refused: " not in reply
+        reply, name = str(verdict), verdict.command.value
         if self.mqtt is not None:
-            if ok:
+            if verdict.taken:
                 self.mqtt.event("command", reply, "notice", cmd=name, source="status socket")
             else:
                 self.mqtt.event("command_refused", reply, "warning", cmd=name, source="status socket")
-        return {"ok": ok, "detail": reply}
+        return {"ok": verdict.taken, "detail": reply}
 
     async def _lifecycle(self, mission: MissionPort) -> None:
         await self._stop.wait()
@@ -465,11 +467,10 @@ class FollowerService:
             command_marks=self._command_marks,
         )
 
-    async def _on_command(self, cmd: Command) -> str:
+    async def _on_command(self, cmd: Command) -> OperatorVerdict:
         """An MQTT operator command: through the mission machine's checks, like the CLI's."""
         assert self._parts is not None  # noqa: S101
-        req = OperatorRequest(OperatorCommand(cmd.name.value), cmd.offset_cam_m)
-        return await self._parts.mission.command(req)
+        return await self._parts.mission.command(OperatorRequest(cmd.name, cmd.offset_cam_m))
 
     def _state_msg(self) -> StateMsg:
         assert self._parts is not None  # noqa: S101

@@ -29,6 +29,7 @@ from companion.config.service import (
     resolve_state_dir,
     url_problem,
 )
+from companion.config.slot import slot_refusal
 from companion.config.viz import VizConfig
 from companion.kernel.config import (
     Section,
@@ -65,6 +66,7 @@ __all__ = [
     "load_config",
     "load_plan",
     "resolve_state_dir",
+    "slot_refusal",
     "url_problem",
 ]
 
@@ -117,6 +119,15 @@ class Config(Section):
                 f"link.system_id: {self.link.system_id} is the leader's (leader.mavlink_system_id); "
                 "the service never commands the leader"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _slot_in_bounds(self) -> Config:
+        # The same rule as an operator's set_offset (companion/config/slot.py), so a slot the config flies
+        # is one a command could have set.
+        problem = slot_refusal(self.formation.offset_cam_m, self.safety.min_separation_m)
+        if problem is not None:
+            raise ValueError(f"formation.offset_cam_m: {problem}")
         return self
 
     @field_validator("schema_version")
@@ -269,10 +280,14 @@ def apply_plan(cfg: Config, plan_path: Path) -> Config:
     except KeyError as exc:
         raise ConfigError(str(plan_path), [f"vehicle_id: {exc.args[0]}"]) from None
     down = slot.offset_m[2]
+    offset_cam_m = (0.0, 0.0 - down + 0.0, slot.range_h_m)
+    problem = slot_refusal(offset_cam_m, cfg.safety.min_separation_m)
+    if problem is not None:
+        raise ConfigError(str(plan_path), [f"{cfg.vehicle_id}'s slot: {problem}"])
     formation = cfg.formation.model_copy(
         update={
             "plan": str(plan_path),
-            "offset_cam_m": (0.0, 0.0 - down + 0.0, slot.range_h_m),
+            "offset_cam_m": offset_cam_m,
             "slot_leader_m": slot.offset_m,
             "neighbour_slots_m": tuple(s.offset_m for s in plan.slots if s.follower != cfg.vehicle_id),
             "neighbour_ids": tuple(s.follower for s in plan.slots if s.follower != cfg.vehicle_id),

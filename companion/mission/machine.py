@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from companion.config import Config
+from companion.config import Config, slot_refusal
 from companion.kernel.flight import ExternalPosition, FlightMode, Setpoint, VehicleState
 from companion.kernel.frames import Vec3
 from companion.mission.ego import HOLD_S as EGO_STALE_S
@@ -363,21 +363,13 @@ class MissionMachine:
     def set_slot(self, offset_cam_m: tuple[float, float, float]) -> str | None:
         """Change the formation slot in flight. Returns why it is refused, or None when applied.
 
-        The slot must lie ahead of the camera (the leader stays in view) and outside the separation bubble
-        with a metre to spare, so the law and the separation barrier never fight at rest.
+        The rule is the config's (:func:`companion.config.slot_refusal`): ahead of the camera, within
+        reach of the detector and off the separation bubble.
         """
-        slot = Slot.from_offset_cam(offset_cam_m)
-        if not all(math.isfinite(c) for c in offset_cam_m):
-            return "offset must be finite"
-        if slot.forward_m <= 0.0:
-            return "the leader must be ahead of the camera (z > 0)"
-        dist = math.sqrt(slot.forward_m**2 + slot.right_m**2 + slot.down_m**2)
-        if dist < self.c.limits.min_separation_m + 1.0:
-            return f"slot {dist:.1f} m from the leader: closer than min_separation_m + 1 m"
-        if abs(slot.bearing_offset_rad) > math.radians(30.0):
-            return "the leader would leave the image (more than 30 deg off the axis)"
-        self.c.law.slot = slot
-        return None
+        problem = slot_refusal(offset_cam_m, self.c.limits.min_separation_m)
+        if problem is None:
+            self.c.law.slot = Slot.from_offset_cam(offset_cam_m)
+        return problem
 
     def _ready_to_exit(self, veh: VehicleState) -> bool:
         if not self.c.shutting_down:

@@ -94,6 +94,16 @@ class OperatorCommand(StrEnum):
     #: A new formation slot (``OperatorRequest.offset_cam_m``).
     SET_OFFSET = "set_offset"
 
+    @property
+    def takes_offset(self) -> bool:
+        """The command carries a slot (camera frame, m: right, down, forward)."""
+        return self is OperatorCommand.SET_OFFSET
+
+
+#: What ``companion command`` and MQTT's ``cmd`` carry; a start has its own request (``companion start``,
+#: the status socket only).
+SENT_COMMANDS = (OperatorCommand.LAND, OperatorCommand.HOLD, OperatorCommand.SET_OFFSET)
+
 
 @dataclass(frozen=True, slots=True)
 class OperatorRequest:
@@ -101,6 +111,21 @@ class OperatorRequest:
 
     command: OperatorCommand
     offset_cam_m: Vec3T | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class OperatorVerdict:
+    """What the mission made of an operator's request: taken (``detail`` says what it did) or refused (why).
+
+    Carried as it is to the edges (status socket, MQTT, logs), which print it with ``str()``.
+    """
+
+    command: OperatorCommand
+    taken: bool
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.command.value}{'' if self.taken else ' refused'}: {self.detail}"
 
 
 @dataclass(frozen=True, slots=True)

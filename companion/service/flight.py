@@ -45,6 +45,7 @@ from companion.mission.types import (
     AirframeDrag,
     MissionInputs,
     OperatorRequest,
+    OperatorVerdict,
     SharedLeaderPosition,
     SharedNeighbour,
     StepOutput,
@@ -339,11 +340,11 @@ class FlightService:
         """Perform the configured safe action; :meth:`run` returns once it is under way."""
         self.runner.request_shutdown()
 
-    async def command(self, req: OperatorRequest) -> str:
-        """An operator's start, land, hold or new slot: the mission's verdict on its tick, in one line."""
-        reply = await self.runner.command(req)
-        (log.info if " refused: " not in reply else log.warning)("operator: %s", reply)
-        return reply
+    async def command(self, req: OperatorRequest) -> OperatorVerdict:
+        """An operator's start, land, hold or new slot: the mission's verdict on its tick."""
+        verdict = await self.runner.command(req)
+        (log.info if verdict.taken else log.warning)("operator: %s", verdict)
+        return verdict
 
     # ---- what the service reports -------------------------------------------------------------------
 

@@ -30,6 +30,7 @@ from companion.mission.types import (
     MissionState,
     OperatorCommand,
     OperatorRequest,
+    OperatorVerdict,
     SharedLeaderPosition,
     SharedNeighbour,
     StepOutput,
@@ -98,7 +99,7 @@ class MissionRunner:
         self._setpoint_failures = 0
         self._operator: OperatorRequest | None = None
         #: The operator waiting for the answer to the request in ``_operator`` (one at a time).
-        self._waiting: tuple[OperatorRequest, asyncio.Future[str]] | None = None
+        self._waiting: tuple[OperatorRequest, asyncio.Future[OperatorVerdict]] | None = None
         self.last_transition: Transition | None = None
 
     # ------------------------------------------------------------------ inputs
@@ -135,19 +136,19 @@ class MissionRunner:
         """Ask for the configured safe action; :meth:`run` returns once it is under way."""
         self._shutdown = True
 
-    async def command(self, req: OperatorRequest, timeout_s: float = ANSWER_TIMEOUT_S) -> str:
-        """An operator's request: what the next tick did with it, or why it refused, in one line.
+    async def command(self, req: OperatorRequest, timeout_s: float = ANSWER_TIMEOUT_S) -> OperatorVerdict:
+        """An operator's request: what the next tick did with it, or why it refused.
 
         The machine checks the request once, on the tick that takes it (``StepOutput.operator_refused``), so
         the answer is the verdict the mission acted on. A start, land or hold is answered with the
         transitions it caused; a start from the ground arms once preflight passes, one in the air takes the
         vehicle back. A new slot applies from that tick.
         """
-        name = req.command.value
+        cmd = req.command
         if self._operator is not None or self._waiting is not None:
-            return f"{name} refused: another command is waiting for the control tick"
+            return OperatorVerdict(cmd, False, "another command is waiting for the control tick")
         self._operator = req
-        answer: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        answer: asyncio.Future[OperatorVerdict] = asyncio.get_running_loop().create_future()
         self._waiting = (req, answer)
         try:
             async with compat.timeout(timeout_s):
@@ -158,20 +159,26 @@ class MissionRunner:
                 self._waiting = None
             self._operator = None
             self.machine.withdraw_start()
-            return f"{name} refused: the mission loop did not step within {timeout_s:g} s (nothing done)"
+            return OperatorVerdict(
+                cmd, False, f"the mission loop did not step within {timeout_s:g} s (nothing done)"
+            )
 
-    def _settle(self, waiting: tuple[OperatorRequest, asyncio.Future[str]], out: StepOutput) -> None:
+    def _settle(
+        self, waiting: tuple[OperatorRequest, asyncio.Future[OperatorVerdict]], out: StepOutput
+    ) -> None:
         """Answer the request this tick took: the machine's refusal, the transitions it caused, or none."""
         req, answer = waiting
         if answer.done():
             return
-        name = req.command.value
+        cmd = req.command
         if out.operator_refused is not None:
-            answer.set_result(f"{name} refused: {out.operator_refused}")
+            answer.set_result(OperatorVerdict(cmd, False, out.operator_refused))
         elif req.command == OperatorCommand.SET_OFFSET and req.offset_cam_m is not None:
             log.info("mission: operator set the slot to %s (camera frame, m)", req.offset_cam_m)
             slot = tuple(round(c, 2) for c in req.offset_cam_m)
-            answer.set_result(f"slot set to {slot}. Next: {slot_next_step(out.state)}")
+            answer.set_result(
+                OperatorVerdict(cmd, True, f"slot set to {slot}. Next: {slot_next_step(out.state)}")
+            )
         elif out.transitions:
             moves = "; ".join(
                 f"{t.from_state.value} -> {t.to_state.value} ({t.reason.value}"
@@ -179,11 +186,11 @@ class MissionRunner:
                 for t in out.transitions
             )
             after = self.machine.next_step()
-            answer.set_result(f"{name}: {moves}" + (f". Next: {after}" if after else ""))
+            answer.set_result(OperatorVerdict(cmd, True, moves + (f". Next: {after}" if after else "")))
         else:
             if req.command == OperatorCommand.START:
                 self.machine.withdraw_start()  # never kept to act later
-            answer.set_result(f"{name} refused: nothing to do in state {out.state.value}")
+            answer.set_result(OperatorVerdict(cmd, False, f"nothing to do in state {out.state.value}"))
 
     @property
     def state(self) -> MissionState:

@@ -11,11 +11,11 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from companion.mission.types import OperatorCommand, OperatorRequest
+from companion.mission.types import SENT_COMMANDS, OperatorCommand, OperatorRequest
 
 #: Commands and whether each takes the slot offset (camera frame, m: right, down, forward). A start has
 #: its own request (``{"request": "start"}``).
-OPERATOR_COMMANDS = {"land": False, "hold": False, "set_offset": True}
+OPERATOR_COMMANDS = {c.value: c.takes_offset for c in SENT_COMMANDS}
 
 
 def command_request(name: str, offset_cam_m: tuple[float, float, float] | None = None) -> dict[str, Any]:

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from companion.mission.types import OperatorRequest
+from companion.mission.types import OperatorRequest, OperatorVerdict
 
 Vec3T = tuple[float, float, float]
 
@@ -126,11 +126,11 @@ class MissionPort(Protocol):
         """Perform the configured safe action (``mission.shutdown_action``), then let :meth:`run` return."""
         ...
 
-    async def command(self, req: OperatorRequest) -> str:
+    async def command(self, req: OperatorRequest) -> OperatorVerdict:
         """An operator's ``start``, ``land``, ``hold`` or ``set_offset``, checked by the mission on its tick.
 
-        From the ground a start arms and takes off; in the air it takes the vehicle back. Returns what the
-        mission did or why it refused, in one line (a refusal contains `` refused: ``).
+        From the ground a start arms and takes off; in the air it takes the vehicle back. Returns the
+        mission's verdict: what it did, or why it refused.
         """
         ...
 

@@ -12,7 +12,8 @@ A send time more than ``command_max_age_s`` from the drone's clock is refused to
 
 Message: ``{"cmd": "land" | "hold" | "set_offset", "offset_cam_m": [x, y, z] (set_offset only),
 "time_unix_s": <sender's clock>, "key_id": "<operator>", "nonce": "<optional, echoed in events>",
-"mac": "<hex>"}``.
+"mac": "<hex>"}``. The names are :data:`~companion.mission.types.SENT_COMMANDS`; only the message's form
+is checked here: whether the mission takes the command (a slot's bounds included) it decides on its tick.
 """
 
 from __future__ import annotations
@@ -28,22 +29,13 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from companion.kernel.compat import StrEnum
+from companion.mission.types import SENT_COMMANDS, OperatorCommand
 from companion.telemetry.inbound import InboundRejectedError, Keyring, parse_object, sign
 
 log = logging.getLogger(__name__)
 
 #: What the MAC of a command is bound to besides its topic (a share's MAC can never pass as a command's).
 COMMAND_DOMAIN = b"wingman-command-v2"
-_MAX_OFFSET_M = 50.0
-
-
-class CommandName(StrEnum):
-    """What the ground station may ask for."""
-
-    LAND = "land"
-    HOLD = "hold"
-    SET_OFFSET = "set_offset"
 
 
 class RejectReason(Enum):
@@ -71,7 +63,7 @@ class CommandRejectedError(Exception):
 class Command:
     """A verified command."""
 
-    name: CommandName
+    name: OperatorCommand
     #: The operator's key id (who sent it).
     key_id: str
     sent_unix_s: float
@@ -178,12 +170,11 @@ class CommandVerifier:
             raise CommandRejectedError(RejectReason.EXPIRED, f"{now_unix_s - sent_s:+.1f} s")
         if sent_s <= self.marks.get(key_id):
             raise CommandRejectedError(RejectReason.REPLAYED, f"operator {key_id}")
-        try:
-            name = CommandName(msg["cmd"])
-        except (ValueError, TypeError):
-            raise CommandRejectedError(RejectReason.UNKNOWN_COMMAND, repr(msg["cmd"])[:40]) from None
+        name = next((c for c in SENT_COMMANDS if c.value == msg["cmd"]), None)
+        if name is None:
+            raise CommandRejectedError(RejectReason.UNKNOWN_COMMAND, repr(msg["cmd"])[:40])
         offset = None
-        if name is CommandName.SET_OFFSET:
+        if name.takes_offset:
             offset = _parse_offset(msg.get("offset_cam_m"))
         nonce = msg.get("nonce", "")
         self.marks.raise_to(key_id, sent_s)
@@ -197,6 +188,7 @@ class CommandVerifier:
 
 
 def _parse_offset(value: object) -> tuple[float, float, float]:
+    """The slot's three numbers (camera frame, m); their bounds are the mission's to judge."""
     if (
         not isinstance(value, list)
         or len(value) != 3
@@ -204,8 +196,4 @@ def _parse_offset(value: object) -> tuple[float, float, float]:
     ):
         raise CommandRejectedError(RejectReason.BAD_ARGUMENTS, "offset_cam_m must be [x, y, z] in m")
     x, y, z = (float(v) for v in value)
-    if not all(math.isfinite(v) and abs(v) <= _MAX_OFFSET_M for v in (x, y, z)) or z <= 0:
-        raise CommandRejectedError(
-            RejectReason.BAD_ARGUMENTS, f"offset_cam_m needs |v| <= {_MAX_OFFSET_M} m and z > 0"
-        )
     return (x, y, z)

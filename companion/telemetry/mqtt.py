@@ -32,6 +32,7 @@ from companion.kernel import compat
 from companion.kernel.backoff import Backoff
 from companion.kernel.clock import Clock
 from companion.kernel.throttle import Throttle
+from companion.mission.types import OperatorVerdict
 from companion.telemetry.commands import (
     Command,
     HighWaterMarks,
@@ -90,7 +91,7 @@ class MqttReporter:
         credentials: password, TLS context and command key.
         rng: jitter for the reconnect backoff.
         on_command: called with each verified command; returns (or, a coroutine, answers once the mission
-            has acted) the text reported on ``events``.
+            has acted) the mission's verdict, reported on ``events``.
         on_leader_position: called with each valid leader position from ``cfg.leader_topic``.
         on_neighbour_pose: called with (vehicle id, pose) for each pose the ``neighbour_ids`` publish.
         neighbour_ids: the other followers of a formation plan.
@@ -107,7 +108,7 @@ class MqttReporter:
         *,
         credentials: MqttCredentials | None = None,
         rng: random.Random | None = None,
-        on_command: Callable[[Command], str | Awaitable[str]] | None = None,
+        on_command: Callable[[Command], OperatorVerdict | Awaitable[OperatorVerdict]] | None = None,
         on_leader_position: Callable[[LeaderPositionMsg], None] | None = None,
         on_neighbour_pose: Callable[[str, PoseMsg], None] | None = None,
         neighbour_ids: Sequence[str] = (),

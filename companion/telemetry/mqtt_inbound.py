@@ -16,6 +16,7 @@ from typing import Any
 
 from companion.config import MqttConfig
 from companion.kernel.throttle import Throttle, and_more
+from companion.mission.types import OperatorVerdict
 from companion.telemetry.commands import (
     Command,
     CommandRejectedError,
@@ -42,7 +43,7 @@ class MqttInbound:
         credentials: the command and formation keys.
         throttle: one line (and one event) per kind of bad input per window, the rest counted.
         event: the reporter's ``event`` (what goes out on the events topic).
-        on_command: an accepted command to the mission; returns (or resolves to) the operator's answer.
+        on_command: an accepted command to the mission; returns (or resolves to) the mission's verdict.
         on_leader_position: each valid leader position from ``cfg.leader_topic``.
         on_neighbour_pose: each valid pose of a formation neighbour (its vehicle id, the pose).
         neighbour_ids: the other followers of a formation plan.
@@ -58,7 +59,7 @@ class MqttInbound:
         credentials: MqttCredentials,
         throttle: Throttle,
         event: Callable[..., None],
-        on_command: Callable[[Command], str | Awaitable[str]] | None = None,
+        on_command: Callable[[Command], OperatorVerdict | Awaitable[OperatorVerdict]] | None = None,
         on_leader_position: Callable[[LeaderPositionMsg], None] | None = None,
         on_neighbour_pose: Callable[[str, PoseMsg], None] | None = None,
         neighbour_ids: Sequence[str] = (),
@@ -223,13 +224,12 @@ class MqttInbound:
             return
         self.commands_accepted += 1
         answer = self._on_command(cmd)
-        result = await answer if inspect.isawaitable(answer) else answer  # once the mission has acted
-        refused = " refused: " in result
-        (log.warning if refused else log.info)(
-            "MQTT: command %s from %s: %s", cmd.name.value, cmd.key_id, result
+        verdict = await answer if inspect.isawaitable(answer) else answer  # once the mission has acted
+        (log.info if verdict.taken else log.warning)(
+            "MQTT: command %s from %s: %s", cmd.name.value, cmd.key_id, verdict
         )
         data = {"cmd": cmd.name.value, "key_id": cmd.key_id, "nonce": cmd.nonce}
-        if refused:
-            self._event("command_refused", result, "warning", **data)
+        if verdict.taken:
+            self._event("command", str(verdict), "notice", **data)
         else:
-            self._event("command", result, "notice", **data)
+            self._event("command_refused", str(verdict), "warning", **data)

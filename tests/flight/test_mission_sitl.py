@@ -248,15 +248,15 @@ async def test_an_operators_hold_then_start_follows_again(tmp_path: Path) -> Non
     async def body(f: Flight) -> None:
         await f.reach(S.FOLLOW, timeout_s=60)
         await asyncio.sleep(2.0)
-        answers.append(await f.runner.command(OperatorRequest(OperatorCommand.HOLD)))
+        answers.append(str(await f.runner.command(OperatorRequest(OperatorCommand.HOLD))))
         await asyncio.sleep(3.0)
         assert f.link.snapshot().flight_mode == FlightMode.HOLD
         assert f.runner.state == S.PX4_HOLD  # nothing resumes by itself
-        answers.append(await f.runner.command(OperatorRequest(OperatorCommand.START)))
+        answers.append(str(await f.runner.command(OperatorRequest(OperatorCommand.START))))
         await asyncio.sleep(3.0)
         assert f.runner.state == S.FOLLOW, f.rec.reasons()
         assert f.link.snapshot().flight_mode == FlightMode.OFFBOARD
-        answers.append(await f.runner.command(OperatorRequest(OperatorCommand.START)))
+        answers.append(str(await f.runner.command(OperatorRequest(OperatorCommand.START))))
         f.runner.request_shutdown()
         await f.reach(S.PX4_LAND, timeout_s=3.0)
 

@@ -19,6 +19,7 @@ import pytest
 from companion.config import MqttConfig
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
+from companion.mission.types import OperatorVerdict
 from companion.telemetry.commands import Command, sign_command
 from companion.telemetry.inbound import Keyring
 from companion.telemetry.mqtt import MqttReporter, TelemetrySources
@@ -53,9 +54,9 @@ class FakeVehicle:
             health=lambda: HealthMsg(healthy=True),
         )
 
-    def on_command(self, cmd: Command) -> str:
+    def on_command(self, cmd: Command) -> OperatorVerdict:
         self.commands.append(cmd)
-        return f"accepted {cmd.name.value}"
+        return OperatorVerdict(cmd.name, True, "accepted")
 
 
 def make_cfg(port: int, **kw: Any) -> MqttConfig:

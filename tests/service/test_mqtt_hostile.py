@@ -44,6 +44,7 @@ import pytest
 from companion.config import MqttConfig
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
+from companion.mission.types import OperatorVerdict
 from companion.telemetry.commands import Command, HighWaterMarks, sign_command
 from companion.telemetry.inbound import Keyring
 from companion.telemetry.mqtt import MqttReporter, TelemetrySources
@@ -99,9 +100,9 @@ class Flight:
             health=lambda: HealthMsg(healthy=True),
         )
 
-    def on_command(self, cmd: Command) -> str:
+    def on_command(self, cmd: Command) -> OperatorVerdict:
         self.commands.append(cmd)
-        return f"{cmd.name.value} accepted"
+        return OperatorVerdict(cmd.name, True, "accepted")
 
 
 def reporter(port: int, flight: Flight, state: Path) -> MqttReporter:

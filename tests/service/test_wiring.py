@@ -124,12 +124,12 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
                     break
                 await asyncio.sleep(0.05)
             snap: dict[str, Any] = await asyncio.to_thread(query_status, Path(cfg.status.socket_path))
-            assert (
-                await flight.command(OperatorRequest(OperatorCommand.SET_OFFSET, (0.0, 0.0, 1.0)))
-            ).startswith("set_offset refused")
-            assert (
-                await flight.command(OperatorRequest(OperatorCommand.SET_OFFSET, (0.5, 0.0, 6.0)))
-            ).startswith("slot set to (0.5, 0.0, 6.0)")
+            refused = await flight.command(OperatorRequest(OperatorCommand.SET_OFFSET, (0.0, 0.0, 1.0)))
+            assert not refused.taken
+            assert str(refused).startswith("set_offset refused: slot 1.0 m")
+            taken = await flight.command(OperatorRequest(OperatorCommand.SET_OFFSET, (0.5, 0.0, 6.0)))
+            assert taken.taken
+            assert str(taken).startswith("set_offset: slot set to (0.5, 0.0, 6.0). Next: ")
             # An operator's hold, then start: each answered over the socket with what the mission did.
             answers = [await asyncio.to_thread(query_status, sock, r) for r in ASK_HOLD_THEN_START]
             after = flight.snapshot().state

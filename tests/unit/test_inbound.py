@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from companion.mission.types import OperatorCommand
 from companion.telemetry.commands import (
-    CommandName,
     CommandRejectedError,
     CommandVerifier,
     HighWaterMarks,
@@ -122,7 +122,7 @@ def test_a_secret_readable_by_others_is_refused(tmp_path: Path) -> None:
 def test_a_signed_command_is_accepted_once_and_forgeries_are_refused() -> None:
     v = verifier()
     ok = v.verify(sign_command(ALICE, "alice", TOPIC, cmd(nonce="n1")), now_unix_s=1010.0)
-    assert (ok.name, ok.key_id, ok.nonce) == (CommandName.LAND, "alice", "n1")
+    assert (ok.name, ok.key_id, ok.nonce) == (OperatorCommand.LAND, "alice", "n1")
     cases = [
         (sign_command(ALICE, "alice", TOPIC, cmd()), RejectReason.REPLAYED),
         (sign_command(ALICE, "alice", TOPIC, cmd(time_unix_s=999.0)), RejectReason.REPLAYED),
@@ -133,9 +133,14 @@ def test_a_signed_command_is_accepted_once_and_forgeries_are_refused() -> None:
         (sign_command(ALICE, "alice", "wingman/f2/cmd", cmd(time_unix_s=1001.0)), RejectReason.BAD_MAC),
         (sign_command(ALICE, "alice", TOPIC, cmd(time_unix_s=900.0)), RejectReason.EXPIRED),
         (sign_command(ALICE, "alice", TOPIC, cmd(time_unix_s=1002.0, cmd="x")), RejectReason.UNKNOWN_COMMAND),
+        # A start is the status socket's only (``companion start``), never MQTT's.
+        (
+            sign_command(ALICE, "alice", TOPIC, cmd(time_unix_s=1002.0, cmd="start")),
+            RejectReason.UNKNOWN_COMMAND,
+        ),
         (
             sign_command(
-                ALICE, "alice", TOPIC, cmd(time_unix_s=1003.0, cmd="set_offset", offset_cam_m=[0, 0, -1])
+                ALICE, "alice", TOPIC, cmd(time_unix_s=1003.0, cmd="set_offset", offset_cam_m=[0, 0])
             ),
             RejectReason.BAD_ARGUMENTS,
         ),

@@ -27,6 +27,7 @@ from companion.mission.types import (
     MissionState,
     OperatorCommand,
     OperatorRequest,
+    OperatorVerdict,
     Transition,
 )
 from companion.service.mission_runner import MissionRunner
@@ -192,11 +193,13 @@ def _req(name: str, offset_cam_m: tuple[float, float, float] | None = None) -> O
 
 
 async def _ask(runner: MissionRunner, req: OperatorRequest) -> str:
-    """``req`` as an operator sends it, answered by the next control tick."""
+    """``req`` as an operator sends it, answered by the next control tick: the verdict as printed."""
     answer = asyncio.ensure_future(runner.command(req))
     await asyncio.sleep(0)
     await runner.tick()
-    return await answer
+    verdict = await answer
+    assert verdict.taken == (" refused: " not in str(verdict))
+    return str(verdict)
 
 
 async def test_operator_commands_are_answered_with_the_ticks_verdict() -> None:
@@ -210,14 +213,15 @@ async def test_operator_commands_are_answered_with_the_ticks_verdict() -> None:
     assert await _ask(runner, _req("start")) == "start refused: no link to the autopilot (state wait_link)"
     runner.machine.state = MissionState.FOLLOW
     # No control loop is stepping: the request is withdrawn, never left to act later.
-    assert await runner.command(_req("land"), timeout_s=0.1) == (
-        "land refused: the mission loop did not step within 0.1 s (nothing done)"
+    assert await runner.command(_req("land"), timeout_s=0.1) == OperatorVerdict(
+        OperatorCommand.LAND, False, "the mission loop did not step within 0.1 s (nothing done)"
     )
     assert runner._operator is None
     assert (await _ask(runner, _req("hold"))).startswith("hold refused: hold needs GPS")
     runner.machine.state = MissionState.FOLLOW
     assert await _ask(runner, _req("set_offset", (0.0, 0.0, 6.0))) == (
-        "slot set to (0.0, 0.0, 6.0). Next: kept; the follower flies it once it follows the leader"
+        "set_offset: slot set to (0.0, 0.0, 6.0). "
+        "Next: kept; the follower flies it once it follows the leader"
     )
     assert runner.machine.law.slot.forward_m == 6.0
     assert (await _ask(runner, _req("set_offset", (0.0, 0.0, 1.0)))).startswith(
@@ -233,10 +237,11 @@ async def test_one_command_at_a_time() -> None:
     first = asyncio.ensure_future(runner.command(_req("land")))
     await asyncio.sleep(0)
     assert (
-        await runner.command(_req("hold")) == "hold refused: another command is waiting for the control tick"
+        str(await runner.command(_req("hold")))
+        == "hold refused: another command is waiting for the control tick"
     )
     await runner.tick()
-    assert (await first).startswith("land refused: the companion is not flying the vehicle")
+    assert str(await first).startswith("land refused: the companion is not flying the vehicle")
 
 
 async def test_a_command_refused_at_the_tick_is_answered_as_refused() -> None:
@@ -255,7 +260,9 @@ async def test_a_command_refused_at_the_tick_is_answered_as_refused() -> None:
     await asyncio.sleep(0)
     ap.position_valid = False
     await runner.tick()
-    assert await answer == "hold refused: hold needs GPS (PX4 cannot hold without a position); land instead"
+    assert (
+        str(await answer) == "hold refused: hold needs GPS (PX4 cannot hold without a position); land instead"
+    )
     assert CommandKind.HOLD not in {c.kind for c in ap.sent}
     assert runner.state != MissionState.PX4_HOLD
 
@@ -271,7 +278,7 @@ async def test_an_operator_start_is_answered_with_what_the_mission_did() -> None
     answer = asyncio.ensure_future(runner.command(_req("start")))
     await asyncio.sleep(0)
     await runner.tick()
-    assert await answer == (
+    assert str(await answer) == (
         "start: preflight -> arming (preflight checks passed). Next: arms (up to 3 tries), takes off to 5 m "
         "(within 40 s), then waits up to 60 s (mission.acquire_timeout_s) for a confirmed track of the "
         "leader, then follows; without one PX4 lands"
