@@ -82,6 +82,9 @@ class Summary:
     frames_usable: int = 0
     errors: list[FrameError] = field(default_factory=list)
     stage_ms: dict[str, list[float]] = field(default_factory=dict)
+    #: Where the follower's attitude came from: "recording" (its attitude samples), "ground truth" (each
+    #: frame's, a live simulator), "none" (the tracker assumed the follower level and facing north).
+    attitude: str = "none"
 
     def add_timing(self, stage: str, ms: float) -> None:
         self.stage_ms.setdefault(stage, []).append(ms)
@@ -126,6 +129,7 @@ class Summary:
                 "frames_with_truth": self.frames_with_truth,
                 "frames_leader_in_view": self.frames_in_view,
                 "frames_usable": self.frames_usable,
+                "attitude": self.attitude,
                 "coverage": self.frames_usable / self.frames_in_view if self.frames_in_view else None,
                 "rmse_m": pos,
                 "bearing_rmse_deg": brg,
@@ -149,6 +153,13 @@ class Summary:
             out.append("no ground truth in this recording: estimates only, no errors to compute")
         elif not self.frames_in_view:
             out.append("the ground truth has the leader in view in no frame: no errors to compute")
+        if self.attitude == "none":
+            out.append(
+                "no follower attitude (no telemetry, no ground truth): the tracker assumed the follower "
+                "level and never turning, so its errors include the follower's turns and tilts"
+            )
+        else:
+            out.append(f"follower attitude from the {self.attitude}")
         out += [
             "rmse: tracker output vs truth (camera frame); raw: this frame's pose measurement; paper: depth"
             " = median of a 5x5 patch at the box centre, unfiltered (paper n: frames where it had depth)",

@@ -194,7 +194,17 @@ async def run_replay(
         )
         for stamp_s, q in samples:
             pipeline.attitude.push(stamp_s, q)
+        # A live source (the simulator's camera) has no attitude list: its frames carry the follower's
+        # attitude in their ground truth, which a folder recording of them reads back as its attitude. Fed
+        # here, live and recorded frames are scored the same; without it the tracker assumed a level,
+        # unturning follower, and its errors were the follower's turns and tilts (ten times the recording's).
+        from_frames = not samples
+        summary.attitude = "recording" if samples else "none"
         async for frame in src:
+            q_truth = None if frame.truth is None else frame.truth.q_ned_follower_wxyz
+            if from_frames and q_truth is not None:
+                pipeline.attitude.push(frame.stamp_s, q_truth)
+                summary.attitude = "ground truth"
             t0 = time.perf_counter()
             result = stage.detect(frame)
             t1 = time.perf_counter()

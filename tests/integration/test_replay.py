@@ -1,18 +1,26 @@
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
+import math
 import socket
 import threading
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from companion.cli import main
+from companion.config import load_config
+from companion.kernel.camera import RgbdFrame
 from companion.kernel.camera_wire import encode_frame
+from companion.kernel.frames import R_from_quat, quat_from_euler
 from companion.perception.record import FolderRecorder
-from tests.synthetic import sequence_frames
+from companion.perception.transform import CameraGeometry
+from tests.synthetic import frame_from_view, leader_path_cam, render, sequence_frames
 
 N = 40
 
@@ -150,40 +158,111 @@ def test_truth_without_the_leader_in_view_is_counted_as_truth(
     assert summary["rmse_m"] is None
 
 
+@contextlib.contextmanager
+def camera_server(sock_path: Path, frames: list[RgbdFrame], connections: int = 1) -> Iterator[None]:
+    """The simulator's camera server as the wire sees it: ``frames`` to each client, and never an end."""
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    server.bind(str(sock_path))
+    server.listen(connections)
+    done = threading.Event()
+
+    def serve() -> None:
+        for _ in range(connections):
+            conn, _ = server.accept()
+            with conn:
+                try:
+                    for frame in frames:
+                        for part in encode_frame(frame):
+                            conn.sendall(part)
+                except OSError:
+                    continue  # the reader went away
+                done.wait(0.5)
+
+    thread = threading.Thread(target=serve, name="test-camera-server", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join(5)
+        server.close()
+
+
 def test_replay_of_a_live_source_stops_after_frames(
     tmp_path: Path, repo_root: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """``--source sim`` against a camera socket that never ends: ``--frames`` ends the replay."""
     sock_path = tmp_path / "cam.sock"
-    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    server.bind(str(sock_path))
-    server.listen(1)
-    done = threading.Event()
-
-    def serve() -> None:  # the simulator's camera server as the wire sees it: frames, and never an end
-        conn, _ = server.accept()
-        with conn:
-            try:
-                for frame in sequence_frames(40):
-                    for part in encode_frame(frame):
-                        conn.sendall(part)
-            except OSError:
-                pass  # the reader went away
-            done.wait(30)
-
-    thread = threading.Thread(target=serve, name="test-camera-server", daemon=True)
-    thread.start()
     monkeypatch.setenv("WINGMAN_CAMERA__PATH", str(sock_path))
     monkeypatch.setenv("WINGMAN_LEADER__BOX_CENTRE_BELOW_M", "0.0")
-    try:
+    with camera_server(sock_path, sequence_frames(40)):
         cfg = str(repo_root / "config/wingman.toml")
         rc = main(["replay", "--config", cfg, "--source", "sim", "--frames", "12", "--detector", "truth"])
-    finally:
-        done.set()
-        thread.join(5)
-        server.close()
     assert rc == 0
     assert capsys.readouterr().out.splitlines()[0].startswith("frames 12, ")
+
+
+def _flown(n: int, repo_root: Path) -> list[RgbdFrame]:
+    """``n`` frames of a leader on a smooth path (NED, relative) seen by a follower that pitches, rolls and
+    yaws as a follower holding formation does; the follower's attitude is in each frame's ground truth."""
+    geom = CameraGeometry.from_mount(load_config(repo_root / "config/wingman.toml").camera.mount)
+    rng = np.random.default_rng(0)
+    eye = np.eye(3)
+    frames = []
+    for k in range(n):
+        t = k / 30.0
+        q = quat_from_euler(0.08 * math.sin(2.1 * t), 0.12 * math.sin(2.7 * t), 0.1 * math.sin(1.3 * t))
+        p_ned_rel = geom.cam_to_ned_rel(leader_path_cam(t), eye)
+        p_cam = geom.ned_rel_to_cam(p_ned_rel, R_from_quat(q))
+        f = frame_from_view(render(p_cam, rng=rng, hole_fraction=0.03), 50.0 + t, seq=k)
+        assert f.truth is not None
+        frames.append(replace(f, truth=replace(f.truth, q_ned_follower_wxyz=q)))
+    return frames
+
+
+def test_a_live_source_scores_as_its_recording_does(
+    tmp_path: Path, repo_root: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same flight replayed live (``--source sim``) and recorded then replayed: the same figures.
+
+    The live frames carry the follower's attitude in their ground truth, as a recording of them keeps it;
+    the tracker works in NED, so a replay that left it out scored the follower's turns as tracker error.
+    """
+    n = 60
+    frames = _flown(n, repo_root)
+    sock_path = tmp_path / "cam.sock"
+    monkeypatch.setenv("WINGMAN_CAMERA__PATH", str(sock_path))
+    monkeypatch.setenv("WINGMAN_LEADER__BOX_CENTRE_BELOW_M", "0.0")
+    cfg = str(repo_root / "config/wingman.toml")
+    live_js, rec_js, level_js = tmp_path / "live.json", tmp_path / "rec.json", tmp_path / "level.json"
+    rec = tmp_path / "rec"
+    with camera_server(sock_path, frames, connections=2):
+        assert main(["replay", "--config", cfg, "--source", "sim", "--frames", str(n), "--detector", "truth",
+                     "--json", str(live_js)]) == 0  # fmt: skip
+        assert (
+            main(["record", "--config", cfg, "--source", "sim", "--frames", str(n), "--out", str(rec)]) == 0
+        )
+    assert main(["replay", "--config", cfg, "--source", f"file:{rec}", "--detector", "truth",
+                 "--json", str(rec_js)]) == 0  # fmt: skip
+    live, recorded = json.loads(live_js.read_text()), json.loads(rec_js.read_text())
+    assert live.pop("attitude") == "ground truth"
+    assert recorded.pop("attitude") == "recording"
+    for summary in (live, recorded):
+        del summary["stage_ms_p50"], summary["stage_ms_p95"]
+    assert live == recorded  # to the last digit
+    assert live["frames_usable"] >= n - 3
+    # Without the attitude (a camera with no telemetry) the follower's tilts and turns count as tracker
+    # error, and the summary says so.
+    level = tmp_path / "level"
+    with FolderRecorder(level) as r:
+        for f in frames:
+            assert f.truth is not None
+            r.write(replace(f, truth=replace(f.truth, q_ned_follower_wxyz=None)))
+    capsys.readouterr()
+    assert main(["replay", "--config", cfg, "--source", f"file:{level}", "--detector", "truth",
+                 "--json", str(level_js)]) == 0  # fmt: skip
+    assert "the tracker assumed the follower level and never turning" in capsys.readouterr().out
+    assert json.loads(level_js.read_text())["rmse_m"] > 1.5 * live["rmse_m"]
 
 
 def test_replay_help_names_every_source() -> None:
