@@ -20,6 +20,7 @@ not listed passes through to the wrapped link unchanged.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import replace
 
 from companion.estimation.ego_velocity import EgoModel
@@ -132,3 +133,6 @@ class HeadingCorrectedLink:
 
     async def send_status_text(self, text: str, severity: Severity) -> None:
         await self.link.send_status_text(text, severity)
+
+    async def send_onboard_computer_status(self, fields: Mapping[str, int | list[int]]) -> None:
+        await self.link.send_onboard_computer_status(fields)

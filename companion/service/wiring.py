@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import os
 import time
@@ -37,6 +36,7 @@ from companion.service.ports import (
 from companion.service.stamps import ServiceClockSource
 from companion.vehicle import failsafe
 from companion.vehicle.external_vision import ev_position_bits_for
+from companion.vehicle.link import VehicleLink
 
 log = logging.getLogger(__name__)
 
@@ -44,24 +44,14 @@ log = logging.getLogger(__name__)
 class LinkGcs:
     """STATUSTEXT and ONBOARD_COMPUTER_STATUS over the vehicle link."""
 
-    def __init__(self, link: Any) -> None:
+    def __init__(self, link: VehicleLink) -> None:
         self.link = link
 
     async def send_status_text(self, text: str, severity: str) -> None:
         await self.link.send_status_text(text, Severity(severity))
 
     async def send_onboard_computer_status(self, status: OnboardComputerStatus) -> None:
-        # MAVSDK has no ONBOARD_COMPUTER_STATUS API; its MavlinkDirect plugin sends any common message.
-        # The link does not expose it publicly yet, so this reaches for its plugin (see docs/service.md).
-        direct = getattr(self.link, "_direct", None)
-        if direct is None:
-            return  # not connected yet
-        from mavsdk.plugins import mavlink_direct  # noqa: PLC0415 (mavsdk: heavy)
-
-        msg = mavlink_direct.MavlinkMessage(
-            message_name="ONBOARD_COMPUTER_STATUS", fields_json=json.dumps(status.fields)
-        )
-        await direct.send_message(msg)
+        await self.link.send_onboard_computer_status(status.fields)
 
 
 #: An observer of the per-frame path: (frame, detector result, tracker state, pose + tracker wall ms).

@@ -8,6 +8,7 @@ Telemetry never raises: a lost link shows as ``VehicleState.connected == False``
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Protocol
 
 from companion.kernel.flight import ExternalPosition, Setpoint, Severity, VehicleState
@@ -61,4 +62,11 @@ class VehicleLink(Protocol):
 
     async def send_status_text(self, text: str, severity: Severity) -> None:
         """Send a STATUSTEXT to the ground station (truncated to MAVLink's 50 characters)."""
+        ...
+
+    async def send_onboard_computer_status(self, fields: Mapping[str, int | list[int]]) -> None:
+        """Send ONBOARD_COMPUTER_STATUS (390): ``fields`` by MAVLink's names, in its units and sentinels.
+
+        Nothing is sent before the link is connected (the next one goes out once it is).
+        """
         ...

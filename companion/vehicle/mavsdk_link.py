@@ -31,10 +31,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine, Mapping
 from dataclasses import replace
 from types import TracebackType
 from typing import Any, TypeVar
@@ -45,6 +46,7 @@ from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.plugins.action import Action, ActionResult
+from mavsdk.plugins.mavlink_direct import MavlinkMessage
 from mavsdk.plugins.mocap import AngleBody, Covariance, Mocap, PositionBody, VisionPositionEstimate
 from mavsdk.plugins.offboard import Offboard, OffboardResult
 from mavsdk.plugins.server_utility import ServerUtility
@@ -474,3 +476,10 @@ class MavsdkVehicleLink:
             su.send_status_text(STATUSTEXT_SEVERITY[severity], text[:50])  # a plain send
         except MavsdkError as exc:
             raise CommandRejectedError("status_text", result_name(exc)) from exc
+
+    async def send_onboard_computer_status(self, fields: Mapping[str, int | list[int]]) -> None:
+        if self._direct is None:
+            return  # not connected yet
+        # MAVSDK has no ONBOARD_COMPUTER_STATUS API; its MavlinkDirect plugin sends any common message.
+        msg = MavlinkMessage(message_name="ONBOARD_COMPUTER_STATUS", fields_json=json.dumps(dict(fields)))
+        await self._direct.send_message(msg)

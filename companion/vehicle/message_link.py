@@ -25,6 +25,7 @@ import asyncio
 import logging
 import math
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -288,15 +289,16 @@ class MessageVehicleLink:
                 mavlink.MAVLink_param_request_read_message(self.target_system, AUTOPILOT_COMPONENT, pid, -1)
             )
         else:
-            self._send(
-                mavlink.MAVLink_param_set_message(
-                    self.target_system,
-                    AUTOPILOT_COMPONENT,
-                    pid,
-                    struct.unpack("<f", struct.pack("<i", wanted))[0],  # PX4: INT32 sent bytewise
-                    mavlink.MAV_PARAM_TYPE_INT32,
-                )
+            self._set_int_param(pid, wanted)
+
+    def _set_int_param(self, param_id: bytes, value: int) -> None:
+        """PARAM_SET of an INT32 parameter, its bytes sent as the float field (PX4's convention)."""
+        as_float = struct.unpack("<f", struct.pack("<i", value))[0]
+        self._send(
+            mavlink.MAVLink_param_set_message(
+                self.target_system, AUTOPILOT_COMPONENT, param_id, as_float, mavlink.MAV_PARAM_TYPE_INT32
             )
+        )
 
     def _on_failsafe_param(self, value: int) -> None:
         if self._failsafe_done and self.telemetry.state.offboard_loss_param == value:
@@ -334,15 +336,7 @@ class MessageVehicleLink:
             return
         # Add the missing bits; PX4's echo of the write comes back here and ends it.
         self._ev_sent_s = self.clock.now_s()
-        self._send(
-            mavlink.MAVLink_param_set_message(
-                self.target_system,
-                AUTOPILOT_COMPONENT,
-                EV_CTRL_PARAM.encode(),
-                struct.unpack("<f", struct.pack("<i", value | bits))[0],  # PX4: INT32 sent bytewise
-                mavlink.MAV_PARAM_TYPE_INT32,
-            )
-        )
+        self._set_int_param(EV_CTRL_PARAM.encode(), value | bits)
 
     def _on_param(self, name: str, value: float) -> None:
         if name == "MPC_THR_HOVER" and 0.05 < value < 0.95 and self.telemetry.state.hover_thrust_norm is None:
@@ -492,6 +486,10 @@ class MessageVehicleLink:
     async def send_status_text(self, text: str, severity: Severity) -> None:
         self._require()
         self._send(mavlink.MAVLink_statustext_message(SEVERITY_CODE[severity], text[:50].encode(), 0, 0))
+
+    async def send_onboard_computer_status(self, fields: Mapping[str, int | list[int]]) -> None:
+        if self.snapshot().connected:
+            self._send(mavlink.MAVLink_onboard_computer_status_message(**fields))
 
 
 def _result_name(result: int) -> str:

@@ -21,7 +21,7 @@ from companion.config import Config
 from companion.kernel import compat
 from companion.kernel.clock import MonotonicClock
 from companion.kernel.errors import LinkLostError
-from companion.mission.types import OperatorCommand, OperatorRequest
+from companion.mission.types import OperatorCommand, OperatorRequest, OperatorVerdict
 from companion.service.ports import (
     FlightSnapshot,
     LeaderSummary,
@@ -119,13 +119,13 @@ class ScriptedMission:
     def request_shutdown(self) -> None:
         self.shutdown = True
 
-    async def command(self, req: OperatorRequest) -> str:
+    async def command(self, req: OperatorRequest) -> OperatorVerdict:
         await asyncio.sleep(0.05)  # answered after the next step, as the real runner does
         if req.command == OperatorCommand.START:
             self.started = True
-            return f"start: {self.state} -> {self.state} (scripted)"
+            return OperatorVerdict(req.command, True, f"{self.state} -> {self.state} (scripted)")
         self.commands.append(req.command.value)
-        return f"{req.command.value} done"
+        return OperatorVerdict(req.command, True, "done")
 
 
 class RecordingGcs:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+from collections.abc import Mapping
 
 from companion.config import Config, MissionConfig
 from companion.kernel import compat
@@ -44,6 +45,7 @@ class RecordingLink:
         self.arm_delay_s = arm_delay_s
         self.setpoints: list[tuple[float, Setpoint]] = []
         self.calls: list[tuple[float, str]] = []
+        self.onboard_status: list[dict[str, int | list[int]]] = []
 
     def snapshot(self) -> VehicleState:
         self.ap.advance(0.0)
@@ -95,6 +97,9 @@ class RecordingLink:
 
     async def send_status_text(self, text: str, severity: Severity) -> None:
         del text, severity
+
+    async def send_onboard_computer_status(self, fields: Mapping[str, int | list[int]]) -> None:
+        self.onboard_status.append(dict(fields))
 
 
 async def _feed(runner: MissionRunner, clock: MonotonicClock, stop: asyncio.Event) -> None:
