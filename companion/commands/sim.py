@@ -214,9 +214,11 @@ def _sim(args: argparse.Namespace) -> int:
     end_s[0] = effective_scenario(scenario_path(spec.scenario), spec.duration_s).run.duration_s
     report = run_one(spec, progress)
     if args.progress == "line":
+        from companion.lab.evaluation.metrics import outcome_words
+
         print()
         print(
-            f"sim: {report['scenario']}: {report['outcome']}, relative position RMSE "
+            f"sim: {report['scenario']}: {outcome_words(report)}, relative position RMSE "
             f"{_fmt(report['relative_position_rmse_m'])} m, formation max deviation "
             f"{_fmt(report['formation_max_deviation_m'])} m; {out / 'report.md'}"
         )

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -166,6 +167,23 @@ def test_summary_markdown_has_paper_rows() -> None:
     md = summary_markdown({"circle": r})
     assert "| Circular path | 0.32 / 0.000 | 3.1 / 0.00 | 0.75 / 0.000 | completed | yes |" in md
     assert "| Straight line | 0.25 / not run |" in md
+
+
+def test_the_summary_marks_a_scenarios_intended_outcome() -> None:
+    log = circle_flight().freeze()
+    metrics = compute_metrics(log, OFFSET)
+    aborted = build_report("link-loss", 1, log, dataclasses.replace(metrics, outcome="aborted"), wall_s=1.0)
+    completed = build_report("link-loss", 2, log, metrics, wall_s=1.0)
+    plain = build_report("circle", 1, log, metrics, wall_s=1.0)
+    assert aborted["intended_outcome"] == "aborted"
+    assert "intended_outcome" not in plain
+    md = summary_markdown({"link-loss": aborted, "circle": plain})
+    assert "| link-loss | aborted (as intended) |" in md
+    assert "| circle | completed |" in md
+    assert (
+        "`link-loss` is meant to end `aborted`: the link's 1.5 s cut trips PX4's offboard-loss failsafe" in md
+    )
+    assert "| link-loss | completed (intended: aborted) |" in summary_markdown({"link-loss": completed})
 
 
 def test_monte_carlo_summary() -> None:

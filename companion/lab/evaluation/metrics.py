@@ -57,8 +57,33 @@ TARGETS: Mapping[str, Mapping[str, float]] = {
         "formation_max_deviation_m": 0.60,
     },
 }
+#: Scenarios built to end otherwise than ``completed``: the outcome they are meant to end in, and why. A
+#: run that ends so did what the scenario tests; every other scenario is meant to complete.
+INTENDED_OUTCOMES: Mapping[str, tuple[str, str]] = {
+    "link-loss": (
+        "aborted",
+        "the link's 1.5 s cut trips PX4's offboard-loss failsafe (Hold, as the service set it), which keeps "
+        "the vehicle",
+    ),
+}
 FORMATION_STATES = frozenset({"FOLLOW", "FOLLOW_VISION"})
 OUTCOMES = ("completed", "strayed", "landed_safely", "aborted", "crashed")
+
+
+def intended_outcome(scenario: str) -> tuple[str, str]:
+    """The outcome ``scenario`` is meant to end in, and why ("" for a plain completion)."""
+    return INTENDED_OUTCOMES.get(scenario, ("completed", ""))
+
+
+def outcome_words(report: Mapping[str, Any]) -> str:
+    """The outcome as a summary shows it: marked where it is the scenario's intended one, or not."""
+    outcome = str(report["outcome"])
+    intended = report.get("intended_outcome", "completed")
+    if intended == "completed":
+        return outcome
+    return f"{outcome} (as intended)" if outcome == intended else f"{outcome} (intended: {intended})"
+
+
 #: A run that ends in formation this far from its slot (m) followed something else than the leader.
 STRAYED_M = 5.0
 

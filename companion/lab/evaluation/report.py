@@ -18,7 +18,14 @@ from typing import Any
 from companion.lab.evaluation.deviation import split_deviation, split_markdown
 from companion.lab.evaluation.host import starved
 from companion.lab.evaluation.log import FlightLog
-from companion.lab.evaluation.metrics import PAPER_ROW_NAMES, PAPER_TABLE, TARGETS, FlightMetrics
+from companion.lab.evaluation.metrics import (
+    PAPER_ROW_NAMES,
+    PAPER_TABLE,
+    TARGETS,
+    FlightMetrics,
+    intended_outcome,
+    outcome_words,
+)
 
 REQUIRED_KEYS = (
     "scenario",
@@ -77,6 +84,10 @@ def build_report(
         "join_s": metrics.join_s,
         "join_overshoot_m": metrics.join_overshoot_m,
     }
+    intended, because = intended_outcome(scenario)
+    if because:
+        report["intended_outcome"] = intended
+        report["intended_because"] = because
     if scenario in TARGETS:
         report["targets"] = dict(TARGETS[scenario])
         report["meets_targets"] = meets_targets(report)
@@ -116,7 +127,7 @@ def report_markdown(report: Mapping[str, Any]) -> str:
     lines = [
         f"# Scenario `{report['scenario']}` (seed {report['seed']})",
         "",
-        f"Outcome: **{report['outcome']}**; {report['sim_duration_s']:.1f} s simulated in "
+        f"Outcome: **{outcome_words(report)}**; {report['sim_duration_s']:.1f} s simulated in "
         f"{report['wall_s']:.1f} s wall; {report['frames']} camera frames; "
         f"{report.get('formation_s', 0.0):.1f} s in formation.",
         "",
@@ -227,7 +238,7 @@ def summary_markdown(reports: Mapping[str, Mapping[str, Any]]) -> str:
         lines.append(
             f"| {name} | {pos:.2f} / {_fmt(r['relative_position_rmse_m'], 3)} | {yaw:.1f} / "
             f"{_fmt(r['relative_yaw_rmse_deg'], 2)} | {dev:.2f} / {_fmt(r['formation_max_deviation_m'], 3)} "
-            f"| {r['outcome']} | {'yes' if r.get('meets_targets') else 'no'} |"
+            f"| {outcome_words(r)} | {'yes' if r.get('meets_targets') else 'no'} |"
         )
     lines += [
         "",
@@ -239,13 +250,20 @@ def summary_markdown(reports: Mapping[str, Mapping[str, Any]]) -> str:
     ]
     for name, r in reports.items():
         lines.append(
-            f"| {name} | {r['outcome']} | {_fmt(r['relative_position_rmse_m'], 3)} | "
+            f"| {name} | {outcome_words(r)} | {_fmt(r['relative_position_rmse_m'], 3)} | "
             f"{_fmt(r['relative_yaw_rmse_deg'], 2)} | {_fmt(r['formation_rmse_m'], 3)} | "
             f"{_fmt(r['formation_max_deviation_m'], 3)} | {_fmt(r['min_separation_m'], 2)} | "
             f"{_fmt(r['detection_recall'], 3)} | {_fmt(r['false_positive_rate'], 4)} | "
             f"{_fmt(r['perception_latency_ms']['p50'], 1)} | {r.get('harness', '?')} | "
             f"{r.get('detector', '?')} |"
         )
+    intended = [(name, r) for name, r in reports.items() if r.get("intended_because")]
+    if intended:
+        lines.append("")
+        lines += [
+            f"`{name}` is meant to end `{r['intended_outcome']}`: {r['intended_because']}."
+            for name, r in intended
+        ]
     return "\n".join(lines) + "\n"
 
 
