@@ -1,4 +1,4 @@
-"""The report's plots: drawn from a flight log, never clipped, with the mission's states."""
+"""The report's plots: drawn from a flight log, with the mission's states; what runs off a scale is marked."""
 
 from __future__ import annotations
 
@@ -167,3 +167,56 @@ def test_the_formation_plot_has_start_end_and_timed_snapshots_and_the_report_lin
         "wall_s": 60.0, "wall_s_per_sim_s": 1.5, "followers": [], "plots": [plot],
     }  # fmt: skip
     assert report_markdown(report).rstrip().endswith("## Plots\n\n![formation](plots/formation.png)")
+
+
+def _take_off_log() -> FlightLog:
+    """A climb in which the leader leaves the image and the coasting estimate runs 3 m off, then FOLLOW from
+    4 s and the scored window from 6 s; no GPS loss."""
+    n = 300
+    t = np.arange(n) * 0.05
+    leader = np.stack([np.full(n, 5.0), np.zeros(n), np.full(n, -5.0)], axis=1)
+    follower = np.zeros((n, 3))
+    follower[:, 2] = -np.minimum(5.0, 1.25 * t)  # climbs to 5 m in 4 s
+    est = leader - follower + 0.03
+    est[20:40, 0] += np.linspace(0.0, 3.0, 20)  # coasting while the leader is out of the image
+    est[40:60] = np.nan  # the track dropped
+    states = ["TAKEOFF"] * 80 + ["FOLLOW"] * 220
+    frame_t = t[::2]
+    return FlightLog(
+        t_s=t,
+        p_ned_follower_m=follower,
+        p_ned_leader_m=leader,
+        yaw_follower_rad=np.zeros(n),
+        rel_ned_est_m=est,
+        formation=t >= 6.0,
+        gps_ok=np.ones(n, dtype=bool),
+        state=states,
+        v_ned_follower_m_s=np.zeros((n, 3)),
+        frame_t_s=frame_t,
+        frame_leader_visible=~((frame_t >= 1.0) & (frame_t < 3.0)),
+        frame_detected=np.ones(frame_t.size, dtype=bool),
+        frame_false_positive=np.zeros(frame_t.size, dtype=bool),
+        frame_latency_ms=np.full(frame_t.size, 8.0),
+    )
+
+
+def test_the_error_plots_explain_what_they_leave_out(tmp_path: Path) -> None:
+    from companion.lab.evaluation.plots import OUT_OF_VIEW_LABEL, plot_errors, plot_estimate_vs_truth
+
+    log = _take_off_log()
+    fig = plot_errors(log, [0.0, 0.0, 5.0], tmp_path / "errors.png", "straight: errors over time")
+    ax = fig.axes[0]
+    keys = _legend_texts(ax)
+    assert OUT_OF_VIEW_LABEL in keys  # why the estimate error leaves the scale, then stops
+    assert "estimate error off the scale (up to 3.03 m)" in keys
+    assert ax.get_ylim()[1] < 1.0  # the scale is the following states', not the coasting estimate's
+    # The formation error is drawn from the first FOLLOW tick, dashed until the scored window starts.
+    assert "formation error before the scored window" in keys
+    assert "scored from 6.0 s (formation_start_s)" in keys
+    assert not any("GPS" in k for k in keys)
+    vs = plot_estimate_vs_truth(log, tmp_path / "vs.png", "straight: relative position")
+    assert "GPS lost" not in vs.axes[0].get_title()
+    assert OUT_OF_VIEW_LABEL in _legend_texts(vs.axes[0])
+    assert any(k.startswith("north error off the scale") for k in _legend_texts(vs.axes[3]))
+    lost = plot_estimate_vs_truth(_log(), tmp_path / "lost.png", "gps-loss: relative position")
+    assert lost.axes[0].get_title().endswith("(red dashes: GPS lost)")

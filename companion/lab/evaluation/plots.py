@@ -86,6 +86,33 @@ def _state_bands(ax: Axes, log: FlightLog) -> None:
         ax.axvspan(log.t_s[first], log.t_s[last], color=colour, alpha=0.7, lw=0, label=label, zorder=0)
 
 
+#: States in which the follower flies on the leader (its slot error means something from the first tick).
+FOLLOWING_STATES = frozenset({"FOLLOW", "FOLLOW_VISION", "REACQUIRE", "HOVER"})
+OUT_OF_VIEW_LABEL = "leader out of the image (the tracker coasts, then drops the track)"
+
+
+def _shade_out_of_view(ax: Axes, log: FlightLog, *, label: bool) -> None:
+    """Hatch the stretches whose camera frames had none of the leader in the image (simulator's truth)."""
+    if log.frame_t_s.size == 0:
+        return
+    first = True
+    for a, b, visible in _runs([str(bool(v)) for v in log.frame_leader_visible]):
+        if visible == "True":
+            continue
+        ax.axvspan(log.frame_t_s[a], log.frame_t_s[b], facecolor="none", edgecolor="0.55", hatch="///",
+                   lw=0, zorder=0.5, label=OUT_OF_VIEW_LABEL if label and first else None)  # fmt: skip
+        first = False
+
+
+def _clip_marks(ax: Axes, t_s: F64, y: F64, top: float, *, colour: str, what: str) -> None:
+    """Mark with a triangle at the axis top every tick where ``y`` runs off the top, labelled with its max."""
+    off = np.isfinite(y) & (y > top)
+    if off.any():
+        label = f"{what} off the scale (up to {float(np.max(y[off])):.2f} m)"
+        ax.plot(t_s[off], np.full(int(off.sum()), top), ls="none", marker="^", ms=4, color=colour,
+                clip_on=False, label=label)  # fmt: skip
+
+
 def slot_error_body(log: FlightLog, offset_cam_m: Sequence[float]) -> F64:
     """N x 2: the follower's error from its slot, forward and right of its heading (m)."""
     err = log.p_ned_follower_m - desired_follower_ned(log, offset_cam_m)
@@ -243,35 +270,57 @@ def plot_trajectories(log: FlightLog, offset_cam_m: Sequence[float], path: Path,
     return fig
 
 
-def plot_errors(log: FlightLog, offset_cam_m: Sequence[float], path: Path, title: str) -> None:
-    """Formation error and the relative-position estimate's error over time, on the mission's states."""
+def plot_errors(log: FlightLog, offset_cam_m: Sequence[float], path: Path, title: str) -> Figure:
+    """Formation error and the relative-position estimate's error over time, on the mission's states.
+
+    The formation error is solid in the scored window (the scenario's ``formation_start_s`` on) and dashed
+    from the first formation state before it. The scale is set by the errors while following: the estimate
+    error before it (take-off, the leader out of the image while the tracker coasts) may run off the top,
+    marked there with triangles and its largest value.
+    """
     slot = desired_follower_ned(log, offset_cam_m)
-    form = np.linalg.norm(log.p_ned_follower_m - slot, axis=1)
-    form[~log.formation] = np.nan
+    slot_err = np.linalg.norm(log.p_ned_follower_m - slot, axis=1)
+    following = np.array([s.upper() in FOLLOWING_STATES for s in log.state], dtype=bool)
+    form = np.where(log.formation, slot_err, np.nan)
+    scored = np.flatnonzero(log.formation)
+    before = following & (np.arange(len(log.t_s)) <= (scored[0] if scored.size else len(log.t_s)))
+    joining = np.where(before, slot_err, np.nan)
     rel_true = log.p_ned_leader_m - log.p_ned_follower_m
     est = np.linalg.norm(log.rel_ned_est_m - rel_true, axis=1)
-    fig = Figure(figsize=(10, 4.5), dpi=110)
+    fig = Figure(figsize=(10, 5.2), dpi=110)
     ax = fig.subplots()
     _state_bands(ax, log)
+    _shade_out_of_view(ax, log, label=True)
     ax.plot(log.t_s, form, color="tab:orange", lw=1.3, label="formation error: |follower - slot| (m)")
+    if np.isfinite(joining).any():
+        ax.plot(log.t_s, joining, color="tab:orange", lw=1.0, ls="--",
+                label="formation error before the scored window")  # fmt: skip
+    if scored.size:
+        ax.axvline(log.t_s[scored[0]], color="tab:orange", lw=0.8, ls=":",
+                   label=f"scored from {log.t_s[scored[0]]:.1f} s (formation_start_s)")  # fmt: skip
     ax.plot(log.t_s, est, color="tab:green", lw=1.0, alpha=0.85, label="estimate error: |est - true| (m)")
     lost = ~log.gps_ok
     if lost.any():
         first = int(np.argmax(lost))
         ax.axvline(log.t_s[first], color="tab:red", lw=1.2, ls="--", label="follower GPS lost")
-    finite = np.concatenate([form[np.isfinite(form)], est[np.isfinite(est)]])
-    top = float(np.max(finite)) if finite.size else 1.0
-    ax.set_ylim(0.0, 1.08 * max(top, 0.1))  # never clipped: the largest error sets the scale
+    scale = np.concatenate([slot_err[following | log.formation], est[following]])
+    scale = scale[np.isfinite(scale)]
+    if scale.size == 0:
+        scale = np.concatenate([slot_err[np.isfinite(slot_err)], est[np.isfinite(est)]])
+    top = 1.08 * max(float(np.max(scale)) if scale.size else 1.0, 0.1)
+    ax.set_ylim(0.0, top)
+    _clip_marks(ax, log.t_s, est, top, colour="tab:green", what="estimate error")
     ax.set_xlabel("sim time (s)")
     ax.set_ylabel("error (m)")
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", fontsize=7, ncol=3)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), fontsize=7, ncol=3, frameon=False)
     ax.set_title(f"{title} (bands: mission state)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
+    return fig
 
 
-def plot_estimate_vs_truth(log: FlightLog, path: Path, title: str) -> None:
+def plot_estimate_vs_truth(log: FlightLog, path: Path, title: str) -> Figure:
     """The leader's position relative to the follower, per NED axis: the tracker's estimate against truth.
 
     Truth is the simulator's (leader minus follower); the estimate is what the service's tracker held at
@@ -284,15 +333,27 @@ def plot_estimate_vs_truth(log: FlightLog, path: Path, title: str) -> None:
     for i, (ax, name) in enumerate(zip(axes[:3], ("north", "east", "down"), strict=True)):
         if i == 0:
             _state_bands(ax, log)
+        _shade_out_of_view(ax, log, label=i == 0)
         ax.plot(log.t_s, rel_true[:, i], color="k", lw=1.0, label="truth (simulator)")
         ax.plot(log.t_s, log.rel_ned_est_m[:, i], color="tab:green", lw=1.0, alpha=0.85,
                 label="estimate (tracker)")  # fmt: skip
         ax.set_ylabel(f"{name} (m)")
         ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper right", fontsize=7, ncol=4)
+    axes[0].legend(loc="upper right", fontsize=7, ncol=3)
     colours = ("tab:blue", "tab:orange", "tab:purple")
+    _shade_out_of_view(axes[3], log, label=False)
     for i, (name, colour) in enumerate(zip(("north", "east", "down"), colours, strict=True)):
         axes[3].plot(log.t_s, err[:, i], color=colour, lw=0.9, label=f"{name} error")
+    # The error panel's scale is the following states' errors: a coasting estimate before them (the
+    # leader out of the image in the take-off) runs off it, marked at the edge.
+    following = np.array([s.upper() in FOLLOWING_STATES for s in log.state], dtype=bool)
+    held = np.abs(err[following])
+    held = held[np.isfinite(held)]
+    if held.size:
+        lim = 1.15 * max(float(np.max(held)), 0.05)
+        axes[3].set_ylim(-lim, lim)
+        for i, (name, colour) in enumerate(zip(("north", "east", "down"), colours, strict=True)):
+            _clip_marks(axes[3], log.t_s, np.abs(err[:, i]), lim, colour=colour, what=f"{name} error")
     lost = ~log.gps_ok
     if lost.any():
         for ax in axes:
@@ -301,10 +362,12 @@ def plot_estimate_vs_truth(log: FlightLog, path: Path, title: str) -> None:
     axes[3].set_ylabel("estimate - truth (m)")
     axes[3].legend(loc="upper right", fontsize=7, ncol=3)
     axes[3].grid(alpha=0.3)
-    axes[0].set_title(f"{title}: leader relative to the follower, NED (red dashes: GPS lost)", fontsize=10)
+    note = " (red dashes: GPS lost)" if lost.any() else ""
+    axes[0].set_title(f"{title}: leader relative to the follower, NED{note}", fontsize=10)
     axes[-1].set_xlabel("sim time (s)")
     fig.tight_layout()
     fig.savefig(path)
+    return fig
 
 
 #: The true box on the camera frames: dashed magenta shows on sky, grass and buildings alike.
