@@ -18,7 +18,7 @@ from companion.lab.evaluation.campaign_summary import (
     monte_carlo_markdown,
     write_campaign_summary,
 )
-from companion.lab.evaluation.progress import clock_text, eta_s, progress_text
+from companion.lab.evaluation.progress import RunPace, clock_text, eta_from_lengths, eta_s, progress_text
 from companion.lab.evaluation.ray_executor import (
     RayOptions,
     RunFailedError,
@@ -51,6 +51,54 @@ def test_eta_is_the_throughput_so_far() -> None:
     assert eta_s(0, 8, 30.0) is None
     assert eta_s(2, 8, 30.0) == pytest.approx(90.0)
     assert eta_s(8, 8, 120.0) == 0.0
+
+
+def _demo_etas(real_pace: float, lock_pace: float, jobs: int = 2) -> tuple[list[float], list[float], float]:
+    """The demo's eight runs flown on a 1 s clock: (ETA by lengths + elapsed, ETA by counts + elapsed, total).
+
+    The real path's four one at a time, then the lockstep four ``jobs`` at a time, each run taking its
+    length times its lane's pace in wall seconds.
+    """
+    real = [88.0, 88.0, 98.0, 88.0]  # straight, circle, gps-loss, visibility
+    lock = [88.0, 90.0, 88.0, 88.0]
+    runs = [("real", x, real_pace) for x in real] + [("lockstep", x, lock_pace) for x in lock]
+    # When each run starts and ends on this schedule.
+    start, end, t = {}, {}, 0.0
+    for i in range(4):
+        start[i], end[i] = t, t + real[i] * real_pace
+        t = end[i]
+    free = [t] * jobs
+    for i in range(4, 8):
+        k = free.index(min(free))
+        start[i], end[i] = free[k], free[k] + runs[i][1] * lock_pace
+        free[k] = end[i]
+    total = max(end.values())
+    by_lengths, by_counts = [], []
+    now = 1.0
+    while now < total - 1.0:
+        paces = []
+        for i, (lane, length, pace) in enumerate(runs):
+            started, done = start[i] <= now, end[i] <= now
+            flown = min(length, max(0.0, (now - start[i]) / pace))
+            wall = (end[i] if done else now) - start[i] if started else 0.0
+            paces.append(RunPace(lane, length, length if done else flown, wall, started, done))
+        by_lengths.append(now + eta_from_lengths(paces, jobs))
+        done_n = sum(p.done for p in paces)
+        eta = eta_s(done_n, 8, now)
+        if eta is not None:
+            by_counts.append(now + eta)
+        now += 1.0
+    return by_lengths, by_counts, total
+
+
+def test_the_eta_comes_from_the_scenarios_lengths() -> None:
+    """The demo's progress line: the ETA by run counts climbed while a long run flew (20 min for a 7-min
+    campaign); the one by the scenarios' lengths stays near the truth from the start."""
+    for real_pace, lock_pace in ((1.15, 0.45), (1.3, 0.3), (1.05, 0.6)):
+        by_lengths, by_counts, total = _demo_etas(real_pace, lock_pace)
+        assert 0.85 * total < min(by_lengths) <= max(by_lengths) < 1.15 * total, (real_pace, lock_pace)
+    _, by_counts, total = _demo_etas(1.15, 0.45)
+    assert max(by_counts) > 1.3 * total  # what it replaces: the count of runs, blind to their lengths
 
 
 def test_clock_text() -> None:

@@ -301,6 +301,11 @@ class _Child:
     started_s: float = 0.0
     wall_s: float = 0.0
 
+    @property
+    def lane(self) -> str:
+        """The harness: real-path runs fly one at a time, lockstep runs ``jobs`` at a time."""
+        return self.spec.harness
+
 
 def child_args(spec: RunSpec) -> list[str]:
     """The ``companion sim`` command line of one child run."""
@@ -351,10 +356,24 @@ async def _run_child(child: _Child, env: dict[str, str], line: ProgressLine, chi
     line.show(children, force=True)
 
 
+def _length_s(spec: RunSpec) -> float:
+    """The run's scenario length (sim s), NaN where the scenario cannot be read here (the run will say)."""
+    from companion.lab.evaluation.setup import scenario_path  # noqa: PLC0415
+
+    try:
+        return float(
+            effective_scenario(scenario_path(spec.scenario), spec.duration_s, spec.timing).run.duration_s
+        )
+    except (CompanionError, OSError, ValueError):
+        return math.nan
+
+
 async def _run_children(
     specs: Sequence[RunSpec], jobs: int, line: ProgressLine, env: dict[str, str]
 ) -> list[_Child]:
     children = [_Child(s.out_dir.name, s) for s in specs]
+    for c in children:  # the scenarios' lengths, for the ETA before each run reports its own
+        c.end_s = _length_s(c.spec)
 
     async def lane(group: list[_Child], n: int) -> None:
         slots = asyncio.Semaphore(max(1, n))
@@ -393,7 +412,7 @@ def run_many(
     from companion.lab.evaluation.report import write_summary  # noqa: PLC0415
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    line = ProgressLine(stream, len(specs), tty=stream.isatty())
+    line = ProgressLine(stream, len(specs), tty=stream.isatty(), jobs=jobs)
     wall0 = time.perf_counter()
     try:
         children = asyncio.run(_run_children(specs, jobs, line, env))
