@@ -330,7 +330,12 @@ class MissionMachine:
             if st == MissionState.PREFLIGHT and veh.armed and veh.in_air:
                 return None  # found flying: the start takes it (OBSERVE's rules)
             problems = self.launch.preflight_problems(veh)
-            return f"preflight: {', '.join(problems)}" if problems else None
+            if not problems:
+                return None
+            return (
+                f"preflight: {', '.join(problems)}; start again once it passes "
+                "(companion health --wait 60 waits for it)"
+            )
         if st == MissionState.OBSERVE:
             if self.c.gps.ok or self.c.gps.loss_confirmed(veh, self.c.now_s):
                 return None

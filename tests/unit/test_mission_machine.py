@@ -1223,7 +1223,9 @@ def test_preflight_problems_are_what_a_start_would_be_refused_for() -> None:
     h.run(1.0)
     veh = h.ap.state(h.now_s)
     assert h.machine.preflight_problems(veh) == ("no GPS", "no home")
-    assert h.machine.start_refusal(veh) == "preflight: no GPS, no home"
+    assert h.machine.start_refusal(veh) == (
+        "preflight: no GPS, no home; start again once it passes (companion health --wait 60 waits for it)"
+    )
     h.ap.gps_fix = 3
     h.ap.home_ok = True
     h.run(h.cfg.mission.gps_restore_s - 0.5)
