@@ -33,8 +33,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.config import Config
-from companion.estimation.ego_velocity import EgoVelocityObserver
 from companion.estimation.identity import Expectation, LeaderIdentity, expectations
+from companion.estimation.own_velocity import OwnVelocity
 from companion.estimation.pipeline import PerceptionPipeline
 from companion.kernel.camera import RgbdFrame
 from companion.kernel.clock import Clock
@@ -56,8 +56,8 @@ from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.heading import HeadingCorrectedLink
 from companion.service.mission_runner import MissionRunner
 from companion.service.ports import FlightSnapshot, LeaderSummary, StateChange, VehicleSummary
-from companion.telemetry.leader import OriginTracker, local_at
 from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
+from companion.telemetry.share_frame import ShareFrame
 from companion.vehicle import failsafe
 from companion.vehicle.link import VehicleLink
 
@@ -136,7 +136,8 @@ class FlightService:
         self._entered_s = clock.now_s()
         self._last_step_s: float | None = None
         self._last_output: StepOutput | None = None
-        self._origin = OriginTracker()
+        #: Where MQTT's geodetic shares sit in our local frame.
+        self._share_frame = ShareFrame()
         #: Leader positions from MQTT placed in the follower's frame and handed to the mission.
         self.leader_positions_used = 0
         self.runner = MissionRunner(
@@ -154,17 +155,13 @@ class FlightService:
         self.track: Any = None
         self._attitude_stamp_s = NEVER_S
         self._velocity_stamp_s = NEVER_S
-        #: The follower's own velocity without GPS (the tracker's ego-motion), and the last aided one.
-        self.ego = EgoVelocityObserver()
-        self._v_aided: Vec3T | None = None
-        self._ego_said = False
+        #: The follower's own velocity for the tracker's ego-motion, with and without GPS.
+        self.own_velocity = OwnVelocity()
         #: Auto-labelling while GPS is good (``[autolabel] enabled``); its writer runs with :meth:`run`.
         self.autolabel = AutoLabelTap(cfg, self.pipeline.camera) if cfg.autolabel.enabled else None
         # Formations: the leader told apart from neighbours by shares and the plan.
         if cfg.formation.slot_leader_m is not None:
             self.pipeline.identity = LeaderIdentity()
-        self._shared: SharedLeaderPosition | None = None
-        self._neighbours: dict[str, SharedNeighbour] = {}
 
     def on_frame(self, frame: RgbdFrame, result: DetectorResult) -> Any:
         """One detector result through pose and tracker to the mission; returns the tracker's state."""
@@ -214,52 +211,33 @@ class FlightService:
     def feed_telemetry(self) -> None:
         """Copy each new attitude and velocity sample from the link into perception's histories.
 
-        The velocity is the tracker's ego-motion: PX4's only while its estimate is GPS-aided; after a GPS
-        loss PX4's dead-reckoned velocity runs off by metres per second within seconds. Then the
-        :class:`EgoVelocityObserver`'s, from the drag model it learnt meanwhile and the attitude, with PX4's
-        vertical velocity (the barometer keeps the height aided); without a model, PX4's vertical velocity
-        alone (the horizontal held: the track predicts on its own relative velocity there).
+        The velocity is the tracker's ego-motion, PX4's or, after a GPS loss, the drag model's
+        (:class:`~companion.estimation.own_velocity.OwnVelocity` decides, on the mission's GPS verdict).
         """
         v = self.raw_link.snapshot()
         if v.attitude_stamp_s > self._attitude_stamp_s:
             self._attitude_stamp_s = v.attitude_stamp_s
-            said = self.link.update(self.ego.model() if self.machine.gps_ok else None, v.attitude_stamp_s)
+            ego_model = self.own_velocity.ego.model() if self.machine.gps_ok else None
+            said = self.link.update(ego_model, v.attitude_stamp_s)
             if said is not None:
                 log.info("%s", said)
             yaw = v.yaw_rad - self.link.applied_rad
             self.pipeline.attitude.push(v.attitude_stamp_s, quat_from_euler(v.roll_rad, v.pitch_rad, yaw))
         if v.velocity_stamp_s > self._velocity_stamp_s:
             stamp_s = self._velocity_stamp_s = v.velocity_stamp_s
-            # The ego model learns PX4's own attitude, heading error and all.
-            R = _R_raw(v)
-            ego = self.ego
-            if self.machine.gps_ok and v.position_valid is not False:
-                if R is not None:
-                    ego.learn(stamp_s, v.v_ned_m_s, R)
-                    m = ego.model()
-                    self.runner.submit_airframe(
-                        None if m is None else AirframeDrag(m.drag_per_s, m.push_ne_m_s2)
-                    )
-                self._v_aided = v.v_ned_m_s
-                self._ego_said = False
-                self.pipeline.velocity.push(stamp_s, v.v_ned_m_s)
-            elif R is not None and self._v_aided is not None:
-                if not self._ego_said:
-                    self._ego_said = True
-                    _say_ego_model(ego)
-                vd_m_s = float(v.v_ned_m_s[2])
-                v_own = ego.step(stamp_s, R, self._v_aided, vd_m_s)
-                if v_own is None and math.isfinite(vd_m_s):
-                    # No drag model: no horizontal ego-motion (held), the vertical still PX4's.
-                    v_own = np.array([self._v_aided[0], self._v_aided[1], vd_m_s], dtype=np.float64)
-                if v_own is not None:
-                    self.pipeline.velocity.push(stamp_s, v_own)
+            aided = self.machine.gps_ok and v.position_valid is not False
+            sample = self.own_velocity.update(stamp_s, v.v_ned_m_s, _R_raw(v), aided=aided)
+            if sample.learnt:
+                m = self.own_velocity.ego.model()
+                self.runner.submit_airframe(None if m is None else AirframeDrag(m.drag_per_s, m.push_ne_m_s2))
+            if sample.v_ned_m_s is not None:
+                self.pipeline.velocity.push(stamp_s, sample.v_ned_m_s)
 
     def _expect(self, stamp_s: float) -> tuple[Expectation | None, list[Expectation]]:
         """Where the leader and the neighbours should be at a frame's stamp (see estimation.identity)."""
         v = self.link.snapshot()
         own = v.p_ned_m if self.machine.gps_ok and v.position_valid is True else None
-        sh = self._shared
+        sh = self.runner.leader_shared
         leader_p, age, yaw = None, 0.0, None
         if sh is not None and 0.0 <= stamp_s - sh.stamp_s <= SHARE_STALE_S:
             age = stamp_s - sh.stamp_s
@@ -267,7 +245,7 @@ class FlightService:
             yaw = sh.yaw_rad
         neighbours = [
             _brought_to(n.p_ned_m, n.v_ned_m_s, stamp_s - n.stamp_s)
-            for n in self._neighbours.values()
+            for n in self.runner.neighbours.values()
             if 0.0 <= stamp_s - n.stamp_s <= SHARE_STALE_S
         ]
         f = self.cfg.formation
@@ -283,51 +261,27 @@ class FlightService:
 
     def submit_neighbour(self, neighbour: SharedNeighbour) -> None:
         """Another follower's shared position (formations): separation and the leader's identity."""
-        self._neighbours[neighbour.name] = neighbour
         self.runner.submit_neighbour(neighbour)
 
     def submit_leader_shared(self, position: SharedLeaderPosition) -> None:
         """The leader's shared position, to the mission and the auto-labeller."""
-        self._shared = position
         self.runner.submit_leader_shared(position)
         if self.autolabel is not None:
             self.autolabel.share(position)
 
     def on_leader_position(self, msg: LeaderPositionMsg) -> None:
         """A leader position from MQTT, placed in the follower's local NED frame (the autopilot's own)."""
-        v = self.raw_link.snapshot()
-        # The geodetic fix was sampled with the velocity (GLOBAL_POSITION_INT): the local position is
-        # brought to that instant before the two are paired.
-        p_local = local_at(v.p_ned_m, v.v_ned_m_s, v.local_position_stamp_s, v.velocity_stamp_s)
-        self._origin.update(
-            v.gps_fix_type, _finite(v.lat_deg), _finite(v.lon_deg), _finite(v.alt_amsl_m), p_local
-        )
-        origin = self._origin.origin
-        if origin is None:
-            return  # no GPS fix seen yet: the frame is unknown
-        age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
-        self.submit_leader_shared(
-            SharedLeaderPosition(
-                stamp_s=self.clock.now_s() - age_s,
-                p_ned_m=origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m),
-                yaw_rad=None if msg.yaw_deg is None else math.radians(msg.yaw_deg),
-                v_ned_m_s=msg.v_ned_m_s,
-                yaw_rate_rad_s=None if msg.yaw_rate_deg_s is None else math.radians(msg.yaw_rate_deg_s),
-            )
-        )
-        self.leader_positions_used += 1
+        own = self.raw_link.snapshot()
+        shared = self._share_frame.leader(msg, own, self._wall_time_s(), self.clock.now_s())
+        if shared is not None:
+            self.submit_leader_shared(shared)
+            self.leader_positions_used += 1
 
     def on_neighbour_pose(self, name: str, msg: PoseMsg) -> None:
         """Another follower's pose from MQTT (formations), placed in this follower's local NED frame."""
-        origin = self._origin.origin
-        if origin is None or msg.time_unix_s is None or msg.p_ned_m is None:
-            return  # our frame is unknown yet, or the neighbour's own position is not valid
-        if msg.lat_deg is None or msg.lon_deg is None or msg.alt_amsl_m is None:
-            return
-        age_s = max(0.0, self._wall_time_s() - msg.time_unix_s)
-        p = origin.to_ned(msg.lat_deg, msg.lon_deg, msg.alt_amsl_m)
-        v = msg.v_ned_m_s if msg.v_ned_m_s is not None else (0.0, 0.0, 0.0)
-        self.submit_neighbour(SharedNeighbour(name, self.clock.now_s() - age_s, p, v))
+        neighbour = self._share_frame.neighbour(name, msg, self._wall_time_s(), self.clock.now_s())
+        if neighbour is not None:
+            self.submit_neighbour(neighbour)
 
     def request_start(self, *, takeover: bool = True) -> None:
         """Start without waiting for an answer (``service.auto_start``, the harnesses).
@@ -358,6 +312,7 @@ class FlightService:
         v = self.raw_link.snapshot()
         tr = self._last
         out = self._last_output
+        shared = self.runner.leader_shared
         return FlightSnapshot(
             state=self.machine.state.value,
             reason=tr.reason.value if tr is not None else "starting",
@@ -367,7 +322,7 @@ class FlightService:
             vehicle=vehicle_summary(v, now_s, getattr(self.raw_link, "system_id", None)),
             leader=self._leader_summary(now_s),
             formation_error_ned_m=out.formation_error_ned_m if out is not None else None,
-            leader_share_age_s=None if self._shared is None else now_s - self._shared.stamp_s,
+            leader_share_age_s=None if shared is None else now_s - shared.stamp_s,
             led_on_leader_share=out is not None and out.led_on_shared_motion,
             on_leader_share_position=out is not None and out.coasted_on_shared_position,
             preflight_problems=self.machine.preflight_problems(v),
@@ -417,24 +372,6 @@ class FlightService:
 def _brought_to(p_ned_m: Vec3T, v_ned_m_s: Vec3T, age_s: float) -> Vec3:
     """A shared position ``age_s`` old, moved on at its shared velocity (NED, m)."""
     return np.asarray(p_ned_m, dtype=np.float64) + age_s * np.asarray(v_ned_m_s, dtype=np.float64)
-
-
-def _say_ego_model(ego: EgoVelocityObserver) -> None:
-    """One line at a GPS loss: what the follower's velocity will come from now."""
-    m = ego.model()
-    if m is None:
-        log.warning(
-            "ego velocity: no drag model learnt before the GPS loss; the track predicts alone horizontally"
-        )
-        return
-    log.info(
-        "ego velocity without GPS: drag %.2f 1/s, wind push (%.2f, %.2f) m/s^2, heading error %.1f deg "
-        "(%d samples)",
-        m.drag_per_s,
-        *m.push_ne_m_s2,
-        math.degrees(m.heading_error_rad),
-        m.samples,
-    )
 
 
 def _R_raw(v: VehicleState) -> Mat3 | None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 from companion.estimation.leader import LeaderEstimate, ObstacleAhead
 from companion.kernel import compat
@@ -109,6 +109,16 @@ class MissionRunner:
 
     def submit_leader_shared(self, position: SharedLeaderPosition) -> None:
         self._shared = position
+
+    @property
+    def leader_shared(self) -> SharedLeaderPosition | None:
+        """The leader's latest share, as the next tick hands it to the mission (None: none yet)."""
+        return self._shared
+
+    @property
+    def neighbours(self) -> Mapping[str, SharedNeighbour]:
+        """The other followers' latest shares by name, as the next tick hands them to the mission."""
+        return self._neighbours
 
     def submit_airframe(self, airframe: AirframeDrag | None) -> None:
         """The follower's drag as learnt so far (None: not yet); latest value wins."""

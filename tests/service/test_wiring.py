@@ -190,7 +190,7 @@ def test_leader_position_from_mqtt_lands_in_local_ned() -> None:
     flight.on_leader_position(
         LeaderPositionMsg(lat_deg=llat, lon_deg=llon, alt_amsl_m=lalt, time_unix_s=time.time())
     )
-    shared = flight.runner._shared
+    shared = flight.runner.leader_shared
     assert shared is not None
     assert shared.p_ned_m == pytest.approx((16.0, 2.0, -6.0), abs=1e-3)
     assert NEVER_S < shared.stamp_s <= clock.now_s()
@@ -205,7 +205,7 @@ def test_a_neighbour_pose_from_mqtt_lands_in_local_ned_and_reaches_the_mission()
     flight.on_leader_position(
         LeaderPositionMsg(lat_deg=llat, lon_deg=llon, alt_amsl_m=lalt, time_unix_s=time.time(), yaw_deg=90.0)
     )
-    shared = flight.runner._shared
+    shared = flight.runner.leader_shared
     assert shared is not None
     assert shared.yaw_rad == pytest.approx(math.pi / 2)
     nlat, nlon, nalt = origin.to_geodetic((12.0, -3.0, -5.0))
@@ -216,7 +216,7 @@ def test_a_neighbour_pose_from_mqtt_lands_in_local_ned_and_reaches_the_mission()
     flight.on_neighbour_pose("follower2", pose)
     # A neighbour whose own position is not valid is not used.
     flight.on_neighbour_pose("follower3", pose.model_copy(update={"p_ned_m": None}))
-    got = flight.runner._neighbours
+    got = flight.runner.neighbours
     assert set(got) == {"follower2"}
     assert got["follower2"].p_ned_m == pytest.approx((12.0, -3.0, -5.0), abs=1e-3)
     assert got["follower2"].v_ned_m_s == (1.0, 0.0, 0.0)
