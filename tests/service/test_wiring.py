@@ -36,6 +36,7 @@ from companion.service.wiring import LinkGcs
 from companion.telemetry.leader import GeoOrigin
 from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 from tests.unit.mission_harness import FakeAutopilot, leader
+from tests.unit.status_keys import keys_the_page_misses
 from tests.unit.test_mission_runner import RecordingLink
 
 pytestmark = pytest.mark.timeout(60)
@@ -154,6 +155,7 @@ async def test_service_flies_the_real_runner_and_lands_on_stop(tmp_path: Path) -
     ]
     assert after == "follow"
     assert snap["mission"]["state"] == "follow"
+    assert keys_the_page_misses(snap)[1] == {"mavlink_signing"}  # what the socket served, read by the page
     assert snap["link"]["armed"] is True
     assert snap["mission"]["transitions"] >= 5
     kinds = [k for _, k in link.calls]

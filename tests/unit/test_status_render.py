@@ -118,3 +118,50 @@ def test_health_on_the_ground_says_whether_a_start_would_arm() -> None:
     invalid = VehicleSummary(connected=True, heartbeat_age_s=0.2, gps_fix_type=3, position_valid=False)
     lost = live_health_json(FlightSnapshot("follow", "leader acquired", vehicle=invalid), [], None)
     assert not {c["name"]: c for c in lost["checks"]}["gps"]["ok"]  # PX4 says its position is invalid
+
+
+def test_the_page_reads_the_keys_the_service_writes() -> None:
+    """The JSON the service builds from a flight's own snapshot, a leader estimate included, has every key
+    the page reads (MQTT off; the signing relay's status aside, there only when it runs)."""
+    import numpy as np
+
+    from companion.config import Config
+    from companion.estimation.estimate import RelativeEstimate, TrackState
+    from companion.estimation.leader import TrackStatus
+    from companion.kernel.camera import MountConfig
+    from companion.kernel.clock import ManualClock
+    from companion.perception.transform import CameraGeometry
+    from companion.service.flight import FlightService
+    from companion.service.health import HealthBoard
+    from companion.service.latency import LatencyStats
+    from companion.service.reports import status_json
+    from companion.service.sysinfo import SystemReading
+
+    from .mission_harness import FakeAutopilot
+    from .status_keys import keys_the_page_misses
+    from .test_mission_runner import RecordingLink
+
+    clock = ManualClock(20.0)
+    ap = FakeAutopilot()
+    ap.fly()
+    cfg = Config()
+    flight = FlightService(cfg, RecordingLink(ap, clock), clock)  # type: ignore[arg-type]
+    est = RelativeEstimate(
+        np.array([5.0, 1.0, -0.5]), np.array([0.5, 0.0, 0.0]), np.diag([0.1, 0.2, 0.3, 1.0, 1.0, 1.0]),
+        np.eye(3), CameraGeometry.from_mount(MountConfig()),
+    )  # fmt: skip
+    flight.track = TrackState(19.9, TrackStatus.CONFIRMED, 1, est, 3.0, 19.8, 9, None)
+    latency = LatencyStats()
+    latency.record("detect", 12.0)
+    status = status_json(
+        cfg, flight.snapshot(), clock, started_s=0.0, stop_reason=None, transitions=3,
+        latency_ms=latency.summary, frames=lambda: {"received": 10, "processed": 9, "dropped": 1},
+        system=SystemReading(0.5, 20.0, (20.0, 21.0), 900.0, 7600.0, {"cpu-thermal": 48.0}),
+        components=HealthBoard(clock).snapshot, mqtt=None, extra_status={},
+    )  # fmt: skip
+    text, missing = keys_the_page_misses(status)
+    assert missing == {"mavlink_signing"}  # the signing relay's own status, there only when it runs
+    assert "link" in keys_the_page_misses({k: v for k, v in status.items() if k != "link"})[1]
+    rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
+    assert rows["leader"].startswith("confirmed, rel NED")
+    assert rows["frames"] == "10 received, 9 processed, 1 dropped"
