@@ -92,8 +92,8 @@ class MissionMachine:
     def __init__(self, cfg: Config, law: FormationLaw | None = None) -> None:
         self.c = MissionContext(cfg, law)
         self.launch = LaunchPhase(self.c)
-        self.follow = FollowPhase(self.c)
         self.recovery = RecoveryPhase(self.c)
+        self.follow = FollowPhase(self.c, self.recovery)
         self.landing = LandingPhase(self.c)
 
     @property

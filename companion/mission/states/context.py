@@ -16,7 +16,7 @@ import numpy as np
 from companion.config import Config
 from companion.estimation.leader import LeaderEstimate
 from companion.kernel.flight import VehicleState
-from companion.kernel.frames import Vec3, wrap_pi
+from companion.kernel.frames import Vec3
 from companion.kernel.stall import StallAwareAge
 from companion.mission.ego import EgoMotion
 from companion.mission.formation import FormationLaw
@@ -78,9 +78,6 @@ OBSTACLE_STALE_S = 0.5
 #: Control ticks missed in a row that make a stall of the service itself (ages then restart, see
 #: companion.kernel.stall).
 STALL_TICKS = 4
-#: A leader lost at a slower horizontal speed than this is taken as hovering (m/s): a hovering leader's
-#: estimated velocity is 0.1-0.2 m/s of noise, a flying one's the 2-3 m/s it flies.
-HOVERING_LEADER_M_S = 0.5
 
 
 class MissionContext:
@@ -110,16 +107,9 @@ class MissionContext:
         self.link = LinkMonitor(cfg.link, cfg.formation, self.ages)
         self.track = TrackMonitor(cfg.mission, self.ages)
         # Per-state memory.
-        self.attitude_kind = False
         self.last_leader: LeaderEstimate | None = None
         #: The follower's own velocity history, to bring camera-time estimates to the control instant.
         self.ego = EgoMotion()
-        self.leader_lost_p_ned_m: Vec3 | None = None
-        self.leader_lost_v_ned_m_s: Vec3 | None = None
-        #: Where the follower was when it lost a hovering leader: REACQUIRE's coast holds it (local NED, m).
-        self.hold_p_ned_m: Vec3 | None = None
-        self.scan_sign = 1.0
-        self.alt_hold_m = math.nan
         self.ext_valid_since: float | None = None
         self.ext_since: float | None = None
         self.ext_gave_up = False
@@ -299,43 +289,3 @@ class MissionContext:
         self.ext_valid_since = None
         self.ext_since = None
         self.ext_gave_up = False
-
-    def enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
-        """Leader lost: remember where it was going (coast) and which way to scan, then REACQUIRE."""
-        veh = inp.vehicle
-        self.attitude_kind = self.flying_attitude()
-        # A track dropped as far-field was never the leader: search from here, without coasting toward it.
-        far = inp.leader is not None and inp.leader.far_field
-        last = None if far else self.last_leader
-        if last is not None:
-            p_rel, v_rel = np.array(last.p_ned_rel_m), np.array(last.v_ned_rel_m_s)
-            age = max(0.0, self.now_s - last.stamp_s)
-            motion = self.leader_motion
-            v_leader = np.array(veh.v_ned_m_s) + v_rel if motion is None else motion.v_ned_m_s.copy()
-            if motion is None and math.hypot(v_leader[0], v_leader[1]) < HOVERING_LEADER_M_S:
-                # Its estimated velocity is noise: coasting on it flew the follower away from its slot.
-                v_leader = np.zeros(3)
-                self.hold_p_ned_m = np.array(veh.p_ned_m)
-            else:
-                self.hold_p_ned_m = None
-            # p_rel is from the estimate's stamp: the leader moved by its velocity since, we by ours.
-            p_rel_now = p_rel + (v_leader - np.array(veh.v_ned_m_s)) * age
-            self.leader_lost_p_ned_m = np.array(veh.p_ned_m) + p_rel_now
-            self.leader_lost_v_ned_m_s = v_leader
-            bearing = math.atan2(p_rel[1], p_rel[0])
-            self.scan_sign = 1.0 if wrap_pi(bearing - veh.yaw_rad) >= 0.0 else -1.0
-        else:
-            self.leader_lost_p_ned_m = None
-            self.leader_lost_v_ned_m_s = None
-            self.hold_p_ned_m = None
-            self.scan_sign = 1.0
-        self.alt_hold_m = veh.alt_rel_m
-        self.go(MissionState.REACQUIRE, Reason.LEADER_LOST, detail)
-
-    def enter_hover(self, inp: MissionInputs) -> None:
-        """The estimate went stale: hover on the vehicle's own telemetry (HOVER)."""
-        self.attitude_kind = self.flying_attitude()
-        self.alt_hold_m = inp.vehicle.alt_rel_m
-        est = inp.leader
-        age = "never" if est is None else f"{self.now_s - est.stamp_s:.2f} s old"
-        self.go(MissionState.HOVER, Reason.PERCEPTION_STALL, age)

@@ -15,6 +15,7 @@ from companion.kernel.flight import ExternalPosition, Setpoint, VehicleState
 from companion.kernel.frames import Vec3
 from companion.mission.shared_motion import shared_rel_now
 from companion.mission.states.context import MissionContext
+from companion.mission.states.recovery import RecoveryPhase
 from companion.mission.types import MissionInputs, MissionState, Reason, VisionMode
 
 #: PX4 must report a valid estimate this long before velocity setpoints ride on an external fix, s.
@@ -29,17 +30,21 @@ SHARE_FIX_AFTER_S = 0.1
 class FollowPhase:
     """The handlers of FOLLOW and FOLLOW_VISION."""
 
-    def __init__(self, ctx: MissionContext) -> None:
+    def __init__(self, ctx: MissionContext, recovery: RecoveryPhase) -> None:
         self.c = ctx
+        #: Where a lost or stale leader hands over (REACQUIRE, HOVER), with the memory they enter with.
+        self.recovery = recovery
 
     def _leader_or_transition(self, inp: MissionInputs) -> LeaderEstimate | None:
         """The estimate to fly on, or None after going to HOVER (stale) or REACQUIRE (lost)."""
         est = inp.leader
         if est is None or not self.c.fresh(est):
-            self.c.enter_hover(inp)
+            self.recovery.enter_hover(inp)
             return None
         if not est.usable:
-            self.c.enter_reacquire(inp, "far-field track dropped" if est.far_field else est.status.value)
+            self.recovery.enter_reacquire(
+                inp, "far-field track dropped" if est.far_field else est.status.value
+            )
             return None
         return est
 

@@ -32,6 +32,9 @@ STATION_MAX_M_S = 0.5
 #: to start off while the follower waited out the age. Tight: false boxes beside a leader lost against a
 #: tree crown sat 0.9 m from where it was lost.
 FOUND_WHERE_LOST_M = 0.5
+#: A leader lost at a slower horizontal speed than this is taken as hovering (m/s): a hovering leader's
+#: estimated velocity is 0.1-0.2 m/s of noise, a flying one's the 2-3 m/s it flies.
+HOVERING_LEADER_M_S = 0.5
 
 
 class RecoveryPhase:
@@ -39,6 +42,57 @@ class RecoveryPhase:
 
     def __init__(self, ctx: MissionContext) -> None:
         self.c = ctx
+        #: REACQUIRE and HOVER fly attitude setpoints (decided on entry: no GPS, or vision on attitude).
+        self.attitude_kind = False
+        #: Where the lost leader dead-reckons from, and at what velocity (local NED, m and m/s): the coast.
+        self.leader_lost_p_ned_m: Vec3 | None = None
+        self.leader_lost_v_ned_m_s: Vec3 | None = None
+        #: Where the follower was when it lost a hovering leader: REACQUIRE's coast holds it (local NED, m).
+        self.hold_p_ned_m: Vec3 | None = None
+        #: The yaw scan's direction: toward the side the leader was last seen on (+1 right, -1 left).
+        self.scan_sign = 1.0
+        #: The height the attitude hover holds (above home, m; NaN: taken on the first tick).
+        self.alt_hold_m = math.nan
+
+    def enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
+        """Leader lost: remember where it was going (coast) and which way to scan, then REACQUIRE."""
+        veh = inp.vehicle
+        self.attitude_kind = self.c.flying_attitude()
+        # A track dropped as far-field was never the leader: search from here, without coasting toward it.
+        far = inp.leader is not None and inp.leader.far_field
+        last = None if far else self.c.last_leader
+        if last is not None:
+            p_rel, v_rel = np.array(last.p_ned_rel_m), np.array(last.v_ned_rel_m_s)
+            age = max(0.0, self.c.now_s - last.stamp_s)
+            motion = self.c.leader_motion
+            v_leader = np.array(veh.v_ned_m_s) + v_rel if motion is None else motion.v_ned_m_s.copy()
+            if motion is None and math.hypot(v_leader[0], v_leader[1]) < HOVERING_LEADER_M_S:
+                # Its estimated velocity is noise: coasting on it flew the follower away from its slot.
+                v_leader = np.zeros(3)
+                self.hold_p_ned_m = np.array(veh.p_ned_m)
+            else:
+                self.hold_p_ned_m = None
+            # p_rel is from the estimate's stamp: the leader moved by its velocity since, we by ours.
+            p_rel_now = p_rel + (v_leader - np.array(veh.v_ned_m_s)) * age
+            self.leader_lost_p_ned_m = np.array(veh.p_ned_m) + p_rel_now
+            self.leader_lost_v_ned_m_s = v_leader
+            bearing = math.atan2(p_rel[1], p_rel[0])
+            self.scan_sign = 1.0 if wrap_pi(bearing - veh.yaw_rad) >= 0.0 else -1.0
+        else:
+            self.leader_lost_p_ned_m = None
+            self.leader_lost_v_ned_m_s = None
+            self.hold_p_ned_m = None
+            self.scan_sign = 1.0
+        self.alt_hold_m = veh.alt_rel_m
+        self.c.go(MissionState.REACQUIRE, Reason.LEADER_LOST, detail)
+
+    def enter_hover(self, inp: MissionInputs) -> None:
+        """The estimate went stale: hover on the vehicle's own telemetry (HOVER)."""
+        self.attitude_kind = self.c.flying_attitude()
+        self.alt_hold_m = inp.vehicle.alt_rel_m
+        est = inp.leader
+        age = "never" if est is None else f"{self.c.now_s - est.stamp_s:.2f} s old"
+        self.c.go(MissionState.HOVER, Reason.PERCEPTION_STALL, age)
 
     def reacquire(self, inp: MissionInputs) -> Setpoint | None:
         veh = inp.vehicle
@@ -47,7 +101,7 @@ class RecoveryPhase:
         ):
             self.c.enter_follow(inp, Reason.LEADER_REACQUIRED)
             return None
-        if not self.c.attitude_kind and not self.c.gps.ok:
+        if not self.attitude_kind and not self.c.gps.ok:
             self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while re-acquiring")
             return None
         t = self.c.t_in_state()
@@ -55,7 +109,7 @@ class RecoveryPhase:
             self.c.abort(Reason.REACQUIRE_TIMEOUT)
             return None
         scanning = t > self.c.m.reacquire_coast_s
-        scan_rate = self.c.scan_sign * math.radians(self.c.m.scan_yaw_rate_deg_s) if scanning else 0.0
+        scan_rate = self.scan_sign * math.radians(self.c.m.scan_yaw_rate_deg_s) if scanning else 0.0
         candidate = self.c.track.candidate_rel(inp.leader, self.c.now_s)
         shared = self._shared_leader_rel(inp)
         if candidate is not None and scanning:
@@ -65,28 +119,24 @@ class RecoveryPhase:
         elif shared is not None and scanning:
             # The leader says where it is: look there instead of sweeping the horizon.
             scan_rate = self._look_rate(shared, veh.yaw_rad)
-        if self.c.attitude_kind:
+        if self.attitude_kind:
             fol = self.c.follower(veh, velocity_valid=False)
             v_down = self._alt_hold_v_down(veh)
             return self.c.law.hover_attitude(fol, v_down, self.c.now_s, yaw_rate_rad_s=scan_rate).setpoint
-        if (
-            not scanning
-            and self.c.leader_lost_p_ned_m is not None
-            and self.c.leader_lost_v_ned_m_s is not None
-        ):
+        if not scanning and self.leader_lost_p_ned_m is not None and self.leader_lost_v_ned_m_s is not None:
             # Coast: the leader's last velocity, looking where it dead-reckons to (GPS is healthy), without
             # closing on that guess (see FormationLaw.coast_velocity); looking at a candidate instead
             # when there is one, which the separation barrier then also holds off.
-            p_leader = self.c.leader_lost_p_ned_m + self.c.leader_lost_v_ned_m_s * t
+            p_leader = self.leader_lost_p_ned_m + self.leader_lost_v_ned_m_s * t
             motion = self.c.leader_motion
             if motion is not None:
                 # The leader's own velocity as it shares it: the dead reckoning goes on from here at it.
-                self.c.leader_lost_v_ned_m_s = motion.v_ned_m_s.copy()
-                self.c.leader_lost_p_ned_m = p_leader - motion.v_ned_m_s * t
-                self.c.hold_p_ned_m = None
+                self.leader_lost_v_ned_m_s = motion.v_ned_m_s.copy()
+                self.leader_lost_p_ned_m = p_leader - motion.v_ned_m_s * t
+                self.hold_p_ned_m = None
             p_rel = p_leader - np.array(veh.p_ned_m) if candidate is None else candidate
             return self.c.law.coast_velocity(
-                self.c.leader_lost_v_ned_m_s,
+                self.leader_lost_v_ned_m_s,
                 p_rel,
                 self.c.follower(veh, velocity_valid=True),
                 self.c.obstacle_now(inp),
@@ -96,9 +146,9 @@ class RecoveryPhase:
 
     def _station_velocity(self, veh: VehicleState) -> Vec3T:
         """Back to where the follower lost a hovering leader (NED, m/s, horizontal); zero otherwise."""
-        if self.c.hold_p_ned_m is None:
+        if self.hold_p_ned_m is None:
             return (0.0, 0.0, 0.0)
-        e = self.c.hold_p_ned_m - np.array(veh.p_ned_m)
+        e = self.hold_p_ned_m - np.array(veh.p_ned_m)
         v = clamp_norm(STATION_KP_1_S * np.array([e[0], e[1], 0.0]), STATION_MAX_M_S)
         return (float(v[0]), float(v[1]), 0.0)
 
@@ -111,9 +161,9 @@ class RecoveryPhase:
 
     def _found_where_lost(self, inp: MissionInputs) -> bool:
         """Whether the track is where the lost leader dead-reckons to (coasting, GPS healthy)."""
-        lost_p, lost_v, est = self.c.leader_lost_p_ned_m, self.c.leader_lost_v_ned_m_s, inp.leader
+        lost_p, lost_v, est = self.leader_lost_p_ned_m, self.leader_lost_v_ned_m_s, inp.leader
         t = self.c.t_in_state()
-        if lost_p is None or lost_v is None or est is None or self.c.attitude_kind or not self.c.gps.ok:
+        if lost_p is None or lost_v is None or est is None or self.attitude_kind or not self.c.gps.ok:
             return False
         if t > self.c.m.reacquire_coast_s:
             return False
@@ -127,9 +177,9 @@ class RecoveryPhase:
         return float(np.clip(self.c.cfg.formation.kp_yaw * wrap_pi(bearing - yaw_rad), -max_rate, max_rate))
 
     def _alt_hold_v_down(self, veh: VehicleState) -> float:
-        if not math.isfinite(self.c.alt_hold_m):
-            self.c.alt_hold_m = veh.alt_rel_m
-        v = ALT_HOLD_KP_1_S * (veh.alt_rel_m - self.c.alt_hold_m)
+        if not math.isfinite(self.alt_hold_m):
+            self.alt_hold_m = veh.alt_rel_m
+        v = ALT_HOLD_KP_1_S * (veh.alt_rel_m - self.alt_hold_m)
         lim = self.c.limits.max_vertical_speed_m_s
         return float(np.clip(v, -lim, lim))
 
@@ -141,15 +191,15 @@ class RecoveryPhase:
                 self.c.enter_follow(inp, Reason.PERCEPTION_RESUMED)
                 return None
             if est.status == TrackStatus.LOST:
-                self.c.enter_reacquire(inp, "after stall")
+                self.enter_reacquire(inp, "after stall")
                 return None
-        if not self.c.attitude_kind and not self.c.gps.ok:
+        if not self.attitude_kind and not self.c.gps.ok:
             self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while hovering")
             return None
         if self.c.t_in_state() > self.c.m.stall_hover_s:
             self.c.abort(Reason.STALL_TIMEOUT)
             return None
-        if self.c.attitude_kind:
+        if self.attitude_kind:
             fol = self.c.follower(veh, velocity_valid=False)
             return self.c.law.hover_attitude(fol, self._alt_hold_v_down(veh), self.c.now_s).setpoint
         return self.c.law.hover_velocity()
