@@ -1,10 +1,12 @@
 """The context every phase of the mission machine works on: its memory, the transitions and the abort ladder.
 
 :class:`MissionContext` holds the machine's state (the monitors, the command book, the offboard stream, the
-memory a state is entered with) and the moves between states that more than one phase makes: into FOLLOW
-or FOLLOW_VISION, into HOVER or REACQUIRE, down to a PX4 mode or the controlled landing. Each phase
+memory more than one phase reads) and the moves between states that more than one phase makes: into FOLLOW
+or FOLLOW_VISION, down to a PX4 mode or the controlled landing. Each phase
 (:mod:`~companion.mission.states.launch`, ``follow``, ``recovery``, ``landing``) is an object holding
-this context; :class:`~companion.mission.machine.MissionMachine` owns the context and the phases.
+this context and the memory only it reads (REACQUIRE's and HOVER's in ``recovery``, which is also where
+FOLLOW hands a lost or stale leader over; the touchdown timer in ``landing``);
+:class:`~companion.mission.machine.MissionMachine` owns the context and the phases.
 """
 
 from __future__ import annotations
@@ -114,7 +116,6 @@ class MissionContext:
         self.ext_since: float | None = None
         self.ext_gave_up = False
         self.ext_reset_counter = 0
-        self.touchdown_since: float | None = None
         self.shutting_down = False
         self.start_latched = False
         self.prev_start = False
@@ -151,7 +152,6 @@ class MissionContext:
             self.entered_s = self.now_s
             self.attempts = 0
             self.last_attempt_s = -math.inf
-            self.touchdown_since = None
             self.law.reset()
             # A planned approach into the slot on every entry into FOLLOW (planned on its first tick).
             if state == MissionState.FOLLOW:

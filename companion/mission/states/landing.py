@@ -27,6 +27,9 @@ class LandingPhase:
 
     def __init__(self, ctx: MissionContext) -> None:
         self.c = ctx
+        #: Since when the controlled landing has looked touched down (still and low), s; None: it does not.
+        #: Each entry starts afresh: the first 2 s of the state never look still.
+        self.touchdown_since_s: float | None = None
 
     def controlled_landing(self, inp: MissionInputs) -> Setpoint | None:
         veh = inp.vehicle
@@ -51,11 +54,11 @@ class LandingPhase:
         still = abs(veh.v_ned_m_s[2]) < TOUCHDOWN_V_M_S and self.c.t_in_state() > 2.0
         low = not math.isfinite(veh.alt_rel_m) or veh.alt_rel_m < 3.0
         if not (still and low):
-            self.c.touchdown_since = None
+            self.touchdown_since_s = None
             return False
-        if self.c.touchdown_since is None:
-            self.c.touchdown_since = self.c.now_s
-        return self.c.now_s - self.c.touchdown_since >= TOUCHDOWN_CONFIRM_S
+        if self.touchdown_since_s is None:
+            self.touchdown_since_s = self.c.now_s
+        return self.c.now_s - self.touchdown_since_s >= TOUCHDOWN_CONFIRM_S
 
     def landed(self, veh: VehicleState) -> Setpoint | None:
         """On the ground and armed: idle thrust (when streaming) and disarm."""
