@@ -19,9 +19,16 @@ from companion.vehicle.mavlink_signing import take_stream_frames
 log = logging.getLogger("companion.vehicle.signing")
 
 Addr = tuple[str, int]
+#: Where frames from a serial link come from (it has no address).
+SERIAL: Addr = ("serial", 0)
 _BAUDS = {
     int(name[1:]): getattr(termios, name) for name in dir(termios) if name[:1] == "B" and name[1:].isdigit()
 }
+
+
+def where(addr: Addr | None) -> str:
+    """An address as log lines and the status write it (a serial link has none)."""
+    return "the serial link" if addr is None or addr == SERIAL else f"{addr[0]}:{addr[1]}"
 
 
 class Transport:

@@ -14,7 +14,14 @@ autopilot that speaks MAVLink 2 signing on UDP or serial (PX4, the project's sim
   RADIO_STATUS of *other* systems pass too (as PX4 lets them), so the leader's presence is still seen.
   Everything else is dropped and counted by reason. A frame that claims the follower's system id
   (``link.system_id``) without a valid signature is an impostor: a second vehicle with our id, or
-  someone spoofing it; it is reported (rate-limited) and never reaches MAVSDK.
+  someone spoofing it; it is reported (one rate limit for all of them) and never reaches MAVSDK.
+- **Trust by proof** (``udpin``): the relay sends only to addresses whose frames verified with our key,
+  never to one that merely sent something (an unsigned HEARTBEAT of another system passes to MAVSDK, but
+  its sender gets nothing). Once our autopilot's frames verify, the relay locks onto its address; nothing
+  unverified can displace it.
+- **MAVSDK's side**: the first local sender whose socket belongs to the service or its descendants (MAVSDK's
+  server) is MAVSDK; a sender owned by any other process is refused and reported, before and after
+  (:mod:`companion.vehicle.local_peers`), so arriving first at the relay's port gives nothing away.
 - **An autopilot behind**: PX4 keeps the timestamp SETUP_SIGNING gave it and starts from it at every boot;
   it moves on only by one unit per frame it sends and up to the newest signed frame it receives. Booted
   long after it was keyed, its frames are signed with our key but older than our clock (or than its own
@@ -22,10 +29,9 @@ autopilot that speaks MAVLink 2 signing on UDP or serial (PX4, the project's sim
   not reported as an impostor: its address gets our frames, and once it has one it signs with a current
   timestamp and passes again. Without that, a relay that listens (``udpin``) would never send it
   anything and never hear it again.
-- **Provisioning**: an autopilot that does not sign yet sends unsigned heartbeats. With
-  ``link.signing_provision`` the relay sends it the key (SETUP_SIGNING) while those heartbeats say
-  disarmed and come from one address only; PX4 refuses it while armed. Until the autopilot signs, MAVSDK
-  sees nothing of it, so the service never flies an autopilot over an unsigned link.
+- **Provisioning** (``link.signing_provision``): a one-shot SETUP_SIGNING to an autopilot that sends
+  unsigned, disarmed heartbeats, refused whenever in doubt (:mod:`companion.vehicle.signing_provision`).
+  Until the autopilot signs, MAVSDK sees nothing of it: the service never flies over an unsigned link.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from companion.config import LinkConfig
 from companion.kernel.compat import Self
 from companion.kernel.errors import LinkLostError
 from companion.kernel.throttle import Throttle, and_more
+from companion.vehicle import local_peers
 from companion.vehicle.mavlink_signing import (
     MSG_HEARTBEAT,
     UNSIGNED_ALLOWED,
@@ -61,7 +68,16 @@ from companion.vehicle.mavlink_signing import (
     signature_matches,
     split_frames,
 )
-from companion.vehicle.relay_transports import Addr, Datagrams, Transport, open_autopilot
+from companion.vehicle.relay_transports import (
+    SERIAL,
+    Addr,
+    Datagrams,
+    Transport,
+    open_autopilot,
+    where,
+)
+from companion.vehicle.signing_provision import PROVISIONED_FILE, ProvisionScene, provision_refusal
+from companion.vehicle.signing_provision import PROVISIONED_FILE, provision_refusal
 
 log = logging.getLogger("companion.vehicle.signing")
 
@@ -74,11 +90,14 @@ MAX_PEERS = 8
 PROVISION_RETRY_S = 2.0
 #: An autopilot heartbeat older than this says nothing about the armed state any more, s.
 HEARTBEAT_FRESH_S = 3.0
+#: Impostor addresses counted one by one in the status; the rest are counted together.
+MAX_REPORTED_ADDRESSES = 16
+#: Refused local senders remembered (each new one costs a look at /proc).
+MAX_REFUSED_LOCAL = 64
 #: The component id MAVSDK uses as a companion computer.
 COMPANION_COMPONENT = 195
 _AUTOPILOT_COMPONENT = 1
-#: Where frames from a serial link come from (it has no address).
-_SERIAL: Addr = ("serial", 0)
+_OTHERS = "others"
 
 
 class SigningRelay:
@@ -89,6 +108,7 @@ class SigningRelay:
         key: the 32-byte signing key.
         state_dir: where the signing timestamp is kept across restarts.
         wall_time_s: the wall clock (signing timestamps are wall time).
+        local_sender_problem: why a local address is not MAVSDK (None: it is); reads /proc by default.
     """
 
     def __init__(
@@ -97,10 +117,12 @@ class SigningRelay:
         key: bytes,
         state_dir: Path,
         wall_time_s: Callable[[], float] = time.time,
+        local_sender_problem: Callable[[Addr], str | None] = local_peers.sender_problem,
     ) -> None:
         self.cfg = cfg
         self.target = cfg.system_id
         self._wall_time_s = wall_time_s
+        self._local_sender_problem = local_sender_problem
         self._store = TimestampStore(state_dir / TIMESTAMP_FILE)
         try:
             floor = self._store.floor()
@@ -115,14 +137,25 @@ class SigningRelay:
         self._autopilot: Transport | None = None
         self._local: asyncio.DatagramTransport | None = None
         self._mavsdk_addr: Addr | None = None
+        self._refused_local: set[Addr] = set()
+        self._scheme = cfg.url.partition("://")[0]
+        #: Our autopilot's address, from its last frame that verified (the one address we are locked onto).
+        self._autopilot_addr: tuple[Addr, float] | None = None
+        #: Other addresses whose frames verified with our key (a ground station holding it), by last seen.
         self._peers: dict[Addr, float] = {}
         #: True once a frame signed by our autopilot checked out: from then on, unsigned is an impostor.
         self.autopilot_signs = False
+        #: True once any frame signed with our key arrived, from anywhere: the key is never sent then.
+        self.key_seen = False
         self._unsigned_autopilot: dict[Addr, tuple[float, bool]] = {}
+        #: Addresses that claimed our autopilot unsigned since the start, and when each was first heard.
+        self._claimants: dict[Addr, float] = {}
         #: Where frames signed with our key but with old timestamps come from (an autopilot behind).
         self._behind: dict[Addr, float] = {}
         self._last_provision_s = -1e9
         self.provision_attempts = 0
+        self._provisioned_path = state_dir / PROVISIONED_FILE
+        self.provisioned = self._provisioned_path.exists()
         self.impostors: Counter[str] = Counter()
         self.local_port = 0
 
@@ -169,6 +202,8 @@ class SigningRelay:
         while True:
             await asyncio.sleep(0.5)
             self._provision()
+            if self.autopilot_signs and self.cfg.signing_provision and not self.provisioned:
+                await self._mark_provisioned()
             if time.monotonic() - last_save_s >= self._store.save_every_s:
                 last_save_s = time.monotonic()
                 try:
@@ -177,21 +212,20 @@ class SigningRelay:
                     self._report("save", f"cannot keep the signing timestamp in {self._store.path}: {exc}")
 
     def stats(self) -> dict[str, Any]:
-        """Counters for the status endpoint."""
+        """Counters for the status endpoint (bounded, whatever arrives)."""
         return {
             "autopilot_signs": self.autopilot_signs,
+            "autopilot_address": None if self._autopilot_addr is None else where(self._autopilot_addr[0]),
             "counters": dict(self.counters),
             "impostors": dict(self.impostors),
             "provision_attempts": self.provision_attempts,
+            "provisioned": self.provisioned,
             "timestamp": self.clock.timestamp,
         }
 
     # ------------------------------------------------------------------ MAVSDK -> autopilot
     def _from_mavsdk(self, data: bytes, addr: Addr) -> None:
-        if self._mavsdk_addr is None:
-            self._mavsdk_addr = addr
-        elif addr != self._mavsdk_addr:
-            self.counters["local_foreign"] += 1  # another local process: not ours to sign for
+        if addr != self._mavsdk_addr and not self._is_mavsdk(addr):
             return
         frames, tail, junk = split_frames(data)
         if junk or tail:
@@ -208,20 +242,54 @@ class SigningRelay:
             self.counters["out_signed"] += len(frames)
             self._send_autopilot(bytes(out))
 
+    def _is_mavsdk(self, addr: Addr) -> bool:
+        """Take ``addr`` as MAVSDK if it is the first sender the service owns; refuse and report others."""
+        if self._mavsdk_addr is not None:
+            self.counters["local_foreign"] += 1
+            self._report(
+                "local_foreign",
+                f"a second local sender at {where(addr)} (MAVSDK is {where(self._mavsdk_addr)}): refused",
+            )
+            return False
+        if addr in self._refused_local:
+            self.counters["local_refused"] += 1
+            return False
+        problem = self._local_sender_problem(addr)
+        if problem is not None:
+            self.counters["local_refused"] += 1
+            if len(self._refused_local) < MAX_REFUSED_LOCAL:
+                self._refused_local.add(addr)
+            self._report("local_refused", f"a local sender at {where(addr)} is not MAVSDK: {problem}")
+            return False
+        self._mavsdk_addr = addr
+        log.info("signing relay: MAVSDK is %s", where(addr))
+        return True
+
     def _send_autopilot(self, data: bytes) -> None:
         if self._autopilot is None:
             return
-        now = time.monotonic()
+        self._autopilot.send(data, self._destinations(time.monotonic()))
+
+    def _destinations(self, now: float) -> list[Addr]:
+        """Where our frames go on ``udpin``: proven addresses only, our autopilot's first."""
         for addr in [a for a, seen in self._peers.items() if now - seen > PEER_TIMEOUT_S]:
             del self._peers[addr]
-        dests = list(self._peers)
-        for addr, (seen, _) in self._unsigned_autopilot.items():
-            if now - seen < HEARTBEAT_FRESH_S and addr not in dests:
-                dests.append(addr)
+        dests: list[Addr] = []
+        locked = self._autopilot_addr is not None and now - self._autopilot_addr[1] <= PEER_TIMEOUT_S
+        if self._autopilot_addr is not None and locked:
+            dests.append(self._autopilot_addr[0])
+        dests += [a for a in self._peers if a not in dests]
+        if locked:
+            return dests
+        # Not (or no longer) hearing our autopilot verified: where frames signed with our key but old come
+        # from (it catches up from ours), and before it ever signed, where its unsigned heartbeats come from.
         for addr, seen in self._behind.items():
             if now - seen < HEARTBEAT_FRESH_S and addr not in dests:
                 dests.append(addr)
-        self._autopilot.send(data, dests)
+        for addr, (seen, _) in self._unsigned_autopilot.items():
+            if now - seen < HEARTBEAT_FRESH_S and addr not in dests:
+                dests.append(addr)
+        return dests
 
     # ------------------------------------------------------------------ autopilot -> MAVSDK
     def _from_autopilot(self, data: bytes, addr: Addr | None) -> None:
@@ -230,15 +298,9 @@ class SigningRelay:
         if junk or tail:
             self.counters["in_junk_bytes"] += junk + len(tail)
         out = bytearray()
-        accepted = False
         for frame in frames:
             if self._accept(frame, addr):
                 out += frame
-                accepted = True
-        if accepted and addr is not None:
-            self._peers[addr] = time.monotonic()
-            if len(self._peers) > MAX_PEERS:
-                del self._peers[min(self._peers, key=self._peers.__getitem__)]
         if out and self._local is not None and self._mavsdk_addr is not None:
             self._local.sendto(bytes(out), self._mavsdk_addr)
 
@@ -251,12 +313,7 @@ class SigningRelay:
         verdict = self._verifier.check(frame, info)
         if verdict is Verdict.OK:
             self.counters["in_signed"] += 1
-            if ours and info.comp_id == _AUTOPILOT_COMPONENT and not self.autopilot_signs:
-                self.autopilot_signs = True
-                self._unsigned_autopilot.clear()
-                log.info(
-                    "signing relay: autopilot system %d signs with our key; its frames pass", self.target
-                )
+            self._proven(addr, ours and info.comp_id == _AUTOPILOT_COMPONENT)
             return True
         if (
             ours
@@ -272,12 +329,41 @@ class SigningRelay:
                 self._impostor(verdict.value, info, addr)
             return False
         if info.msg_id in UNSIGNED_ALLOWED and not ours:
-            self.counters["in_unsigned_passed"] += 1  # another system's presence (the leader's, say)
+            # Another system's presence (the leader's, say): MAVSDK hears it, its sender gets nothing.
+            self.counters["in_unsigned_passed"] += 1
             return True
         self.counters["in_unsigned_dropped"] += 1
         if ours:
             self._impostor("unsigned", info, addr)
         return False
+
+    def _proven(self, addr: Addr | None, autopilot: bool) -> None:
+        """A frame from ``addr`` verified with our key: it may be sent to (our autopilot's: locked onto)."""
+        self.key_seen = True
+        now = time.monotonic()
+        if autopilot:
+            if not self.autopilot_signs:
+                self.autopilot_signs = True
+                self._unsigned_autopilot.clear()
+                log.info(
+                    "signing relay: autopilot system %d signs with our key; its frames pass", self.target
+                )
+            if addr is not None:
+                if self._autopilot_addr is not None and self._autopilot_addr[0] != addr:
+                    log.info(
+                        "signing relay: autopilot system %d now signs from %s (was %s)",
+                        self.target,
+                        where(addr),
+                        where(self._autopilot_addr[0]),
+                    )
+                self._autopilot_addr = (addr, now)
+                self._peers.pop(addr, None)
+            return
+        if addr is None or (self._autopilot_addr is not None and addr == self._autopilot_addr[0]):
+            return
+        self._peers[addr] = now
+        if len(self._peers) > MAX_PEERS:
+            del self._peers[min(self._peers, key=self._peers.__getitem__)]
 
     def _before_signing(self, verdict: Verdict, info: FrameInfo, addr: Addr | None) -> bool:
         """Our system's frames before our autopilot has signed one: never to MAVSDK, never an impostor yet.
@@ -296,8 +382,12 @@ class SigningRelay:
             and info.comp_id == _AUTOPILOT_COMPONENT
             and info.msg_id == MSG_HEARTBEAT
         ):
-            where = addr if addr is not None else _SERIAL
-            self._unsigned_autopilot[where] = (time.monotonic(), heartbeat_armed(info))
+            src = addr if addr is not None else SERIAL
+            now = time.monotonic()
+            if src in self._unsigned_autopilot or len(self._unsigned_autopilot) < MAX_PEERS:
+                self._unsigned_autopilot[src] = (now, heartbeat_armed(info))
+            if src not in self._claimants and len(self._claimants) < MAX_PEERS:
+                self._claimants[src] = now
             self._say_not_signing()
         return False
 
@@ -308,36 +398,45 @@ class SigningRelay:
         it catches up (see the module's docstring). A replayed frame of ours is dropped the same way.
         """
         self.counters["in_behind"] += 1
-        where = addr if addr is not None else _SERIAL
-        if where not in self._behind and len(self._behind) >= MAX_PEERS:
+        self.key_seen = True
+        src = addr if addr is not None else SERIAL
+        if src not in self._behind and len(self._behind) >= MAX_PEERS:
             del self._behind[min(self._behind, key=self._behind.__getitem__)]
-        self._behind[where] = time.monotonic()
-        source = "the serial link" if addr is None else f"{addr[0]}:{addr[1]}"
+        self._behind[src] = time.monotonic()
         self._report(
             "behind",
-            f"system {self.target} signs with our key but an old timestamp ({verdict.value}, from {source}): "
-            "dropped until it catches up from our frames (PX4 starts from the timestamp it was keyed with "
-            "at every boot)",
+            f"system {self.target} signs with our key but an old timestamp ({verdict.value}, from "
+            f"{where(addr)}): dropped until it catches up from our frames (PX4 starts from the timestamp it "
+            "was keyed with at every boot)",
         )
         return False
 
     def _impostor(self, why: str, info: FrameInfo, addr: Addr | None) -> None:
-        where = "the serial link" if addr is None else f"{addr[0]}:{addr[1]}"
-        self.impostors[where] += 1
+        source = where(addr)
+        if source in self.impostors or len(self.impostors) < MAX_REPORTED_ADDRESSES:
+            self.impostors[source] += 1
+        else:
+            self.impostors[_OTHERS] += 1
+        # One rate limit for every impostor: a sender cycling its port must not flood the journal.
         self._report(
-            f"impostor:{where}",
+            "impostor",
             f"system {self.target} claimed by a frame that is not signed with our key ({why}, message "
-            f"{info.msg_id}, component {info.comp_id}) from {where}: dropped. Another vehicle with this "
+            f"{info.msg_id}, component {info.comp_id}) from {source}: dropped. Another vehicle with this "
             "system id, or someone spoofing it",
         )
 
     def _say_not_signing(self) -> None:
-        if self.cfg.signing_provision:
+        if self.cfg.signing_provision and not self.provisioned:
             return
+        again = (
+            f" (it was given the key before: remove {self._provisioned_path} to send it once more)"
+            if self.provisioned
+            else " (link.signing_provision = true, while it is disarmed)"
+        )
         self._report(
             "not_signing",
             f"autopilot system {self.target} does not sign its frames: nothing of it reaches the service. "
-            "Give it the key (link.signing_provision = true, while it is disarmed) or set it up yourself",
+            f"Give it the key{again} or set it up yourself",
         )
 
     # ------------------------------------------------------------------ provisioning
@@ -345,26 +444,22 @@ class SigningRelay:
         if self.autopilot_signs or not self.cfg.signing_provision or self._autopilot is None:
             return
         now = time.monotonic()
+        if self.provisioned or now - self._last_provision_s < PROVISION_RETRY_S:
+            return
         fresh = {
             a: armed
             for a, (seen, armed) in self._unsigned_autopilot.items()
             if now - seen < HEARTBEAT_FRESH_S
         }
-        if not fresh or now - self._last_provision_s < PROVISION_RETRY_S:
+        if not fresh:
             return
-        if len(fresh) > 1:
-            where = ", ".join(f"{a[0]}:{a[1]}" for a in fresh)
-            self._report(
-                "two_autopilots", f"system {self.target} heard unsigned from {where}: not sending the key"
-            )
+        refusal = provision_refusal(
+            ProvisionScene(self.target, self._scheme, self.key_seen, self._claimants, fresh), now
+        )
+        if refusal is not None:
+            self._report("provision", f"{refusal}: not sending the key")
             return
-        addr, armed = next(iter(fresh.items()))
-        if armed:
-            self._report(
-                "armed",
-                f"autopilot system {self.target} is armed, unsigned: the key goes only while disarmed",
-            )
-            return
+        addr = next(iter(fresh))
         self._last_provision_s = now
         self.provision_attempts += 1
         frame = setup_signing_frame(
@@ -373,13 +468,33 @@ class SigningRelay:
             src=(self.target, COMPANION_COMPONENT),
             target=(self.target, _AUTOPILOT_COMPONENT),
         )
-        dest = [] if addr == _SERIAL else [addr]
+        dest = [] if addr == SERIAL else [addr]
         self._autopilot.send(frame, dest)
         log.warning(
-            "signing relay: sent the key to autopilot system %d (SETUP_SIGNING while disarmed, attempt %d)",
+            "signing relay: sent the key to autopilot system %d at %s (SETUP_SIGNING, disarmed, attempt %d)",
             self.target,
+            where(addr),
             self.provision_attempts,
         )
+
+    async def _mark_provisioned(self) -> None:
+        """The autopilot signs: provisioning is done for good (the key is never sent again)."""
+        self.provisioned = True
+        try:
+            await asyncio.to_thread(self._write_provisioned)
+        except OSError as exc:
+            self._report("save", f"cannot write {self._provisioned_path}: {exc}")
+            return
+        log.info(
+            "signing relay: autopilot system %d signs with our key; provisioning is done and the key is "
+            "not sent again (remove %s to allow it once more)",
+            self.target,
+            self._provisioned_path,
+        )
+
+    def _write_provisioned(self) -> None:
+        self._provisioned_path.parent.mkdir(parents=True, exist_ok=True)
+        self._provisioned_path.write_text(f"{self._key_id()}\n")
 
     # ------------------------------------------------------------------ helpers
     def _report(self, key: str, text: str) -> None:
