@@ -131,7 +131,10 @@ if [ "$BROKER" -eq 1 ]; then
     install -m 0640 -g mosquitto "$PREFIX/systemd/mosquitto-wingman.acl" /etc/mosquitto/wingman.acl
     [ -f /etc/mosquitto/wingman.passwd ] || (umask 027; : > /etc/mosquitto/wingman.passwd)
     chgrp mosquitto /etc/mosquitto/wingman.passwd
-    mosquitto_passwd -b /etc/mosquitto/wingman.passwd "$VEHICLE_ID" "$(cat "$CRED_SRC/mqtt-password")"
+    # On standard input (asked twice), never as an argument: any local user can read a process's arguments.
+    pw=$(cat "$CRED_SRC/mqtt-password")
+    printf '%s\n%s\n' "$pw" "$pw" | mosquitto_passwd /etc/mosquitto/wingman.passwd "$VEHICLE_ID" >/dev/null
+    unset pw
     systemctl restart mosquitto
     echo "   broker user $VEHICLE_ID; add operators: mosquitto_passwd /etc/mosquitto/wingman.passwd NAME"
 fi

@@ -45,6 +45,8 @@ MIN_KEY_BYTES = 16
 #: brackets bounds the nesting depth without parsing.
 MAX_CONTAINERS = 32
 _KEY_ID = re.compile(r"^[A-Za-z0-9_.-]{1,32}$")
+#: A MAC as messages carry it: HMAC-SHA256 in hexadecimal.
+_MAC_HEX = re.compile(r"[0-9a-fA-F]{64}")
 
 
 class InboundRejectedError(Exception):
@@ -139,6 +141,9 @@ class Keyring:
         key_id, mac = message.get("key_id"), message.get("mac")
         if not isinstance(key_id, str) or not isinstance(mac, str):
             raise InboundRejectedError("malformed", "key_id and mac must be strings")
+        # Checked before the key id is looked up, so the answer is the same for every key id.
+        if not _MAC_HEX.fullmatch(mac):
+            raise InboundRejectedError("malformed", "mac must be 64 hexadecimal digits")
         key = self.keys.get(key_id)
         if key is None:
             # Same answer as a wrong MAC: an outsider learns nothing about which ids exist.
@@ -147,7 +152,7 @@ class Keyring:
             expected = mac_hex(key, domain, topic, message)
         except ValueError:
             raise InboundRejectedError("malformed", "not representable as canonical JSON") from None
-        if not hmac.compare_digest(expected, mac):
+        if not hmac.compare_digest(bytes.fromhex(expected), bytes.fromhex(mac)):
             raise InboundRejectedError("bad_mac")
         return key_id
 

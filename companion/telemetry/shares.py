@@ -9,15 +9,17 @@ is checked before anything uses it, and a bad one is counted and dropped:
 - finite numbers only (the parser refuses NaN and Infinity), in plausible ranges: latitude, longitude,
   altitude, a speed below ``share_max_speed_m_s``;
 - a time that is neither older than ``share_max_age_s`` nor ahead of our clock by more than
-  ``share_max_ahead_s``, and newer than the sender's last accepted share;
-- no jump: the distance from the sender's last accepted share fits ``share_max_speed_m_s`` over the time
-  between them (plus ``JUMP_SLACK_M`` for GPS noise).
+  ``share_max_ahead_s``, and newer than the sender's last accepted share (kept for good, however long
+  the sender was silent);
+- no jump: the distance from the sender's last accepted position fits ``share_max_speed_m_s`` over the
+  time that really passed (the share times' difference, at most our clock's since that share arrived
+  plus ``share_max_ahead_s``), plus ``JUMP_SLACK_M`` for GPS noise.
 """
 
 from __future__ import annotations
 
 import math
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -37,6 +39,8 @@ JUMP_SLACK_M = 5.0
 #: A local NED position further than this from the EKF origin is not plausible for a formation, m.
 _MAX_NED_M = 100_000.0
 _SIGNATURE_FIELDS = ("mac", "key_id")
+#: Senders (topics) whose last share is remembered; the longest silent is forgotten beyond this.
+MAX_SENDERS = 256
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,7 +81,7 @@ class ShareGate:
         self.limits = limits
         self._wall_time_s = wall_time_s
         self.keyring = keyring
-        self._last: dict[str, _Last] = {}
+        self._last: OrderedDict[str, _Last] = OrderedDict()
         self.accepted = 0
         self.rejected: Counter[str] = Counter()
 
@@ -148,16 +152,22 @@ class ShareGate:
         if t_unix_s < now - lim.max_age_s:
             raise InboundRejectedError("stale", f"{now - t_unix_s:.1f} s old")
         last = self._last.get(topic)
-        if last is not None and now - last.received_unix_s <= lim.max_age_s:
-            dt = t_unix_s - last.t_unix_s
-            if dt <= 0.0:
+        if last is not None:
+            # Kept for good, not forgotten after max_age_s: a sender silent for a while must not be open to
+            # a forged jump (nor to its own old shares replayed).
+            if t_unix_s <= last.t_unix_s:
                 raise InboundRejectedError("replayed", "not newer than the sender's last share")
             if geo is not None and last.geo is not None:
+                # The time that really passed bounds the move: a share stamped ahead gains nothing.
+                elapsed_s = min(t_unix_s - last.t_unix_s, now - last.received_unix_s + lim.max_ahead_s)
                 n, e, d = GeoOrigin(*last.geo).to_ned(*geo)
                 jump_m = math.sqrt(n * n + e * e + d * d)
-                if jump_m > lim.max_speed_m_s * dt + JUMP_SLACK_M:
-                    raise InboundRejectedError("jump", f"{jump_m:.0f} m in {dt:.2f} s")
+                if jump_m > lim.max_speed_m_s * max(elapsed_s, 0.0) + JUMP_SLACK_M:
+                    raise InboundRejectedError("jump", f"{jump_m:.0f} m in {elapsed_s:.2f} s")
         self._last[topic] = _Last(t_unix_s, now, geo)
+        self._last.move_to_end(topic)
+        while len(self._last) > MAX_SENDERS:
+            self._last.popitem(last=False)
 
 
 def _check_geo(geo: tuple[float, float, float]) -> None:

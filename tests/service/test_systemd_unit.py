@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import re
+import secrets
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 from companion.config import Config
 
@@ -92,3 +97,34 @@ def test_install_script_parses() -> None:
     r = subprocess.run(["bash", str(script), "--bogus"], capture_output=True, text=True, check=False)
     assert r.returncode == 2
     assert "unknown argument" in r.stderr
+
+
+@pytest.mark.skipif(shutil.which("mosquitto_passwd") is None, reason="needs mosquitto_passwd")
+def test_the_installer_hands_the_broker_password_over_standard_input(tmp_path: Path) -> None:
+    """The installer's own lines, run with a mosquitto_passwd that records its arguments first."""
+    script = (UNIT.parent / "install.sh").read_text()
+    start = script.index("    # On standard input")
+    block = script[start : script.index("    unset pw", start)]
+    passwd_file = tmp_path / "wingman.passwd"
+    block = block.replace("/etc/mosquitto/wingman.passwd", str(passwd_file))
+    creds = tmp_path / "creds"
+    creds.mkdir()
+    password = "p" + secrets.token_hex(12)
+    (creds / "mqtt-password").write_text(password + "\n")
+    shim = tmp_path / "bin" / "mosquitto_passwd"
+    shim.parent.mkdir()
+    shim.write_text(
+        f'#!/bin/sh\necho "$@" >> {tmp_path}/argv\nexec {shutil.which("mosquitto_passwd")} "$@"\n'
+    )
+    shim.chmod(0o755)
+    passwd_file.touch()
+    env = {"PATH": f"{shim.parent}:/usr/bin:/bin", "CRED_SRC": str(creds), "VEHICLE_ID": "follower1"}
+    r = subprocess.run(["bash", "-euc", block], env=env, capture_output=True, text=True, check=False)
+    assert r.returncode == 0, r.stderr
+    assert password not in (tmp_path / "argv").read_text()
+    # The file holds the password itself: mosquitto's $7$ is PBKDF2-SHA512, 101 rounds, base64 fields.
+    user, _, entry = passwd_file.read_text().strip().partition(":")
+    _, kind, rounds, salt, digest = entry.split("$")
+    assert (user, kind) == ("follower1", "7")
+    derived = hashlib.pbkdf2_hmac("sha512", password.encode(), base64.b64decode(salt), int(rounds))
+    assert base64.b64encode(derived).decode() == digest

@@ -284,9 +284,39 @@ def test_neighbour_poses_need_finite_plausible_values() -> None:
         assert exc.value.reason == reason, body
 
 
-def test_a_share_after_a_long_silence_is_not_held_to_the_old_one() -> None:
+def test_a_sender_is_held_to_its_last_share_however_long_it_was_silent() -> None:
     wall = Wall(1000.0)
     gate = ShareGate(ShareLimits(), wall, None)
     gate.leader_position(LEADER, json.dumps(leader(1000.0)).encode())
-    wall.t = 1010.0  # the old share is past max_age: a new start, even 11 km away
-    assert gate.leader_position(LEADER, json.dumps(leader(1010.0, lat=47.5)).encode()).lat_deg == 47.5
+    # A forged 50 km jump after 2.01 s of silence (past max_age_s) is refused; the real leader goes on.
+    wall.t = 1002.01
+    with pytest.raises(InboundRejectedError) as exc:
+        gate.leader_position(LEADER, json.dumps(leader(1002.01, lat=47.85)).encode())
+    assert exc.value.reason == "jump"
+    wall.t = 1002.11
+    assert gate.leader_position(LEADER, json.dumps(leader(1002.11, lat=47.4001)).encode()).lat_deg == 47.4001
+    # After 10 s, 11 km is still too far (30 m/s); after 400 s it is not.
+    wall.t = 1012.11
+    with pytest.raises(InboundRejectedError):
+        gate.leader_position(LEADER, json.dumps(leader(1012.11, lat=47.5)).encode())
+    wall.t = 1402.11
+    assert gate.leader_position(LEADER, json.dumps(leader(1402.11, lat=47.5)).encode()).lat_deg == 47.5
+
+
+def test_a_share_stamped_ahead_is_not_accepted_twice() -> None:
+    wall = Wall(1000.0)
+    gate = ShareGate(ShareLimits(), wall, None)
+    ahead = json.dumps(leader(1000.5)).encode()
+    gate.leader_position(LEADER, ahead)
+    wall.t = 1002.2
+    with pytest.raises(InboundRejectedError) as exc:
+        gate.leader_position(LEADER, ahead)
+    assert exc.value.reason == "replayed"
+
+
+@pytest.mark.parametrize("key_id", ["v1", "unknown"])
+@pytest.mark.parametrize("mac", ["\u00e9" * 64, "0" * 63, "g" * 64, "0" * 65, ""])
+def test_a_mac_that_is_not_64_hex_digits_is_refused_alike_for_every_key_id(key_id: str, mac: str) -> None:
+    with pytest.raises(InboundRejectedError) as exc:
+        FORMATION.verify(b"d", LEADER, {"time_unix_s": 1.0, "key_id": key_id, "mac": mac})
+    assert (exc.value.reason, exc.value.detail) == ("malformed", "mac must be 64 hexadecimal digits")
