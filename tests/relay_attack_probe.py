@@ -9,6 +9,7 @@ judges local senders by who owns their socket.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import os
 import secrets
@@ -27,13 +28,14 @@ from companion.telemetry.inbound import InboundRejectedError, Keyring, sign
 from companion.telemetry.shares import SHARE_DOMAIN, ShareGate, ShareLimits, sign_share
 from companion.vehicle import signing_relay
 from companion.vehicle.mavlink_signing import unix_to_units
+from companion.vehicle.relay_transports import Transport
 from companion.vehicle.signing_relay import SigningRelay
 
 FOLLOWER = 2
 PX4: tuple[str, int] = ("10.0.0.2", 14580)
 
 
-class Recorder:
+class Recorder(Transport):
     """The autopilot side: remembers every send and where it went."""
 
     def __init__(self) -> None:
@@ -107,9 +109,15 @@ def relay(key: bytes, state: Path, url: str, provision: bool = False) -> Signing
         url=url, system_id=FOLLOWER, signing=True, signing_key_file="x", signing_provision=provision
     )
     r = SigningRelay(cfg, key, state)
-    r._autopilot = Recorder()  # type: ignore[assignment]
+    r._autopilot = Recorder()
     r._local = LocalRecorder()  # type: ignore[assignment]
     return r
+
+
+def sent(r: SigningRelay) -> list[tuple[bytes, list[tuple[str, int]]]]:
+    """What the relay sent toward the autopilot, and where."""
+    recorder: Any = r._autopilot
+    return recorder.sent  # type: ignore[no-any-return]
 
 
 def local_socket() -> socket.socket:
@@ -131,7 +139,7 @@ def probe_send_list(key: bytes, state: Path) -> str:
     for i in range(10_000):
         r._from_autopilot(heartbeat(attacker), ("10.0.0.66", 40_000 + i % 1000))
     r._from_mavsdk(command_long(packer(FOLLOWER, 195)), mav.getsockname())
-    dests = r._autopilot.sent[-1][1]  # type: ignore[union-attr]
+    dests = sent(r)[-1][1]
     mav.close()
     return (
         f"1 send list: PX4 still on it after 10,000 unsigned HEARTBEATs of system 99 from 1,000 ports: "
@@ -141,8 +149,8 @@ def probe_send_list(key: bytes, state: Path) -> str:
 
 def probe_provisioning(key: bytes, tmp: Path) -> str:
     clock = FakeMonotonic()
-    real = signing_relay.time
-    signing_relay.time = clock  # type: ignore[assignment]
+    real = getattr(signing_relay, "time")  # noqa: B009 (the module's clock, swapped for the probe)
+    setattr(signing_relay, "time", clock)  # noqa: B010
     out = []
     try:
         # a) PX4 signs but is behind (keyed long ago); a spoofer's unsigned disarmed HEARTBEAT as system 2.
@@ -180,12 +188,12 @@ def probe_provisioning(key: bytes, tmp: Path) -> str:
             r2._provision()
         out.append(f"serial: sent {first} time(s) the first run, {len(_setups(r2))} after a restart")
     finally:
-        signing_relay.time = real  # type: ignore[assignment]
+        setattr(signing_relay, "time", real)  # noqa: B010
     return "2 SETUP_SIGNING: " + "; ".join(out)
 
 
 def _setups(r: SigningRelay) -> list[list[tuple[str, int]]]:
-    return [d for data, d in r._autopilot.sent if data[7:10] == (256).to_bytes(3, "little")]  # type: ignore[union-attr]
+    return [d for data, d in sent(r) if data[7:10] == (256).to_bytes(3, "little")]
 
 
 def _setup_dests(r: SigningRelay) -> str:
@@ -216,15 +224,15 @@ def probe_local_race(key: bytes, state: Path) -> str:
     try:
         r = relay(key, state, "udpin://0.0.0.0:14540")
         r._from_autopilot(heartbeat(packer(FOLLOWER, 1, key)), PX4)
-        before = len(r._autopilot.sent)  # type: ignore[union-attr]
+        before = len(sent(r))
         r._from_mavsdk(command_long(packer(FOLLOWER, 195)), ("127.0.0.1", port))
-        signed_for_racer = len(r._autopilot.sent) - before  # type: ignore[union-attr]
+        signed_for_racer = len(sent(r)) - before
         mav = local_socket()
         bind_mavsdk(r, mav)
         r._from_mavsdk(command_long(packer(FOLLOWER, 195)), mav.getsockname())
-        mavsdk_sent = len(r._autopilot.sent) - before - signed_for_racer  # type: ignore[union-attr]
+        mavsdk_sent = len(sent(r)) - before - signed_for_racer
         r._from_mavsdk(command_long(packer(FOLLOWER, 195)), ("127.0.0.1", port))
-        after = len(r._autopilot.sent) - before - signed_for_racer - mavsdk_sent  # type: ignore[union-attr]
+        after = len(sent(r)) - before - signed_for_racer - mavsdk_sent
         mav.close()
     finally:
         os.kill(pid, 9)
@@ -243,7 +251,7 @@ def probe_shares() -> str:
 
     def share(lat: float, t: float) -> bytes:
         msg = {"lat_deg": lat, "lon_deg": 8.5, "alt_amsl_m": 500.0, "time_unix_s": t}
-        return __import__("json").dumps(msg).encode()
+        return json.dumps(msg).encode()
 
     def offer(raw: bytes) -> str:
         try:
@@ -316,7 +324,7 @@ def probe_impostor_logs(key: bytes, state: Path) -> str:
     finally:
         logger.removeHandler(counter)
         logger.propagate = True
-    size = len(__import__("json").dumps(r.stats()))
+    size = len(json.dumps(r.stats()))
     return (
         f"6 impostors: 10,000 unsigned frames claiming system {FOLLOWER} from 10,000 ports: "
         f"{counter.lines} log lines, status section {size:,} bytes"
@@ -358,8 +366,8 @@ def bench_setpoint(key: bytes, state: Path, n: int = 20_000) -> str:
         t0 = time.perf_counter_ns()
         r._from_mavsdk(frames[i % 256], addr)
         times.append(time.perf_counter_ns() - t0)
-        if len(r._autopilot.sent) > 1000:  # type: ignore[union-attr]
-            r._autopilot.sent.clear()  # type: ignore[union-attr]
+        if len(sent(r)) > 1000:
+            sent(r).clear()
     mav.close()
     median_us = statistics.median(times) / 1000
     return f"cost: relay time per setpoint (MAVSDK -> signed -> send), median of {n:,}: {median_us:.1f} us"

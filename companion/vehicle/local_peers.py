@@ -11,9 +11,13 @@ it cannot tell, and the relay falls back to the first sender.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 _PROC = Path("/proc")
+Addr = tuple[str, int]
+#: Refused local senders remembered (each new one costs a look at /proc).
+MAX_REFUSED = 64
 #: Local addresses a socket that sends from 127.0.0.1 may be bound to (hex, as /proc/net/udp writes them).
 _LOOPBACK_OR_ANY = {"0100007F", "00000000"}
 _LOOPBACK_OR_ANY6 = {
@@ -82,7 +86,7 @@ def holds_inode(pid: int, inode: int, proc: Path = _PROC) -> bool:
     return False
 
 
-def sender_problem(addr: tuple[str, int], proc: Path = _PROC) -> str | None:
+def sender_problem(addr: Addr, proc: Path = _PROC) -> str | None:
     """Why a local sender at ``addr`` is not the service's own MAVSDK; None when it is (or cannot be told).
 
     Blocking reads of /proc (a few milliseconds): the relay asks once per new address, until MAVSDK's
@@ -101,3 +105,35 @@ def sender_problem(addr: tuple[str, int], proc: Path = _PROC) -> str | None:
             return None
     uids = ", ".join(sorted({str(uid) for uid, _ in owners}))
     return f"its socket belongs to another process (uid {uids}), not to the service or its MAVSDK"
+
+
+class MavsdkSide:
+    """Which local sender is MAVSDK: the first one the service owns; every other is refused, then and later.
+
+    Args:
+        problem: why an address is not the service's (None: it is); :func:`sender_problem` by default.
+    """
+
+    def __init__(self, problem: Callable[[Addr], str | None] = sender_problem) -> None:
+        self.addr: Addr | None = None
+        self._problem = problem
+        self._refused: set[Addr] = set()
+
+    def judge(self, addr: Addr) -> tuple[str, str] | None:
+        """None: ``addr`` is MAVSDK (now bound to it). Otherwise (counter, one line) for the refusal."""
+        if self.addr is not None:
+            return (
+                "local_foreign",
+                f"a second local sender at {_text(addr)} (MAVSDK is {_text(self.addr)}): refused",
+            )
+        problem = "refused before" if addr in self._refused else self._problem(addr)
+        if problem is not None:
+            if len(self._refused) < MAX_REFUSED:
+                self._refused.add(addr)
+            return "local_refused", f"a local sender at {_text(addr)} is not MAVSDK: {problem}"
+        self.addr = addr
+        return None
+
+
+def _text(addr: Addr) -> str:
+    return f"{addr[0]}:{addr[1]}"

@@ -12,6 +12,7 @@ networked autopilot over serial or udpout, which reach one known address only. O
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from companion.vehicle.relay_transports import SERIAL, Addr, where
 
@@ -57,3 +58,9 @@ def provision_refusal(scene: ProvisionScene, now_s: float) -> str | None:
         if now_s - scene.claimants.get(addr, now_s) < PROVISION_LISTEN_S:
             return f"listening {PROVISION_LISTEN_S:g} s for a second claimant before sending the key"
     return None
+
+
+def write_marker(path: Path, key_id: str) -> None:
+    """Provisioning is done: ``path`` holds the key's id (blocking: call off the event loop)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"{key_id}\n")

@@ -11,7 +11,8 @@ autopilot that speaks MAVLink 2 signing on UDP or serial (PX4, the project's sim
 - **Out** (MAVSDK to the autopilot): every frame is signed with ``link.signing_key_file``'s key and a
   timestamp that never goes backwards, across restarts too (kept in ``service.state_dir``).
 - **In** (the autopilot to MAVSDK): a frame passes only with a valid signature; unsigned HEARTBEAT and
-  RADIO_STATUS of *other* systems pass too (as PX4 lets them), so the leader's presence is still seen.
+  RADIO_STATUS of *other* systems pass too (as PX4 lets them), so the leader's presence is still seen,
+  once our autopilot has signed (before, they could make the service give up its link as the wrong one).
   Everything else is dropped and counted by reason. A frame that claims the follower's system id
   (``link.system_id``) without a valid signature is an impostor: a second vehicle with our id, or
   someone spoofing it; it is reported (one rate limit for all of them) and never reaches MAVSDK.
@@ -22,13 +23,11 @@ autopilot that speaks MAVLink 2 signing on UDP or serial (PX4, the project's sim
 - **MAVSDK's side**: the first local sender whose socket belongs to the service or its descendants (MAVSDK's
   server) is MAVSDK; a sender owned by any other process is refused and reported, before and after
   (:mod:`companion.vehicle.local_peers`), so arriving first at the relay's port gives nothing away.
-- **An autopilot behind**: PX4 keeps the timestamp SETUP_SIGNING gave it and starts from it at every boot;
-  it moves on only by one unit per frame it sends and up to the newest signed frame it receives. Booted
-  long after it was keyed, its frames are signed with our key but older than our clock (or than its own
-  last ones, seen before a reboot). They are dropped like any old frame (they could be replayed), and
-  not reported as an impostor: its address gets our frames, and once it has one it signs with a current
-  timestamp and passes again. Without that, a relay that listens (``udpin``) would never send it
-  anything and never hear it again.
+- **An autopilot behind**: PX4 starts from the timestamp SETUP_SIGNING gave it at every boot and moves on
+  only by one unit per frame it sends and up to the newest signed frame it receives. Its frames, signed
+  with our key but old, are dropped like any old frame (they could be replayed), not reported as an
+  impostor; while our autopilot is not heard current, that address gets our frames, so it catches up and
+  passes again (a listening relay would otherwise never send it anything).
 - **Provisioning** (``link.signing_provision``): a one-shot SETUP_SIGNING to an autopilot that sends
   unsigned, disarmed heartbeats, refused whenever in doubt (:mod:`companion.vehicle.signing_provision`).
   Until the autopilot signs, MAVSDK sees nothing of it: the service never flies over an unsigned link.
@@ -76,8 +75,12 @@ from companion.vehicle.relay_transports import (
     open_autopilot,
     where,
 )
-from companion.vehicle.signing_provision import PROVISIONED_FILE, ProvisionScene, provision_refusal
-from companion.vehicle.signing_provision import PROVISIONED_FILE, provision_refusal
+from companion.vehicle.signing_provision import (
+    PROVISIONED_FILE,
+    ProvisionScene,
+    provision_refusal,
+    write_marker,
+)
 
 log = logging.getLogger("companion.vehicle.signing")
 
@@ -92,8 +95,6 @@ PROVISION_RETRY_S = 2.0
 HEARTBEAT_FRESH_S = 3.0
 #: Impostor addresses counted one by one in the status; the rest are counted together.
 MAX_REPORTED_ADDRESSES = 16
-#: Refused local senders remembered (each new one costs a look at /proc).
-MAX_REFUSED_LOCAL = 64
 #: The component id MAVSDK uses as a companion computer.
 COMPANION_COMPONENT = 195
 _AUTOPILOT_COMPONENT = 1
@@ -136,8 +137,7 @@ class SigningRelay:
         self._throttle = Throttle(window_s=30.0, burst=2)
         self._autopilot: Transport | None = None
         self._local: asyncio.DatagramTransport | None = None
-        self._mavsdk_addr: Addr | None = None
-        self._refused_local: set[Addr] = set()
+        self._mavsdk = local_peers.MavsdkSide(local_sender_problem)
         self._scheme = cfg.url.partition("://")[0]
         #: Our autopilot's address, from its last frame that verified (the one address we are locked onto).
         self._autopilot_addr: tuple[Addr, float] | None = None
@@ -212,7 +212,7 @@ class SigningRelay:
                     self._report("save", f"cannot keep the signing timestamp in {self._store.path}: {exc}")
 
     def stats(self) -> dict[str, Any]:
-        """Counters for the status endpoint (bounded, whatever arrives)."""
+        """Counters for the status endpoint (bounded whatever arrives)."""
         return {
             "autopilot_signs": self.autopilot_signs,
             "autopilot_address": None if self._autopilot_addr is None else where(self._autopilot_addr[0]),
@@ -225,8 +225,13 @@ class SigningRelay:
 
     # ------------------------------------------------------------------ MAVSDK -> autopilot
     def _from_mavsdk(self, data: bytes, addr: Addr) -> None:
-        if addr != self._mavsdk_addr and not self._is_mavsdk(addr):
-            return
+        if addr != self._mavsdk.addr:
+            refusal = self._mavsdk.judge(addr)
+            if refusal is not None:
+                self.counters[refusal[0]] += 1
+                self._report(*refusal)
+                return
+            log.info("signing relay: MAVSDK is %s", where(addr))
         frames, tail, junk = split_frames(data)
         if junk or tail:
             self.counters["out_malformed"] += 1
@@ -241,29 +246,6 @@ class SigningRelay:
         if out:
             self.counters["out_signed"] += len(frames)
             self._send_autopilot(bytes(out))
-
-    def _is_mavsdk(self, addr: Addr) -> bool:
-        """Take ``addr`` as MAVSDK if it is the first sender the service owns; refuse and report others."""
-        if self._mavsdk_addr is not None:
-            self.counters["local_foreign"] += 1
-            self._report(
-                "local_foreign",
-                f"a second local sender at {where(addr)} (MAVSDK is {where(self._mavsdk_addr)}): refused",
-            )
-            return False
-        if addr in self._refused_local:
-            self.counters["local_refused"] += 1
-            return False
-        problem = self._local_sender_problem(addr)
-        if problem is not None:
-            self.counters["local_refused"] += 1
-            if len(self._refused_local) < MAX_REFUSED_LOCAL:
-                self._refused_local.add(addr)
-            self._report("local_refused", f"a local sender at {where(addr)} is not MAVSDK: {problem}")
-            return False
-        self._mavsdk_addr = addr
-        log.info("signing relay: MAVSDK is %s", where(addr))
-        return True
 
     def _send_autopilot(self, data: bytes) -> None:
         if self._autopilot is None:
@@ -301,8 +283,8 @@ class SigningRelay:
         for frame in frames:
             if self._accept(frame, addr):
                 out += frame
-        if out and self._local is not None and self._mavsdk_addr is not None:
-            self._local.sendto(bytes(out), self._mavsdk_addr)
+        if out and self._local is not None and self._mavsdk.addr is not None:
+            self._local.sendto(bytes(out), self._mavsdk.addr)
 
     def _accept(self, frame: bytes, addr: Addr | None) -> bool:
         info = parse_header(frame)
@@ -329,7 +311,12 @@ class SigningRelay:
                 self._impostor(verdict.value, info, addr)
             return False
         if info.msg_id in UNSIGNED_ALLOWED and not ours:
-            # Another system's presence (the leader's, say): MAVSDK hears it, its sender gets nothing.
+            # Another system's presence (the leader's, say): MAVSDK hears it, its sender gets nothing. Not
+            # before our autopilot signed: MAVSDK hearing only others would end the service as on the
+            # wrong vehicle (exit 4, not restarted), and anyone can send those heartbeats.
+            if not self.autopilot_signs:
+                self.counters["in_unsigned_held"] += 1
+                return False
             self.counters["in_unsigned_passed"] += 1
             return True
         self.counters["in_unsigned_dropped"] += 1
@@ -441,10 +428,14 @@ class SigningRelay:
 
     # ------------------------------------------------------------------ provisioning
     def _provision(self) -> None:
-        if self.autopilot_signs or not self.cfg.signing_provision or self._autopilot is None:
-            return
         now = time.monotonic()
-        if self.provisioned or now - self._last_provision_s < PROVISION_RETRY_S:
+        if (
+            self.autopilot_signs
+            or not self.cfg.signing_provision
+            or self._autopilot is None
+            or self.provisioned
+            or now - self._last_provision_s < PROVISION_RETRY_S
+        ):
             return
         fresh = {
             a: armed
@@ -481,7 +472,7 @@ class SigningRelay:
         """The autopilot signs: provisioning is done for good (the key is never sent again)."""
         self.provisioned = True
         try:
-            await asyncio.to_thread(self._write_provisioned)
+            await asyncio.to_thread(write_marker, self._provisioned_path, self._key_id())
         except OSError as exc:
             self._report("save", f"cannot write {self._provisioned_path}: {exc}")
             return
@@ -491,10 +482,6 @@ class SigningRelay:
             self.target,
             self._provisioned_path,
         )
-
-    def _write_provisioned(self) -> None:
-        self._provisioned_path.parent.mkdir(parents=True, exist_ok=True)
-        self._provisioned_path.write_text(f"{self._key_id()}\n")
 
     # ------------------------------------------------------------------ helpers
     def _report(self, key: str, text: str) -> None:

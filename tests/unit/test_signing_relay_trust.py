@@ -14,6 +14,7 @@ import secrets
 import subprocess
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -33,6 +34,7 @@ from tests.relay_attack_probe import (
     local_socket,
     packer,
     relay,
+    sent,
 )
 
 KEY = secrets.token_bytes(32)
@@ -44,11 +46,6 @@ def clock(monkeypatch: pytest.MonkeyPatch) -> FakeMonotonic:
     fake = FakeMonotonic()
     monkeypatch.setattr(signing_relay, "time", fake)
     return fake
-
-
-def sent(r: SigningRelay) -> list[tuple[bytes, list[tuple[str, int]]]]:
-    assert isinstance(r._autopilot, Recorder)
-    return r._autopilot.sent
 
 
 def setups(r: SigningRelay) -> list[list[tuple[str, int]]]:
@@ -170,7 +167,7 @@ def test_mavsdk_is_the_first_local_sender_the_service_owns_and_others_are_report
     r = SigningRelay(
         relay(KEY, tmp_path, "udpin://0.0.0.0:14540").cfg, KEY, tmp_path, local_sender_problem=problems.get
     )
-    r._autopilot = Recorder()  # type: ignore[assignment]
+    r._autopilot = Recorder()
     r._from_autopilot(heartbeat(packer(FOLLOWER, 1, KEY)), PX4)
     with caplog.at_level(logging.WARNING, logger="companion.vehicle.signing"):
         r._from_mavsdk(command_long(packer(FOLLOWER, 195)), stranger)  # speaks first
@@ -218,3 +215,19 @@ def test_another_users_socket_that_speaks_first_gets_nothing_signed(tmp_path: Pa
         assert r.counters["local_refused"] == 1
     finally:
         os.kill(pid, 9)
+
+
+def test_other_systems_reach_mavsdk_only_once_our_autopilot_signed(tmp_path: Path) -> None:
+    """MAVSDK hearing only spoofed heartbeats of system 99 would end the service (wrong vehicle, exit 4)."""
+    r = relay(KEY, tmp_path, "udpin://0.0.0.0:14540")
+    mav = local_socket()
+    bind_mavsdk(r, mav)
+    mav.close()
+    local: Any = r._local
+    for _ in range(5):
+        r._from_autopilot(heartbeat(packer(99, 1)), SPOOF)
+    assert local.sent == []
+    assert r.counters["in_unsigned_held"] == 5
+    r._from_autopilot(heartbeat(packer(FOLLOWER, 1, KEY)), PX4)
+    r._from_autopilot(heartbeat(packer(99, 1)), SPOOF)
+    assert len(local.sent) == 2  # our autopilot's heartbeat, then system 99's
