@@ -275,12 +275,14 @@ def render_status(s: dict[str, Any]) -> str:
             if k.startswith("in_") and k not in ("in_signed", "in_unsigned_passed")
         )
         impostors = sum((sig.get("impostors") or {}).values())
+        strangers = counters.get("local_refused", 0) + counters.get("local_foreign", 0)
         rows.append(
             (
                 "signing",
                 f"{'autopilot signs' if sig.get('autopilot_signs') else 'AUTOPILOT DOES NOT SIGN'}, "
                 f"{counters.get('in_signed', 0)} in, {counters.get('out_signed', 0)} out, {dropped} dropped"
-                + (f", {impostors} IMPOSTOR frames" if impostors else ""),
+                + (f", {impostors} IMPOSTOR frames" if impostors else "")
+                + (f", {strangers} frames from LOCAL SENDERS that are not MAVSDK" if strangers else ""),
             )
         )
     for c in s.get("components", []):

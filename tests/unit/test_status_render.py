@@ -86,6 +86,7 @@ def test_status_shows_refused_input_and_mavlink_signing() -> None:
                     "out_signed": 400,
                     "in_unsigned_dropped": 7,
                     "in_unsigned_passed": 5,
+                    "local_refused": 3,
                 },
                 "impostors": {"10.0.0.7:14550": 2},
             },
@@ -93,7 +94,10 @@ def test_status_shows_refused_input_and_mavlink_signing() -> None:
     )
     rows = dict(line.split(None, 1) for line in text.splitlines() if line and not line.startswith(" "))
     assert rows["mqtt"].endswith("refused 3 commands and 2 shares")
-    assert rows["signing"] == "autopilot signs, 900 in, 400 out, 7 dropped, 2 IMPOSTOR frames"
+    assert rows["signing"] == (
+        "autopilot signs, 900 in, 400 out, 7 dropped, 2 IMPOSTOR frames, "
+        "3 frames from LOCAL SENDERS that are not MAVSDK"
+    )
 
 
 def test_health_on_the_ground_says_whether_a_start_would_arm() -> None:
