@@ -79,7 +79,9 @@ new_secret() {  # FILE CONTENT-COMMAND: write it once, mode 0600
 }
 new_secret mavlink-signing.key 'head -c 32 /dev/urandom | od -An -tx1 | tr -d " \n"; echo'
 new_secret command-keys 'printf "operator1 %s\n" "$(head -c 32 /dev/urandom | od -An -tx1 | tr -d " \n")"'
-new_secret formation-keys 'printf "formation1 %s\n" "$(head -c 32 /dev/urandom | od -An -tx1 | tr -d " \n")"'
+# This vehicle's own share key, bound to the one topic it publishes (its pose): the first line signs. A
+# formation adds the other vehicles' lines (and the leader's publisher's) to every vehicle's file.
+new_secret formation-keys 'printf "%s %s wingman/%s/pose\n" "$VEHICLE_ID" "$(head -c 32 /dev/urandom | od -An -tx1 | tr -d " \n")" "$VEHICLE_ID"'
 new_secret mqtt-password 'head -c 24 /dev/urandom | od -An -tx1 | tr -d " \n"; echo'
 
 echo "== config"
@@ -100,6 +102,7 @@ if [ ! -f /etc/wingman/wingman.toml ]; then
         -e 's#^tls = false.*#tls = true#' \
         -e 's#^ca_file = "".*#ca_file = "/etc/wingman/mqtt-ca.crt"#' \
         -e "s#^command_keys_file = \"\".*#command_keys_file = \"$CRED_RUN/command-keys\"#" \
+        -e "s#^formation_keys_file = \"\".*#formation_keys_file = \"$CRED_RUN/formation-keys\"#" \
         "$PREFIX/config/wingman.toml" > /etc/wingman/wingman.toml
     chown root:wingman /etc/wingman/wingman.toml
     chmod 0640 /etc/wingman/wingman.toml
@@ -175,6 +178,6 @@ fi
 systemctl enable wingman.service >/dev/null
 if [ "$START" -eq 1 ]; then systemctl restart wingman.service; fi
 echo "installed. Operators: usermod -aG wingman <user>; then: companion status | companion health"
-echo "command key for the ground station (operator1): $CRED_SRC/command-keys; formations: copy one"
-echo "formation-keys file to every vehicle and set [mqtt] formation_keys_file = \"$CRED_RUN/formation-keys\""
+echo "command key for the ground station (operator1): $CRED_SRC/command-keys; formations: append every"
+echo "other vehicle's line of its formation-keys (and the leader's publisher's) to $CRED_SRC/formation-keys"
 echo "logs: journalctl -u wingman -f      exposure: systemd-analyze security wingman.service"

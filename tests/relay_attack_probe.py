@@ -295,7 +295,13 @@ def offer_with(gate: ShareGate, topic: str, raw: bytes) -> str:
 
 def probe_vehicle_keys() -> str:
     leader_key, follower_key = secrets.token_bytes(32), secrets.token_bytes(32)
-    ring = Keyring({"leader": leader_key, "follower1": follower_key})
+    try:  # each key bound to the topics its vehicle publishes, where keyrings can say so
+        ring = Keyring(
+            {"leader": leader_key, "follower1": follower_key},
+            {"leader": ("wingman/leader/#",), "follower1": ("wingman/follower1/pose",)},  # type: ignore[call-arg,unused-ignore]
+        )
+    except TypeError:
+        ring = Keyring({"leader": leader_key, "follower1": follower_key})
     now = 1_800_000_000.0
     gate = ShareGate(ShareLimits(), lambda: now, ring)
     msg = {"lat_deg": 47.0, "lon_deg": 8.5, "alt_amsl_m": 500.0, "time_unix_s": now}

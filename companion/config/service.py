@@ -62,8 +62,9 @@ class LinkConfig(Section):
     signing: bool = False
     #: The 32-byte signing key: 32 raw bytes or 64 hexadecimal digits, mode 0600 (refused otherwise).
     signing_key_file: str = ""
-    #: Send the key to an autopilot that does not sign yet (SETUP_SIGNING), only while it is disarmed. The
-    #: key crosses the link in clear once: do it over the serial cable, or on a network nobody else is on.
+    #: Send the key to an autopilot that does not sign yet (SETUP_SIGNING), only while it is disarmed, once:
+    #: after it signs, ``mavlink-signing-provisioned`` in ``service.state_dir`` ends it for good. The key
+    #: crosses the link in clear: over serial or udpout, or on udpin to an autopilot on loopback only.
     signing_provision: bool = False
 
     @field_validator("url")
@@ -117,8 +118,8 @@ class MqttConfig(Section):
     command_max_age_s: float = Field(30.0, gt=0)
     #: Where the leader's shared position arrives when leader.shared_position = "mqtt".
     leader_topic: str = "wingman/leader/position"
-    #: The formation key(s) shares are signed with (same format as command_keys_file; the first signs this
-    #: vehicle's pose). Empty: shares are checked but not authenticated.
+    #: The formation's share keys, ``KEY_ID HEX_KEY [TOPIC ...]`` a line (the first signs this vehicle's
+    #: pose); a key with topics verifies only shares on them. Empty: shares are checked, not authenticated.
     formation_keys_file: str = ""
     #: Inbound messages (commands, shares) larger than this are dropped before they are parsed, bytes.
     max_inbound_bytes: int = Field(4096, ge=512, le=65536)

@@ -21,7 +21,7 @@ import json
 import math
 import re
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from companion.kernel.secret_files import read_secret
@@ -37,6 +37,7 @@ __all__ = [
     "parse_object",
     "read_secret",
     "sign",
+    "topic_matches",
 ]
 
 #: A shorter key is guessable; 32 random bytes is what the docs tell operators to generate.
@@ -47,6 +48,7 @@ MAX_CONTAINERS = 32
 _KEY_ID = re.compile(r"^[A-Za-z0-9_.-]{1,32}$")
 #: A MAC as messages carry it: HMAC-SHA256 in hexadecimal.
 _MAC_HEX = re.compile(r"[0-9a-fA-F]{64}")
+_COMMENT = re.compile(r"(^|\s)#.*$")
 
 
 class InboundRejectedError(Exception):
@@ -111,9 +113,14 @@ def sign(key: bytes, key_id: str, domain: bytes, topic: str, message: Mapping[st
 
 @dataclass(frozen=True, slots=True)
 class Keyring:
-    """Named keys: ``{key_id: key}``; the first is the one this side signs with."""
+    """Named keys: ``{key_id: key}``; the first is the one this side signs with.
+
+    ``topics`` binds a key id to the topics its holder may publish (MQTT filters, ``+`` and ``#``): a
+    message on any other topic is refused even with a valid MAC. A key id without topics may sign any.
+    """
 
     keys: Mapping[str, bytes]
+    topics: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.keys:
@@ -154,32 +161,52 @@ class Keyring:
             raise InboundRejectedError("malformed", "not representable as canonical JSON") from None
         if not hmac.compare_digest(bytes.fromhex(expected), bytes.fromhex(mac)):
             raise InboundRejectedError("bad_mac")
+        allowed = self.topics.get(key_id)
+        if allowed and not any(topic_matches(f, topic) for f in allowed):
+            raise InboundRejectedError("wrong_topic", f"key {key_id} may not publish on {topic}")
         return key_id
 
 
 def parse_keyring(text: str) -> Keyring:
-    """``KEY_ID HEX_KEY`` per line; ``#`` comments and blank lines are skipped. ValueError on a bad line."""
+    """``KEY_ID HEX_KEY [TOPIC ...]`` per line; comments (from a ``#`` after a space) and blank lines skipped.
+
+    Topics after the key bind it: its holder may publish only there. ValueError on a bad line.
+    """
     keys: dict[str, bytes] = {}
+    topics: dict[str, tuple[str, ...]] = {}
     for n, raw_line in enumerate(text.splitlines(), start=1):
-        line = raw_line.split("#", 1)[0].strip()
+        line = _COMMENT.sub("", raw_line).strip()  # a "#" inside a topic filter (".../#") is no comment
         if not line:
             continue
         parts = line.split()
-        if len(parts) != 2:
-            raise ValueError(f"line {n}: expected KEY_ID HEX_KEY")
-        key_id, hex_key = parts
+        if len(parts) < 2:
+            raise ValueError(f"line {n}: expected KEY_ID HEX_KEY [TOPIC ...]")
+        key_id, hex_key, *bound = parts
         if key_id in keys:
             raise ValueError(f"line {n}: key id {key_id!r} given twice")
         try:
             keys[key_id] = bytes.fromhex(hex_key)
         except ValueError:
             raise ValueError(f"line {n}: the key is not hexadecimal") from None
+        if bound:
+            topics[key_id] = tuple(bound)
     if not keys:
         raise ValueError("no keys in it")
     try:
-        return Keyring(keys)
+        return Keyring(keys, topics)
     except ValueError as exc:
         raise ValueError(str(exc)) from None
+
+
+def topic_matches(topic_filter: str, topic: str) -> bool:
+    """Does ``topic`` match an MQTT filter (``+``: one level, ``#`` at the end: the rest)?"""
+    want, got = topic_filter.split("/"), topic.split("/")
+    for i, level in enumerate(want):
+        if level == "#" and i == len(want) - 1:
+            return True
+        if i >= len(got) or (level != "+" and level != got[i]):
+            return False
+    return len(want) == len(got)
 
 
 def format_keyring(keys: Iterable[tuple[str, bytes]]) -> str:

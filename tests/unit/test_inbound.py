@@ -26,8 +26,10 @@ from companion.telemetry.inbound import (
     parse_keyring,
     parse_object,
     read_secret,
+    sign,
+    topic_matches,
 )
-from companion.telemetry.shares import ShareGate, ShareLimits, sign_share
+from companion.telemetry.shares import SHARE_DOMAIN, ShareGate, ShareLimits, sign_share
 
 ALICE = b"a" * 32
 BOB = b"b" * 32
@@ -98,7 +100,8 @@ def test_keyring_file_round_trip_and_its_errors() -> None:
         ("alice zz\n", "not hexadecimal"),
         ("alice 00\n", "at least 16 bytes"),
         (f"alice {ALICE.hex()}\nalice {BOB.hex()}\n", "twice"),
-        (f"al ice {ALICE.hex()}\n", "KEY_ID HEX_KEY"),
+        ("alice\n", "KEY_ID HEX_KEY"),
+        (f"al ice {ALICE.hex()}\n", "not hexadecimal"),
         (f"al/ice {ALICE.hex()}\n", "key id"),
     ]:
         with pytest.raises(ValueError, match=why):
@@ -320,3 +323,42 @@ def test_a_mac_that_is_not_64_hex_digits_is_refused_alike_for_every_key_id(key_i
     with pytest.raises(InboundRejectedError) as exc:
         FORMATION.verify(b"d", LEADER, {"time_unix_s": 1.0, "key_id": key_id, "mac": mac})
     assert (exc.value.reason, exc.value.detail) == ("malformed", "mac must be 64 hexadecimal digits")
+
+
+def test_a_key_bound_to_its_vehicles_topics_signs_nothing_else() -> None:
+    """Per-vehicle keys: follower1's key cannot sign the leader's position, nor another follower's pose."""
+    leader_key, f1_key = b"L" * 32, b"1" * 32
+    ring = parse_keyring(
+        f"leader {leader_key.hex()} wingman/leader/#  # the leader's publisher\n"
+        f"follower1 {f1_key.hex()} wingman/follower1/pose\n"
+    )
+    assert ring.topics == {"leader": ("wingman/leader/#",), "follower1": ("wingman/follower1/pose",)}
+    wall = Wall(1000.0)
+    gate = ShareGate(ShareLimits(), wall, ring)
+    forged = sign(f1_key, "follower1", SHARE_DOMAIN, LEADER, leader(1000.0))
+    with pytest.raises(InboundRejectedError) as exc:
+        gate.leader_position(LEADER, forged)
+    assert exc.value.reason == "wrong_topic"
+    assert gate.leader_position(LEADER, sign(leader_key, "leader", SHARE_DOMAIN, LEADER, leader(1000.0)))
+    pose = {"p_ned_m": [1.0, 2.0, -5.0], "time_unix_s": 1000.0}
+    own = sign(f1_key, "follower1", SHARE_DOMAIN, "wingman/follower1/pose", pose)
+    assert gate.neighbour_pose("wingman/follower1/pose", own).p_ned_m
+    with pytest.raises(InboundRejectedError):
+        gate.neighbour_pose(
+            "wingman/f2/pose", sign(f1_key, "follower1", SHARE_DOMAIN, "wingman/f2/pose", pose)
+        )
+
+
+@pytest.mark.parametrize(
+    ("topic_filter", "topic", "expected"),
+    [
+        ("wingman/leader/#", "wingman/leader/position", True),
+        ("wingman/+/pose", "wingman/f2/pose", True),
+        ("wingman/f1/pose", "wingman/f1/pose", True),
+        ("wingman/f1/pose", "wingman/f1/pose/x", False),
+        ("wingman/+/pose", "wingman/f2/cmd", False),
+        ("wingman/leader/#", "wingman/leaderx/position", False),
+    ],
+)
+def test_topic_filters(topic_filter: str, topic: str, expected: bool) -> None:
+    assert topic_matches(topic_filter, topic) is expected

@@ -206,7 +206,11 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
                 update={"source": "sim", "path": settings["camera_socket"], "stamps": "source"}
             ),
             "status": cfg.status.model_copy(update={"socket_path": str(sock_dir / "status.sock")}),
-            "service": cfg.service.model_copy(update={"auto_start": True}),
+            # A simulated autopilot starts afresh each run (without a signing key): so does the service's
+            # state (the signing timestamp, whether the key was given) unless a folder was named.
+            "service": cfg.service.model_copy(
+                update={"auto_start": True, "state_dir": cfg.service.state_dir or str(work_dir / "state")}
+            ),
             "mqtt": cfg.mqtt.model_copy(
                 update={"enabled": True, "host": "127.0.0.1", "port": broker.port}
                 if broker is not None
