@@ -47,8 +47,9 @@ RUN --mount=type=secret,id=pip_ca \
         mosquitto mosquitto-clients libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 ca-certificates \
  && rm -rf /var/lib/apt/lists/* /var/cache/apt/*.bin
 
-# The dependencies alone, read from pyproject.toml (a layer that survives code changes). The project itself
-# is installed after the whole tree is copied: its wheel carries config/ and models/.
+# The dependencies alone, read from pyproject.toml (a layer that survives code changes), with the build backend
+# and `editables` for the editable install of the project after the whole tree is copied (its wheel carries
+# config/ and models/).
 WORKDIR /src
 COPY pyproject.toml ./
 COPY scripts/install-torch-cpu scripts/
@@ -59,7 +60,7 @@ RUN --mount=type=secret,id=pip_ca --mount=type=bind,from=wheels,target=/wheels \
  && python -c 'import sys, tomllib; p = tomllib.load(open("pyproject.toml", "rb"))["project"]; \
 extras = [e for e in sys.argv[1].split(",") if e]; \
 build = tomllib.load(open("pyproject.toml", "rb"))["build-system"]["requires"]; \
-print("\n".join(build + p["dependencies"] + [d for e in extras for d in p["optional-dependencies"][e]]))' \
+print("\n".join(build + ["editables"] + p["dependencies"] + [d for e in extras for d in p["optional-dependencies"][e]]))' \
         "$EXTRAS" > /tmp/requirements.txt \
  && if [ -n "$TORCH" ]; then scripts/install-torch-cpu python "$TORCH"; fi \
  && pip install -q -r /tmp/requirements.txt \
