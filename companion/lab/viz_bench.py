@@ -89,7 +89,7 @@ async def bench(block_s: float, blocks: int, out: Path) -> dict[str, Any]:
     viz = cfg.viz.model_copy(update={"live": True, "port": 0, "log": True})
     rec = build_recorder(
         VizConfig.model_validate(viz.model_dump()),
-        core.pipeline.camera,
+        core.camera,
         clock,
         log_place=LogPlace(out, "bench"),
         time_offset_s=time.time() - clock.now_s(),
@@ -106,7 +106,7 @@ async def bench(block_s: float, blocks: int, out: Path) -> dict[str, Any]:
     received: dict[bool, int] = {False: 0, True: 0}
 
     def process(frame: RgbdFrame, result: DetectorResult) -> Any:
-        core.pipeline.attitude.push(frame.stamp_s, np.array([1.0, 0.0, 0.0, 0.0]))
+        core.attitude.push(frame.stamp_s, np.array([1.0, 0.0, 0.0, 0.0]))
         t0 = time.perf_counter()
         track = core.on_frame(frame, result)
         loop_ms[mode["on"]].append((time.perf_counter() - t0) * 1e3)

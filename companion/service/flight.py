@@ -44,6 +44,7 @@ from companion.mission.machine import MissionMachine
 from companion.mission.types import (
     AirframeDrag,
     MissionInputs,
+    MissionState,
     OperatorRequest,
     OperatorVerdict,
     SharedLeaderPosition,
@@ -51,6 +52,7 @@ from companion.mission.types import (
     StepOutput,
     Transition,
 )
+from companion.perception.transform import AttitudeHistory, CameraGeometry
 from companion.perception.types import DetectorResult, DetectStage
 from companion.service.autolabel_tap import AutoLabelTap
 from companion.service.heading import HeadingCorrectedLink
@@ -301,6 +303,26 @@ class FlightService:
         return verdict
 
     # ---- what the service reports -------------------------------------------------------------------
+
+    @property
+    def state(self) -> MissionState:
+        """The mission's state now."""
+        return self.machine.state
+
+    @property
+    def camera(self) -> CameraGeometry:
+        """The camera perception measures with (intrinsics and mount), for recorders and labellers."""
+        return self.pipeline.camera
+
+    @property
+    def attitude(self) -> AttitudeHistory:
+        """The follower's attitude as perception reads it (heading-corrected), by frame stamp."""
+        return self.pipeline.attitude
+
+    @property
+    def identity(self) -> LeaderIdentity | None:
+        """The leader told apart from neighbours (formations only; None for a lone follower)."""
+        return self.pipeline.identity
 
     def set_on_change(self, callback: Callable[[StateChange], None]) -> None:
         """Have ``callback`` called for every transition, in order (the service's STATUSTEXT and MQTT)."""

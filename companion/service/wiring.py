@@ -164,7 +164,7 @@ def open_recorder(
         place = LogPlace(folder, flight_stem(cfg.vehicle_id), {"vehicle_id": cfg.vehicle_id})
     recorder = build_recorder(
         cfg.viz,
-        flight.pipeline.camera,
+        flight.camera,
         clock,
         log_place=place,
         server_name=f"wingman {cfg.vehicle_id}",

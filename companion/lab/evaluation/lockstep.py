@@ -351,9 +351,7 @@ class LockstepFlight:
         f.compute_ms.append(compute_ms)
         f.observer.on_frame(item.frame, item.result, track, process_ms)
         if f.autolabel is not None:
-            f.autolabel.on_frame(
-                self.clock.now_s(), item.frame, f.link.snapshot(), f.flight.pipeline.attitude
-            )
+            f.autolabel.on_frame(self.clock.now_s(), item.frame, f.link.snapshot(), f.flight.attitude)
         est = track.leader_estimate()
         p_est = est.p_ned_rel_m if est is not None and est.usable else None
         for hook in f.frame_hooks:
@@ -403,7 +401,7 @@ class LockstepRun:
             f.autolabel = AutoLabelCheck(
                 options.auto_label_dir,
                 AutoLabelConfig(leader_span_m=cfg.leader.span_m),
-                f.flight.pipeline.camera,
+                f.flight.camera,
                 options.auto_label_sequence,
                 options.truth_label_dir,
             )

@@ -58,7 +58,7 @@ def recorder_for(
 ) -> FlightRecorder:
     """A recorder observing ``core`` (no sink yet: :meth:`FlightRecorder.add_log`)."""
     rec = FlightRecorder(
-        cfg.viz, core.pipeline.camera, clock, namespace=namespace, health=health, synchronous=synchronous
+        cfg.viz, core.camera, clock, namespace=namespace, health=health, synchronous=synchronous
     )
     core.observers.append(rec)
     return rec

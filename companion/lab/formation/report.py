@@ -35,7 +35,7 @@ def follower_entry(f: FollowerRun, cfg: Config) -> dict[str, Any]:
     """One follower's entry of ``followers`` (see the module doc)."""
     log = f.scorer.freeze()
     m = compute_metrics(log, cfg.formation.offset_cam_m)
-    ident = f.flight.pipeline.identity
+    ident = f.flight.identity
     counters = ident.counters if ident is not None else None
     return {
         "name": f.name,

@@ -191,7 +191,7 @@ class FormationRun:
         leader = self.world.vehicle("leader")
         p_leader = self.world.truth("leader").p_ned_m
         for f in self.followers:
-            if f.flight.machine.state in FORMATION_STATES and f.scorer.in_window(t_s):
+            if f.flight.state in FORMATION_STATES and f.scorer.in_window(t_s):
                 f.score.slot_sample(
                     t_s, self.world.truth(f.name).p_ned_m, p_leader, float(leader.dyn.yaw_rad)
                 )
