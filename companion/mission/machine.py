@@ -147,12 +147,7 @@ class MissionMachine:
         start = inp.start_requested or taken == OperatorCommand.START
         takeover = inp.takeover_requested or taken == OperatorCommand.START
         # A start is kept until a state can act on it; where none can, it is dropped (never kept for later).
-        if start and not self.c.prev_start and self.c.state not in START_IGNORED:
-            self.c.start_latched = True
-        self.c.prev_start = start
-        if takeover and not self.c.prev_takeover and self.c.state not in START_IGNORED:
-            self.c.takeover_latched = True
-        self.c.prev_takeover = takeover
+        self.c.start.update(start, takeover, actionable=self.c.state not in START_IGNORED)
         if inp.leader is not None and inp.leader.usable and self.c.fresh(inp.leader):
             self.c.last_leader = inp.leader
         self.c.update_neighbours(inp)
@@ -362,8 +357,7 @@ class MissionMachine:
 
     def withdraw_start(self) -> None:
         """Forget a start that was not acted on (the operator was told it was refused)."""
-        self.c.start_latched = False
-        self.c.takeover_latched = False
+        self.c.start.spend()
 
     def set_slot(self, offset_cam_m: tuple[float, float, float]) -> str | None:
         """Change the formation slot in flight. Returns why it is refused, or None when applied.

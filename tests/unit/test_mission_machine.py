@@ -1077,7 +1077,7 @@ def test_one_start_after_a_landing_arms_and_flies_again() -> None:
     assert [t.to_state for t in out.transitions] == [S.PREFLIGHT, S.ARMING]
     assert h.machine.next_step().startswith("arms (up to 3 tries), takes off to 5 m")
     h.run_until(S.FOLLOW, timeout_s=60)
-    assert not h.machine.c.start_latched  # spent: a later landing waits for a new start
+    assert not h.machine.c.start.requested  # spent: a later landing waits for a new start
 
 
 # ---------------------------------------------------------------------- shutdown
@@ -1247,8 +1247,8 @@ def test_a_start_says_why_it_would_do_nothing() -> None:
     _operator_start(h)  # a start while following is dropped, never kept for later
     h.run(1.0)
     assert h.state == S.FOLLOW
-    assert not h.machine.c.start_latched
-    assert not h.machine.c.takeover_latched
+    assert not h.machine.c.start.requested
+    assert not h.machine.c.start.takeover
     h.operator = OperatorCommand.LAND
     h.step()
     veh = h.ap.state(h.now_s)

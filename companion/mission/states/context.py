@@ -29,6 +29,7 @@ from companion.mission.offboard import CommandBook, OffboardStream
 from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
 from companion.mission.safety import SafetyLimits
 from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion, SharedRelativeFix
+from companion.mission.states.start_latch import StartLatch
 from companion.mission.types import (
     AirframeDrag,
     CommandKind,
@@ -117,10 +118,8 @@ class MissionContext:
         self.ext_gave_up = False
         self.ext_reset_counter = 0
         self.shutting_down = False
-        self.start_latched = False
-        self.prev_start = False
-        self.takeover_latched = False
-        self.prev_takeover = False
+        #: An operator's start until a state acts on it (launch, or PX4's modes after a hold).
+        self.start = StartLatch()
         self.home_hover_thrust_seeded = False
         #: A formation plan's slot, turned with the leader's shared heading (None: a lone follower).
         slot = cfg.formation.slot_leader_m

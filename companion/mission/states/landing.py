@@ -92,10 +92,9 @@ class LandingPhase:
             # PX4 would fall to Descend in these modes; land under our own control instead.
             self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, f"in {st.value}")
             return
-        if st in (MissionState.PX4_HOLD, MissionState.PX4_IN_CONTROL) and self.c.takeover_latched:
+        if st in (MissionState.PX4_HOLD, MissionState.PX4_IN_CONTROL) and self.c.start.takeover:
             # An operator's start: take the vehicle back and find the leader again (GPS is good here).
-            self.c.start_latched = False
-            self.c.takeover_latched = False
+            self.c.start.spend()
             if veh.armed and veh.in_air and self.c.gps.ok and not self.c.shutting_down:
                 self.c.go(MissionState.ACQUIRE, Reason.OPERATOR_START, f"from {st.value}")
                 return

@@ -43,36 +43,32 @@ class LaunchPhase:
         veh = inp.vehicle
         if veh.armed and veh.in_air:
             # A companion (re)started in flight: PX4 flies on its own meanwhile. Take it only when told.
-            if self.c.m.resume_in_air or self.c.takeover_latched:
+            if self.c.m.resume_in_air or self.c.start.takeover:
                 self._take_over(veh)
             else:
                 self.c.go(MissionState.OBSERVE, Reason.AIRBORNE_NOT_STARTED, veh.flight_mode.value)
             return
-        if self.c.start_latched and not self.c.shutting_down and not self.preflight_problems(veh):
-            self.c.start_latched = False
-            self.c.takeover_latched = False
+        if self.c.start.requested and not self.c.shutting_down and not self.preflight_problems(veh):
+            self.c.start.spend()
             self.c.go(MissionState.ARMING, Reason.PREFLIGHT_OK)
 
     def observe(self, inp: MissionInputs) -> None:
         """Airborne, not ours: report, and take over on an operator's start once GPS gives a verdict."""
         veh = inp.vehicle
         if not (veh.armed and veh.in_air):
-            self.c.start_latched = False
-            self.c.takeover_latched = False
+            self.c.start.spend()
             self.c.go(MissionState.PREFLIGHT, Reason.LANDED_WHILE_OBSERVED)
             return
-        if self.c.takeover_latched and not self.c.shutting_down:
+        if self.c.start.takeover and not self.c.shutting_down:
             self._take_over(veh)
 
     def _take_over(self, veh: VehicleState) -> None:
         """Into the formation from the air (a start once GPS is good), or down without GPS."""
         if self.c.gps.ok:
-            self.c.start_latched = False
-            self.c.takeover_latched = False
+            self.c.start.spend()
             self.c.go(MissionState.ACQUIRE, Reason.ALREADY_FLYING)
         elif self.c.gps.loss_confirmed(veh, self.c.now_s):
-            self.c.start_latched = False
-            self.c.takeover_latched = False
+            self.c.start.spend()
             self.c.go(MissionState.CONTROLLED_LANDING, Reason.ALREADY_FLYING, "no GPS")
 
     def arming(self, veh: VehicleState) -> None:
@@ -132,7 +128,7 @@ class LaunchPhase:
     def disarmed(self, veh: VehicleState) -> None:
         # The start stays latched: PREFLIGHT arms on it in the same tick once its checks pass, so one
         # start after a landing flies again.
-        if self.c.start_latched and not self.c.shutting_down and self.c.link_ok(veh):
+        if self.c.start.requested and not self.c.shutting_down and self.c.link_ok(veh):
             self.c.go(MissionState.PREFLIGHT, Reason.START_REQUESTED)
 
     def link_lost(self, veh: VehicleState) -> None:
