@@ -1,9 +1,9 @@
 """One picture of a flight log drawn with matplotlib: ``python -m companion.lab.mcap_sheet LOG OUT.png``.
 
-For a report or an issue where no Foxglove is at hand: the colour image at ``--at`` seconds with its
-annotations (the detections and the tracked leader, as the log's ``/camera/annotations`` has them), the
-depth image beside it, the formation error over the whole log with every mission transition, and the
-follower and the leader estimate from above (``/tf``). It draws only what the log holds.
+For a report or an issue where no Foxglove is at hand: the colour image ``--at`` seconds from the log's
+start with its annotations (the detections and the tracked leader, as the log's ``/camera/annotations`` has
+them), the depth image beside it, the formation error over the whole log with every mission transition, and
+the follower and the leader estimate from above (``/tf``). It draws only what the log holds.
 """
 
 from __future__ import annotations
@@ -25,9 +25,12 @@ def _read(path: Path, at_s: float | None) -> dict[str, Any]:
 
     out: dict[str, Any] = {"err": [], "log": [], "tf": {"follower": [], "leader": []}, "images": []}
     classes: dict[int, Any] = {}
+    start_ns: int | None = None
     with path.open("rb") as f:
-        for schema, ch, m in make_reader(f).iter_messages():
-            t_s = m.log_time / 1e9
+        for schema, ch, m in make_reader(f).iter_messages(log_time_order=True):
+            # Seconds from the log's first message (a simulator run's: its sim time, within a step).
+            start_ns = m.log_time if start_ns is None else start_ns
+            t_s = (m.log_time - start_ns) / 1e9
             if ch.topic == "/follower/formation":
                 rec = json.loads(m.data)
                 out["err"].append((t_s, rec.get("formation_error_m")))
@@ -132,7 +135,10 @@ def main() -> int:
     p.add_argument("log", type=Path)
     p.add_argument("out", type=Path)
     p.add_argument(
-        "--at", type=float, default=None, help="the image nearest this log time, s (default: the last)"
+        "--at",
+        type=float,
+        default=None,
+        help="the image nearest this time from the log's start, s (default: the last)",
     )
     args = p.parse_args()
     draw(args.log, args.out, args.at)

@@ -97,7 +97,7 @@ TOPICS: dict[str, Topic] = {
                 "in_air": _BOOL,
                 "flight_mode": _STR,
                 "gps_fix_type": _INT,
-                "gps_satellites": _INT,
+                "gps_satellites": _INT,  # null: the autopilot does not know (MAVLink's 255)
                 "gps_ok": _BOOL,
                 "position_valid": _BOOL,
                 "p_ned_m": _VEC3,

@@ -24,6 +24,9 @@ from companion.kernel.frames import quat_from_R
 
 Record = tuple[str, int, bytes]
 
+#: MAVLink's satellites_visible for "unknown" (GPS_RAW_INT), logged as null rather than as a count.
+SATELLITES_UNKNOWN = 255
+
 
 def stamp(ns: int) -> fm.Timestamp:
     """A Foxglove timestamp from nanoseconds."""
@@ -106,7 +109,7 @@ def vehicle_fields(now_s: float, v: VehicleState) -> dict[str, Any]:
         "in_air": v.in_air,
         "flight_mode": v.flight_mode.value,
         "gps_fix_type": v.gps_fix_type,
-        "gps_satellites": v.gps_satellites,
+        "gps_satellites": None if v.gps_satellites == SATELLITES_UNKNOWN else v.gps_satellites,
         "gps_ok": v.global_position_ok,
         "position_valid": v.position_valid,
         "p_ned_m": rounded(v.p_ned_m),

@@ -1,9 +1,9 @@
 """From what the flight saw to encoded messages of :mod:`companion.viz.channels` (on the worker thread).
 
 Every builder returns ``(topic, log_time_ns, bytes)`` records. Times are the service clock's seconds plus a
-fixed offset (``time_offset_s``: the wall clock's epoch in the service, 0 in the simulator, whose logs start
-at 1970-01-01 00:00:00 + sim time), in nanoseconds; a message's own timestamp is the same instant, so images,
-their annotations and the frame's transforms line up.
+fixed offset (``time_offset_s``: the wall clock's epoch in the service; in the simulator a fixed date, whose
+logs start at 2000-01-01 00:00:00 UTC + sim time), in nanoseconds; a message's own timestamp is the same
+instant, so images, their annotations and the frame's transforms line up.
 """
 
 from __future__ import annotations
@@ -332,11 +332,14 @@ class MessageBuilder:
                         fm.SpherePrimitive(
                             pose=pose(c), size=v3(*(max(0.05, 4.0 * abs(s)) for s in sd)), color=colour
                         ),
-                        fm.SpherePrimitive(
+                    ],
+                    cubes=[
+                        # The leader itself, the follower's size in red (the ellipsoid may be a few cm).
+                        fm.CubePrimitive(
                             pose=pose(c),
-                            size=v3(0.15, 0.15, 0.15),
+                            size=v3(0.45, 0.45, 0.12),
                             color=fm.Color(r=1.0, g=0.2, b=0.2, a=1.0),
-                        ),
+                        )
                     ],
                     texts=[
                         fm.TextPrimitive(

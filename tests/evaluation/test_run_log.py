@@ -18,6 +18,7 @@ from mcap.reader import make_reader
 
 from companion.lab.evaluation.campaign import RunSpec, run_one
 from companion.lab.evaluation.setup import load_detect, service_config
+from companion.lab.evaluation.runlog import SIM_EPOCH_S
 from companion.lab.replay import run_replay
 from companion.perception.types import DetectorResult, DetectStage
 from companion.viz.channels import TOPICS
@@ -54,9 +55,9 @@ def test_every_channel_has_a_schema_and_the_log_spans_the_run(run_dir: Path) -> 
         assert schema.name == TOPICS[c.topic].schema_name
         assert schema.data  # Foxglove's protobuf descriptors or our JSON Schemas
     assert summary.schemas[topics["/camera/image"].schema_id].name == "foxglove.CompressedImage"
-    start_s = summary.statistics.message_start_time / 1e9
-    end_s = summary.statistics.message_end_time / 1e9
-    assert start_s < 0.1  # sim time: the first control step
+    start_s = summary.statistics.message_start_time / 1e9 - SIM_EPOCH_S
+    end_s = summary.statistics.message_end_time / 1e9 - SIM_EPOCH_S
+    assert 0.0 <= start_s < 0.1  # sim time from the fixed date: the first control step
     assert end_s == pytest.approx(report["sim_duration_s"], abs=0.1)
     counts = summary.statistics.channel_message_counts
     frames = counts[topics["/perception/frame"].id]

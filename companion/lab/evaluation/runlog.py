@@ -3,7 +3,9 @@
 Every harness logs through the service's own :class:`~companion.viz.recorder.FlightRecorder` observing the
 service's :class:`~companion.service.flight.FlightService`, so a run's log has the channels a flight's has.
 Lockstep runs record synchronously (every frame and step, the same file on every run); the real path
-records as the service does, on its worker. Times are sim seconds (the log starts at 1970-01-01 00:00:00).
+records as the service does, on its worker. Times are sim seconds from a fixed date, :data:`SIM_EPOCH_S`
+(2000-01-01 00:00:00 UTC is the run's start), so a viewer's clock reads the run's own time and a lockstep
+run's log is the same file on every run.
 A formation's followers share one file, each under its vehicle id (``/follower2/camera/image``) and placed
 in one ``world`` by its origin. Images follow ``[viz]`` (``log_image_rate_hz``, ``log_image_format``,
 ``log_depth``; ``companion sim --set viz.log_image_rate_hz=0`` logs every frame).
@@ -27,6 +29,8 @@ from companion.viz.sinks import McapSink, SinkError
 log = logging.getLogger(__name__)
 
 RUN_LOG = "flight.mcap"
+#: A run's sim time 0 in its log: 2000-01-01 00:00:00 UTC, s since the Unix epoch.
+SIM_EPOCH_S = 946_684_800.0
 #: A run's log is never split nor trimmed.
 _UNBOUNDED_BYTES = 1 << 60
 
@@ -58,7 +62,13 @@ def recorder_for(
 ) -> FlightRecorder:
     """A recorder observing ``core`` (no sink yet: :meth:`FlightRecorder.add_log`)."""
     rec = FlightRecorder(
-        cfg.viz, core.camera, clock, namespace=namespace, health=health, synchronous=synchronous
+        cfg.viz,
+        core.camera,
+        clock,
+        time_offset_s=SIM_EPOCH_S,
+        namespace=namespace,
+        health=health,
+        synchronous=synchronous,
     )
     core.observers.append(rec)
     return rec

@@ -94,7 +94,8 @@ class McapSource:
         self.depth_topic: str | None = None
         self.calibration_topic: str | None = None
         self.perception_topic: str | None = None
-        #: (stamp_s, q_ned_body_wxyz) of the frames the log has it for (the follower's attitude).
+        #: (stamp_s, q_ned_body_wxyz) of the frames the log has it for (the follower's attitude), stamped
+        #: with the frame record's log time, the images' time base.
         self.attitude: list[tuple[float, np.ndarray]] = []
         self.intrinsics: Intrinsics | None = None
 
@@ -144,7 +145,8 @@ class McapSource:
                 rec = json.loads(m.data)
                 q = rec.get("q_ned_body_wxyz")
                 if q is not None:
-                    self.attitude.append((float(rec["stamp_s"]), np.asarray(q, np.float64)))
+                    # On the images' time base (the log's), whatever the service clock's origin was.
+                    self.attitude.append((m.log_time / 1e9, np.asarray(q, np.float64)))
 
     async def __aenter__(self) -> Self:
         try:
