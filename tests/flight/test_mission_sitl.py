@@ -267,3 +267,31 @@ async def test_an_operators_hold_then_start_follows_again(tmp_path: Path) -> Non
     )
     assert answers[1].startswith("start: px4_hold -> acquire (operator asked to follow again: from px4_hold)")
     assert answers[2] == "start refused: the mission is already under way (state follow)"
+
+
+async def test_one_start_after_a_landing_flies_again(tmp_path: Path) -> None:
+    """Through real MAVSDK: land, PX4 disarms, and one start arms, takes off and follows again."""
+    cfg = mission_cfg(shutdown_action="land")
+    answers: list[str] = []
+
+    async def body(f: Flight) -> None:
+        await f.reach(S.FOLLOW, timeout_s=60)
+        answers.append(str(await f.runner.command(OperatorRequest(OperatorCommand.LAND))))
+        await f.reach(S.DISARMED, timeout_s=60)
+        again = f.rec.state_events[S.FOLLOW] = asyncio.Event()  # set by the next FOLLOW only
+        answers.append(str(await f.runner.command(OperatorRequest(OperatorCommand.START))))
+        async with asyncio.timeout(90):
+            await again.wait()
+        assert f.link.snapshot().flight_mode == FlightMode.OFFBOARD
+        f.runner.request_shutdown()
+        await f.reach(S.PX4_LAND, timeout_s=3.0)
+
+    await fly(tmp_path, cfg, HOVER_SCENARIO, body)
+    assert answers[0] == (
+        "land: follow -> px4_land (operator asked to land). Next: PX4 lands and disarms; companion start "
+        "once disarmed flies again"
+    )
+    assert answers[1].startswith(
+        "start: disarmed -> preflight (mission start requested); preflight -> arming (preflight checks "
+        "passed). Next: arms (up to 3 tries), takes off to 5 m"
+    )
