@@ -282,6 +282,8 @@ async def test_one_start_after_a_landing_flies_again(tmp_path: Path) -> None:
         answers.append(str(await f.runner.command(OperatorRequest(OperatorCommand.START))))
         async with asyncio.timeout(90):
             await again.wait()
+        await asyncio.sleep(2.0)  # PX4 confirms offboard after the mission asks for it
+        assert f.runner.state == S.FOLLOW, f.rec.reasons()
         assert f.link.snapshot().flight_mode == FlightMode.OFFBOARD
         f.runner.request_shutdown()
         await f.reach(S.PX4_LAND, timeout_s=3.0)
