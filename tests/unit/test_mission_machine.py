@@ -1380,3 +1380,24 @@ def test_the_estimate_is_brought_to_when_the_setpoint_acts_one_measured_link_del
         p_rel, v_rel = h.machine.follow.relative_now(est, veh)
         assert p_rel[0] == pytest.approx(expect_n_m, abs=1e-6)
         assert v_rel[0] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_another_track_winning_in_follow_drops_the_join_planned_for_the_first() -> None:
+    """A false track 4 m beyond the slot and 3 m up is flown into FOLLOW and the join planned for it; the
+    real leader's track then wins, right at the slot. The follower is not sent back from its slot by the
+    old plan's reference (it was, at 4 m/s, before the law and the join started afresh on a new track)."""
+    h = Harness()
+    h.leader_p = (9.0, 0.0, -3.0)
+    h.leader_track_age_s = 5.0
+    h.start, h.leader_mode = True, "fresh"
+    h.run_until(S.FOLLOW, timeout_s=60.0)
+    outs = h.run(0.5)
+    sps = [o.setpoint for o in outs if isinstance(o.setpoint, VelocityBodySetpoint)]
+    assert sps
+    assert sps[-1].v_body_m_s[0] > 0.3  # joining the far track
+    h.leader_p, h.leader_track_age_s = (5.0, 0.0, 0.0), 0.1
+    outs = h.run(1.0)
+    assert all(o.state == S.FOLLOW for o in outs)
+    sps = [o.setpoint for o in outs if isinstance(o.setpoint, VelocityBodySetpoint)]
+    assert sps
+    assert min(sp.v_body_m_s[0] for sp in sps) > -0.6, [round(sp.v_body_m_s[0], 2) for sp in sps]

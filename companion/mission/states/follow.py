@@ -8,6 +8,8 @@ REACQUIRE (:mod:`companion.mission.states.recovery`).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from companion.estimation.leader import LeaderEstimate, TrackStatus
@@ -34,6 +36,8 @@ class FollowPhase:
         self.c = ctx
         #: Where a lost or stale leader hands over (REACQUIRE, HOVER), with the memory they enter with.
         self.recovery = recovery
+        #: The age of the track flown on at the last tick, s: a younger one is another track.
+        self._track_age_s = math.inf
 
     def _leader_or_transition(self, inp: MissionInputs) -> LeaderEstimate | None:
         """The estimate to fly on, or None after going to HOVER (stale) or REACQUIRE (lost)."""
@@ -56,6 +60,7 @@ class FollowPhase:
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
+        self._on_new_track(est)
         p_rel, v_rel = self.relative_now(est, veh)
         p_rel, v_rel = self._through_misses(inp, est, p_rel, v_rel)
         f = self.c.cfg.formation
@@ -78,6 +83,21 @@ class FollowPhase:
             join=self.c.join.reference(self.c.law.slot, p_rel, veh.yaw_rad, self.c.now_s),
         )
         return cmd.setpoint, None, cmd.error.error_ned_m
+
+    def _on_new_track(self, est: LeaderEstimate) -> None:
+        """Start the law and the join afresh when the tracker moved to another track (a challenger won).
+
+        What the law remembers (the leader's velocity for its acceleration, the integrators) and the join
+        planned on entry belong to the track they were built on. On PX4 a false track held through the
+        take-off (an object 10 m off) was planned for; when the real leader won 0.6 s into FOLLOW, the
+        join's reference still asked for the old track's range and height, and the follower was commanded
+        4 m/s backwards from its slot (2.3 m off).
+        """
+        age_s = est.track_age_s
+        if age_s < self._track_age_s and math.isfinite(self._track_age_s):
+            self.c.law.reset()
+            self.c.join.arm()
+        self._track_age_s = age_s
 
     def _through_misses(
         self, inp: MissionInputs, est: LeaderEstimate, p_rel: Vec3, v_rel: Vec3
@@ -179,6 +199,7 @@ class FollowPhase:
         est = self._leader_or_transition(inp)
         if est is None:
             return None, None, None
+        self._on_new_track(est)
         p_rel, v_rel = self.relative_now(est, veh)
         ext = self._external_fix(inp) if self.c.m.gps_loss_policy == "vision_external_position" else None
 
