@@ -17,8 +17,8 @@ import pytest
 from mcap.reader import make_reader
 
 from companion.lab.evaluation.campaign import RunSpec, run_one
-from companion.lab.evaluation.setup import load_detect, service_config
 from companion.lab.evaluation.runlog import SIM_EPOCH_S
+from companion.lab.evaluation.setup import load_detect, service_config
 from companion.lab.replay import run_replay
 from companion.perception.types import DetectorResult, DetectStage
 from companion.viz.channels import TOPICS

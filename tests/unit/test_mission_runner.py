@@ -130,7 +130,7 @@ async def test_runner_flies_to_follow_streams_every_tick_and_exits_on_shutdown()
         await asyncio.sleep(0.5)
         runner.request_shutdown()
 
-    async with compat.timeout(10), compat.TaskGroup() as tg:
+    async with compat.timeout(60), compat.TaskGroup() as tg:
         feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
         tg.create_task(pilot(), name="test.pilot")
         await runner.run()
@@ -185,7 +185,7 @@ async def test_a_slow_command_does_not_hold_up_the_setpoint_stream() -> None:
         assert len(link.setpoints) - n0 >= 15
         runner.request_shutdown()
 
-    async with compat.timeout(10), compat.TaskGroup() as tg:
+    async with compat.timeout(60), compat.TaskGroup() as tg:
         feeder = tg.create_task(_feed(runner, clock, stop), name="test.feed")
         tg.create_task(scenario(), name="test.scenario")
         await runner.run()
@@ -307,7 +307,7 @@ async def test_the_result_of_a_command_that_spans_ticks_reaches_the_machine() ->
     link.hold = slow_hold  # type: ignore[method-assign]
     machine = MissionMachine(Config())
     runner = MissionRunner(link, machine, clock, rate_hz=50.0)
-    async with compat.timeout(10), compat.TaskGroup() as tg:
+    async with compat.timeout(60), compat.TaskGroup() as tg:
         executor = tg.create_task(runner._execute_commands(), name="test.commands")
         runner._commands.put_nowait(Command(CommandKind.HOLD))
         for _ in range(15):  # ticks every 20 ms while the command takes 100 ms
