@@ -40,6 +40,12 @@ class WorldConfig(Section):
     #: air-relative velocity. 0: the airframe's own (a few degrees of tilt at 3 m/s). PX4 SIH's quadrotor
     #: has 1.0 (SIH_KDV 1 N/(m/s) on 1 kg): 11 deg of tilt at 2 m/s (config/profiles/px4-sih.toml).
     linear_drag_per_s: float = Field(0.0, ge=0.0, le=5.0)
+    #: GPS's horizontal velocity off by a slow wander on every vehicle, 1-sigma per axis (m/s) with a time
+    #: constant (s); 0: the receiver's white noise only. The autopilot's estimate follows it and its velocity
+    #: loop tracks the estimate, so the vehicle strays from its commands by it. PX4 SITL's estimated velocity,
+    #: against SIH's truth in formation flight: 0.18-0.26 m/s RMS per axis, 1/e time 3-4 s.
+    gps_velocity_wander_m_s: float = Field(0.0, ge=0.0, le=2.0)
+    gps_velocity_wander_tau_s: float = Field(3.0, gt=0.0, le=600.0)
 
     @field_validator("physics_rate_hz")
     @classmethod

@@ -68,6 +68,10 @@ class GpsNoise:
     bias_v_m: float = 0.08
     bias_tau_s: float = 30.0
     vel_white_m_s: float = 0.05
+    #: A Gauss-Markov bias on the horizontal velocity, per axis (m/s, s; 0: none). The estimate follows GPS's
+    #: velocity, and the autopilot tracks its estimate, so the vehicle strays by it (PX4 SITL's profile).
+    vel_bias_m_s: float = 0.0
+    vel_bias_tau_s: float = 3.0
     eph_m: float = 0.8
     epv_m: float = 1.2
     satellites: int = 14
@@ -138,6 +142,7 @@ class GpsSensor:
         self._jumps = jumps
         self._first_fix_s = first_fix_s
         self._bias = [0.0, 0.0, 0.0]
+        self._vel_bias = [0.0, 0.0]
         self._next_s = first_fix_s
         self._last: GpsSample | None = None
         #: Failure set through MAV_CMD_INJECT_FAILURE (None: the scenario decides).
@@ -169,6 +174,13 @@ class GpsSensor:
         self._bias[0] = a * self._bias[0] + s * nz.bias_h_m * r[0]
         self._bias[1] = a * self._bias[1] + s * nz.bias_h_m * r[1]
         self._bias[2] = a * self._bias[2] + s * nz.bias_v_m * r[2]
+        vb = self._vel_bias
+        if nz.vel_bias_m_s > 0.0:  # its own draws, taken only when on: a sensor without it repeats exactly
+            av = math.exp(-period_s / nz.vel_bias_tau_s)
+            sv = math.sqrt(1.0 - av * av) * nz.vel_bias_m_s
+            rv = self._normals.take(2)
+            vb[0] = av * vb[0] + sv * rv[0]
+            vb[1] = av * vb[1] + sv * rv[1]
         failure = self.failure(t_s)
         if failure is GpsFailure.OFF:
             return None
@@ -196,8 +208,8 @@ class GpsSensor:
             lat_deg=lat,
             lon_deg=lon,
             alt_m=alt,
-            vn_m_s=v_ned_m_s[0] + nz.vel_white_m_s * r[6],
-            ve_m_s=v_ned_m_s[1] + nz.vel_white_m_s * r[7],
+            vn_m_s=v_ned_m_s[0] + vb[0] + nz.vel_white_m_s * r[6],
+            ve_m_s=v_ned_m_s[1] + vb[1] + nz.vel_white_m_s * r[7],
             vd_m_s=v_ned_m_s[2] + nz.vel_white_m_s * r[8],
             eph_m=nz.eph_m,
             epv_m=nz.epv_m,

@@ -27,7 +27,7 @@ leave it at 1 in lockstep, where clients produce setpoints in sim time.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -36,7 +36,7 @@ from sitl.autopilot.state import LINK_API, LINK_GCS, AutopilotState
 from sitl.config import SitlConfig
 from sitl.physics.dynamics import QuadDynamics, VehicleTruth
 from sitl.physics.geo import LocalProjection
-from sitl.physics.gps import GpsSensor
+from sitl.physics.gps import GpsNoise, GpsSensor
 from sitl.physics.heading_error import HeadingError, HeadingErrorModel
 from sitl.physics.wind import WindModel, WindParams
 from sitl.world.links import LinkFaults, MessageLink
@@ -71,6 +71,14 @@ def heading_error(cfg: SitlConfig, rng: np.random.Generator) -> HeadingError | N
     return HeadingError(
         rng, HeadingErrorModel(w.heading_bias_deg, w.heading_wander_deg, w.heading_wander_tau_s)
     )
+
+
+def gps_noise(cfg: SitlConfig, noise: GpsNoise) -> GpsNoise:
+    """The scenario's GPS noise with the world's velocity wander (``[world] gps_velocity_wander_*``)."""
+    w = cfg.world
+    if w.gps_velocity_wander_m_s == 0.0:
+        return noise
+    return replace(noise, vel_bias_m_s=w.gps_velocity_wander_m_s, vel_bias_tau_s=w.gps_velocity_wander_tau_s)
 
 
 class World:
@@ -124,7 +132,7 @@ class World:
             gps = GpsSensor(
                 self.projection,
                 np.random.default_rng(s[0]),
-                noise=faults.gps.noise() if faults is not None else None,
+                noise=gps_noise(cfg, faults.gps.noise() if faults is not None else GpsNoise()),
                 outages=faults.gps.outage_windows() if faults is not None else (),
                 jumps=faults.gps.jump_windows() if faults is not None else (),
             )
