@@ -25,7 +25,9 @@ Rules that hold in every state:
 This module holds the tick, the rules above and the operator's checks; the health checks are in
 :mod:`companion.mission.monitors`, the command and offboard bookkeeping in :mod:`companion.mission.offboard`,
 and the state handlers in :mod:`companion.mission.states`: one object per flight phase (launch, follow,
-recovery, landing), each working on the one shared :class:`~companion.mission.states.context.MissionContext`.
+recovery, landing), each with its own memory, reading the
+:class:`~companion.mission.states.context.MissionContext` and returning its setpoint and at most one
+transition request. Only :class:`~companion.mission.transitions.Transitions` changes the state.
 """
 
 from __future__ import annotations
@@ -55,6 +57,8 @@ from companion.mission.states import (
     RecoveryPhase,
 )
 from companion.mission.states.launch import ARM_ATTEMPTS
+from companion.mission.states.request import STAY, PhaseStep, TransitionRequest, abort, go, go_px4
+from companion.mission.transitions import Transitions
 from companion.mission.types import (
     CommandKind,
     CommandResult,
@@ -64,7 +68,6 @@ from companion.mission.types import (
     OperatorRequest,
     Reason,
     StepOutput,
-    Transition,
     VisionMode,
 )
 
@@ -85,16 +88,20 @@ START_IGNORED = OFFBOARD_STATES | {
 class MissionMachine:
     """The follower's mission: ``step(inputs, now_s) -> StepOutput``. No I/O, no clock, no asyncio.
 
-    It owns the shared :class:`MissionContext` (``c``) and one object per flight phase, each working on that
-    context; this class holds the tick, the rules that hold in every state and the operator's checks.
+    It owns the :class:`MissionContext` (``c``) the phases read and one object per flight phase, each with
+    its own memory; this class holds the tick, the rules that hold in every state and the operator's
+    checks. Phases and checks ask for transitions; :class:`~companion.mission.transitions.Transitions`
+    applies them, the only place the state changes.
     """
 
     def __init__(self, cfg: Config, law: FormationLaw | None = None) -> None:
         self.c = MissionContext(cfg, law)
         self.launch = LaunchPhase(self.c)
         self.recovery = RecoveryPhase(self.c)
-        self.follow = FollowPhase(self.c, self.recovery)
+        self.follow = FollowPhase(self.c)
         self.landing = LandingPhase(self.c)
+        self.transitions = Transitions(self.c, self.launch, self.follow, self.recovery, self.landing)
+        self._hover_thrust_seeded = False
 
     @property
     def state(self) -> MissionState:
@@ -115,7 +122,7 @@ class MissionMachine:
 
     @property
     def vision_mode(self) -> VisionMode | None:
-        return self.c.vision_mode
+        return self.follow.vision_mode
 
     @property
     def offboard(self) -> OffboardStream:
@@ -127,10 +134,10 @@ class MissionMachine:
         self.c.now_s = now_s
         self.c.ages.tick(now_s)
         self.c.book.outgoing = []
-        self.c.transitions = []
+        self.transitions.begin_tick()
         self._absorb(inp.command_results)
         veh = inp.vehicle
-        self.c.coasted_on_share = False
+        self.follow.coasted_on_share = False
         if self.c.shared_motion is not None:
             self.c.leader_motion = self.c.shared_motion.update(inp.leader_shared, now_s)
         self._seed_hover_thrust(veh)
@@ -156,12 +163,15 @@ class MissionMachine:
         setpoint: Setpoint | None = None
         ext: ExternalPosition | None = None
         err: Vec3 | None = None
+        step = STAY
         for _ in range(4):  # a transition re-runs the new state's handler in the same tick
             before = self.c.state
-            setpoint, ext, err = self._handle(inp)
+            step = self._handle(inp)
+            self.transitions.apply(step.request, inp)
             if self.c.state == before:
                 break
-        if self._manage_offboard(veh, setpoint is not None):
+        setpoint, ext, err = step.setpoint, step.external, step.error_ned_m
+        if self._manage_offboard(inp, setpoint is not None):
             setpoint, ext, err = None, None, None
         ready = self._ready_to_exit(veh)
         return StepOutput(
@@ -169,16 +179,16 @@ class MissionMachine:
             setpoint=setpoint,
             commands=tuple(self.c.book.outgoing),
             external_position=ext,
-            transitions=tuple(self.c.transitions),
+            transitions=tuple(self.transitions.log),
             ready_to_exit=ready,
-            vision_mode=self.c.vision_mode if self.c.state == MissionState.FOLLOW_VISION else None,
+            vision_mode=self.follow.vision_mode if self.c.state == MissionState.FOLLOW_VISION else None,
             formation_error_ned_m=None if err is None else (float(err[0]), float(err[1]), float(err[2])),
             operator_refused=refused,
             # FOLLOW and REACQUIRE fly on it in their velocity modes only, which need GPS.
             led_on_shared_motion=self.c.leader_motion is not None
             and self.c.gps.ok
             and self.c.state in (MissionState.FOLLOW, MissionState.REACQUIRE),
-            coasted_on_shared_position=self.c.coasted_on_share and self.c.state == MissionState.FOLLOW,
+            coasted_on_shared_position=self.follow.coasted_on_share and self.c.state == MissionState.FOLLOW,
         )
 
     @property
@@ -194,27 +204,34 @@ class MissionMachine:
                 self.c.offboard.last_try_s = self.c.now_s
 
     def _seed_hover_thrust(self, veh: VehicleState) -> None:
-        if not self.c.home_hover_thrust_seeded and veh.hover_thrust_norm is not None:
+        if not self._hover_thrust_seeded and veh.hover_thrust_norm is not None:
             self.c.law.thrust.hover_thrust_norm = veh.hover_thrust_norm
-            self.c.home_hover_thrust_seeded = True
+            self._hover_thrust_seeded = True
 
     # ------------------------------------------------------------------ global checks
     def _global_checks(self, inp: MissionInputs, land_or_hold: OperatorCommand | None) -> None:
+        self.transitions.apply(self._global_request(inp, land_or_hold), inp)
+
+    def _global_request(
+        self, inp: MissionInputs, land_or_hold: OperatorCommand | None
+    ) -> TransitionRequest | None:
+        """The rules of every state, in order: the link, a shutdown, the operator, a pilot, the geofence."""
         veh = inp.vehicle
         st = self.c.state
         self.c.link.watch_age(veh, self.c.now_s)
         if st != MissionState.WAIT_LINK and not self.c.link_ok(veh):
             if st in AIRBORNE_STATES or st == MissionState.LANDED:
-                self.c.go(MissionState.LINK_LOST, Reason.LINK_LOST)
-            elif st != MissionState.LINK_LOST:
-                self.c.go(MissionState.WAIT_LINK, Reason.LINK_LOST)
-            return
+                return go(MissionState.LINK_LOST, Reason.LINK_LOST)
+            if st != MissionState.LINK_LOST:
+                return go(MissionState.WAIT_LINK, Reason.LINK_LOST)
+            return None
         if inp.shutdown_requested and not self.c.shutting_down:
             self.c.shutting_down = True
-            self._on_shutdown(veh)
-            return
-        if land_or_hold is not None and self._on_operator(land_or_hold, veh):
-            return
+            return self._on_shutdown(veh)
+        if land_or_hold is not None:
+            taken, req = self._on_operator(land_or_hold, veh)
+            if taken:
+                return req
         if (
             st in OFFBOARD_STATES
             and self.c.offboard.confirmed
@@ -223,50 +240,46 @@ class MissionMachine:
         ):
             self.c.offboard.release()  # never STOP_OFFBOARD: MAVSDK's stop() asks for Hold
             if veh.armed:
-                self.c.go(MissionState.PX4_IN_CONTROL, Reason.MODE_CHANGED_EXTERNALLY, veh.flight_mode.value)
-            else:
-                self.c.go(MissionState.DISARMED, Reason.DISARMED, "disarmed by the autopilot")
-            return
+                return go(MissionState.PX4_IN_CONTROL, Reason.MODE_CHANGED_EXTERNALLY, veh.flight_mode.value)
+            return go(MissionState.DISARMED, Reason.DISARMED, "disarmed by the autopilot")
         if st in OFFBOARD_STATES and self.c.gps.ok and st != MissionState.CONTROLLED_LANDING:
             r = math.hypot(veh.p_ned_m[0], veh.p_ned_m[1])
             if r > self.c.limits.geofence_radius_m:
-                self.c.go_px4(MissionState.PX4_RTL, Reason.GEOFENCE_BREACH, f"{r:.0f} m from home")
+                return go_px4(MissionState.PX4_RTL, Reason.GEOFENCE_BREACH, f"{r:.0f} m from home")
+        return None
 
-    def _on_shutdown(self, veh: VehicleState) -> None:
+    def _on_shutdown(self, veh: VehicleState) -> TransitionRequest | None:
         st = self.c.state
         if st in NOT_IN_CONTROL:
-            self.c.transitions.append(Transition(self.c.now_s, st, st, Reason.SHUTDOWN_REQUESTED))
-            return
+            self.transitions.note(Reason.SHUTDOWN_REQUESTED)
+            return None
         if st in (MissionState.ARMING, MissionState.LANDED) or (veh.armed and not veh.in_air):
-            self.c.go(MissionState.LANDED, Reason.SHUTDOWN_REQUESTED)
-            return
+            return go(MissionState.LANDED, Reason.SHUTDOWN_REQUESTED)
         if st in PX4_STATES and st != MissionState.PX4_HOLD:
-            self.c.transitions.append(Transition(self.c.now_s, st, st, Reason.SHUTDOWN_REQUESTED))
-            return
+            self.transitions.note(Reason.SHUTDOWN_REQUESTED)
+            return None
         action = self.c.m.shutdown_action
         if not self.c.gps.ok or action == "land":
-            self.c.go_px4(MissionState.PX4_LAND, Reason.SHUTDOWN_REQUESTED, "" if self.c.gps.ok else "no GPS")
-        elif st == MissionState.PX4_HOLD:
-            self.c.entered_s = self.c.now_s  # the hold period starts now
-            self.c.transitions.append(Transition(self.c.now_s, st, st, Reason.SHUTDOWN_REQUESTED))
-        else:
-            self.c.go_px4(MissionState.PX4_HOLD, Reason.SHUTDOWN_REQUESTED, action)
+            return go_px4(MissionState.PX4_LAND, Reason.SHUTDOWN_REQUESTED, "" if self.c.gps.ok else "no GPS")
+        if st == MissionState.PX4_HOLD:
+            self.transitions.note(Reason.SHUTDOWN_REQUESTED, restart_clock=True)  # the hold period starts now
+            return None
+        return go_px4(MissionState.PX4_HOLD, Reason.SHUTDOWN_REQUESTED, action)
 
-    def _on_operator(self, cmd: OperatorCommand, veh: VehicleState) -> bool:
-        """An operator's land or hold, in flight only. True when it changed the state."""
+    def _on_operator(self, cmd: OperatorCommand, veh: VehicleState) -> tuple[bool, TransitionRequest | None]:
+        """An operator's land or hold, in flight only: whether it is taken, and where it goes."""
         st = self.c.state
         if st not in AIRBORNE_STATES or not veh.in_air:
-            return False
+            return False, None
         if cmd == OperatorCommand.LAND:
             if not self.c.gps.ok:
-                self.c.go(MissionState.CONTROLLED_LANDING, Reason.OPERATOR_LAND, "no GPS")
-            elif st != MissionState.PX4_LAND:
-                self.c.go_px4(MissionState.PX4_LAND, Reason.OPERATOR_LAND)
-            return True
+                return True, go(MissionState.CONTROLLED_LANDING, Reason.OPERATOR_LAND, "no GPS")
+            if st != MissionState.PX4_LAND:
+                return True, go_px4(MissionState.PX4_LAND, Reason.OPERATOR_LAND)
+            return True, None
         if cmd == OperatorCommand.HOLD and self.c.gps.ok and st != MissionState.PX4_HOLD:
-            self.c.go_px4(MissionState.PX4_HOLD, Reason.OPERATOR_HOLD)
-            return True
-        return False  # hold without GPS is impossible on PX4: refused (the runner says so)
+            return True, go_px4(MissionState.PX4_HOLD, Reason.OPERATOR_HOLD)
+        return False, None  # hold without GPS is impossible on PX4: refused (the runner says so)
 
     def _operator_verdict(self, req: OperatorRequest, veh: VehicleState) -> str | None:
         """Why this tick refuses ``req`` (None: taken; a new slot is applied here)."""
@@ -383,61 +396,53 @@ class MissionMachine:
         return st in (MissionState.PX4_RTL, MissionState.PX4_IN_CONTROL)
 
     # ------------------------------------------------------------------ offboard
-    def _manage_offboard(self, veh: VehicleState, wants: bool) -> bool:
+    def _manage_offboard(self, inp: MissionInputs, wants: bool) -> bool:
         """Start offboard when a state streams setpoints; stop the stream the tick it no longer does.
 
         Returns True when offboard could not be started and the machine gave up (drop this tick's setpoint).
         """
-        detail = self.c.offboard.manage(veh, wants, self.c.now_s)
+        detail = self.c.offboard.manage(inp.vehicle, wants, self.c.now_s)
         if detail is None:
             return False
         if self.c.gps.ok:
-            self.c.abort(Reason.OFFBOARD_REJECTED, detail)
+            self.transitions.apply(abort(Reason.OFFBOARD_REJECTED, detail), inp)
         else:
-            self.c.go_px4(MissionState.PX4_LAND, Reason.OFFBOARD_REJECTED, detail)
+            self.transitions.apply(go_px4(MissionState.PX4_LAND, Reason.OFFBOARD_REJECTED, detail), inp)
         return True
 
     # ------------------------------------------------------------------ states
-    def _handle(self, inp: MissionInputs) -> tuple[Setpoint | None, ExternalPosition | None, Vec3 | None]:
+    def _handle(self, inp: MissionInputs) -> PhaseStep:
+        """The handler of the state the machine is in: its setpoint and at most one transition request."""
         st = self.c.state
         veh = inp.vehicle
         if st == MissionState.WAIT_LINK:
-            self.launch.wait_link(veh)
-            return None, None, None
+            return self.launch.wait_link(veh)
         if st == MissionState.PREFLIGHT:
-            self.launch.preflight(inp)
-            return None, None, None
+            return self.launch.preflight(inp)
         if st == MissionState.OBSERVE:
-            self.launch.observe(inp)
-            return None, None, None
+            return self.launch.observe(inp)
         if st == MissionState.ARMING:
-            self.launch.arming(veh)
-            return None, None, None
+            return self.launch.arming(veh)
         if st == MissionState.TAKEOFF:
-            self.launch.takeoff(inp)
-            return None, None, None
+            return self.launch.takeoff(inp)
         if st == MissionState.ACQUIRE:
-            self.launch.acquire(inp)
-            return None, None, None
+            return self.launch.acquire(inp)
         if st == MissionState.FOLLOW:
             return self.follow.follow(inp)
         if st == MissionState.FOLLOW_VISION:
             return self.follow.follow_vision(inp)
         if st == MissionState.REACQUIRE:
-            return self.recovery.reacquire(inp), None, None
+            return self.recovery.reacquire(inp)
         if st == MissionState.HOVER:
-            return self.recovery.hover(inp), None, None
+            return self.recovery.hover(inp)
         if st == MissionState.CONTROLLED_LANDING:
-            return self.landing.controlled_landing(inp), None, None
+            return self.landing.controlled_landing(inp)
         if st in PX4_STATES:
-            self.landing.px4(inp)
-            return None, None, None
+            return self.landing.px4(inp)
         if st == MissionState.LINK_LOST:
-            self.launch.link_lost(veh)
-            return None, None, None
+            return self.launch.link_lost(veh)
         if st == MissionState.LANDED:
-            return self.landing.landed(veh), None, None
+            return self.landing.landed(veh)
         if st == MissionState.DISARMED:
-            self.launch.disarmed(veh)
-            return None, None, None
+            return self.launch.disarmed(veh)
         raise AssertionError(f"unhandled state {st}")  # pragma: no cover

@@ -20,7 +20,15 @@ from companion.kernel.flight import (
     VelocityNedSetpoint,
 )
 from companion.mission.safety import SafetyLimits, barrier_speed_m_s
-from companion.mission.types import CommandKind, MissionState, OperatorCommand, Reason, VisionMode
+from companion.mission.states.request import go
+from companion.mission.types import (
+    CommandKind,
+    MissionInputs,
+    MissionState,
+    OperatorCommand,
+    Reason,
+    VisionMode,
+)
 
 from .mission_harness import DT_S, FakeAutopilot, Harness, all_commands, leader
 
@@ -908,7 +916,9 @@ def test_controlled_landing_with_gps_uses_velocity() -> None:
     ap.fly()
     h = Harness(ap=ap)
     h.run(6.0)
-    h.machine.c.go(S.CONTROLLED_LANDING, R.STALL_TIMEOUT)  # reached with GPS only through a PX4 mode refusal
+    # Reached with GPS only through a PX4 mode refusal.
+    inp = MissionInputs(vehicle=h.ap.state(h.now_s))
+    h.machine.transitions.apply(go(S.CONTROLLED_LANDING, R.STALL_TIMEOUT), inp)
     out = h.step()
     assert out.setpoint == VelocityNedSetpoint((0.0, 0.0, h.cfg.mission.landing_speed_m_s), 0.0)
 

@@ -1,8 +1,10 @@
 """The mission machine's phases (:class:`~companion.mission.machine.MissionMachine` owns one of each).
 
-``context`` holds what the phases share: the machine's memory and the transitions several of them make;
-``launch`` goes from the link to the formation, ``follow`` flies it, ``recovery`` holds on when the leader
-is lost or the estimate stale, ``landing`` goes down and hands the vehicle to PX4.
+``context`` holds what the phases read (time, the state, the health verdicts, the law); ``launch`` goes
+from the link to the formation, ``follow`` flies it, ``recovery`` holds on when the leader is lost or the
+estimate stale, ``landing`` goes down and hands the vehicle to PX4. Each keeps its own memory and returns
+a :class:`~companion.mission.states.request.PhaseStep`: its setpoint and at most one transition request,
+which the machine applies (:mod:`companion.mission.transitions`).
 """
 
 from companion.mission.states.context import (

@@ -1,12 +1,12 @@
-"""The context every phase of the mission machine works on: its memory, the transitions and the abort ladder.
+"""The context every phase of the mission machine reads: time, the state, the health verdicts, the law.
 
-:class:`MissionContext` holds the machine's state (the monitors, the command book, the offboard stream, the
-memory more than one phase reads) and the moves between states that more than one phase makes: into FOLLOW
-or FOLLOW_VISION, down to a PX4 mode or the controlled landing. Each phase
-(:mod:`~companion.mission.states.launch`, ``follow``, ``recovery``, ``landing``) is an object holding
-this context and the memory only it reads (REACQUIRE's and HOVER's in ``recovery``, which is also where
-FOLLOW hands a lost or stale leader over; the touchdown timer in ``landing``);
-:class:`~companion.mission.machine.MissionMachine` owns the context and the phases.
+:class:`MissionContext` holds what more than one phase reads (the monitors, the command book, the offboard
+stream, the law and the join, the leader's last estimate and shared motion). Each phase
+(:mod:`~companion.mission.states.launch`, ``follow``, ``recovery``, ``landing``) is an object holding this
+context and its own memory (launch its retries, FOLLOW_VISION its external-fix probation, REACQUIRE its
+coast and scan, landing its touchdown timer); it returns its setpoint and at most one transition request
+(:mod:`~companion.mission.states.request`), which only the machine applies
+(:mod:`companion.mission.transitions`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
 from companion.mission.offboard import CommandBook, OffboardStream
 from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
 from companion.mission.safety import SafetyLimits
-from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion, SharedRelativeFix
+from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion
 from companion.mission.states.start_latch import StartLatch
 from companion.mission.types import (
     AirframeDrag,
@@ -36,9 +36,6 @@ from companion.mission.types import (
     CommandResult,
     MissionInputs,
     MissionState,
-    Reason,
-    Transition,
-    VisionMode,
 )
 
 #: States in which the companion flies the vehicle through offboard setpoints.
@@ -83,8 +80,35 @@ OBSTACLE_STALE_S = 0.5
 STALL_TICKS = 4
 
 
+class Retries:
+    """A state's retries of a command (arm, disarm, land): how many and when the last went out.
+
+    Each state starts with none: the machine clears them on every change of state.
+    """
+
+    def __init__(self) -> None:
+        self.attempts = 0
+        self.last_attempt_s = -math.inf
+
+    def clear(self) -> None:
+        self.attempts = 0
+        self.last_attempt_s = -math.inf
+
+    def due(self, now_s: float, period_s: float) -> bool:
+        """Whether ``period_s`` has passed since the last try."""
+        return now_s - self.last_attempt_s >= period_s
+
+    def tried(self, now_s: float) -> None:
+        self.attempts += 1
+        self.last_attempt_s = now_s
+
+
 class MissionContext:
-    """The mission machine's memory and the transitions its phases share (no I/O, time passed in)."""
+    """What the phases read: time, the state, the health verdicts, the law and the command book.
+
+    No I/O, time passed in. The state changes only where transitions are applied
+    (:class:`~companion.mission.transitions.Transitions`); each phase keeps its own memory.
+    """
 
     def __init__(self, cfg: Config, law: FormationLaw | None = None) -> None:
         self.cfg = cfg
@@ -93,17 +117,15 @@ class MissionContext:
         self.law = law or FormationLaw(cfg.formation, self.limits, cfg.mission.hover_thrust_norm)
         f = cfg.formation
         self.join = JoinPlanner(f.join_speed_m_s, f.join_accel_m_s2, f.join_min_error_m)
+        #: The state and when it was entered, s: written only where transitions are applied
+        #: (:class:`~companion.mission.transitions.Transitions`).
         self.state = MissionState.WAIT_LINK
         self.entered_s = 0.0
-        self.vision_mode: VisionMode | None = None
-        # Per-step scratch.
+        #: This tick's time, s.
         self.now_s = 0.0
-        self.transitions: list[Transition] = []
         # Commands of this tick, in flight, and the last result of each kind; the offboard stream.
         self.book = CommandBook()
         self.offboard = OffboardStream(self.book)
-        self.attempts = 0
-        self.last_attempt_s = -math.inf
         # Health checks.
         self.ages = StallAwareAge(STALL_TICKS / cfg.link.setpoint_rate_hz)
         self.gps = GpsMonitor(cfg.mission, self.ages)
@@ -113,14 +135,9 @@ class MissionContext:
         self.last_leader: LeaderEstimate | None = None
         #: The follower's own velocity history, to bring camera-time estimates to the control instant.
         self.ego = EgoMotion()
-        self.ext_valid_since: float | None = None
-        self.ext_since: float | None = None
-        self.ext_gave_up = False
-        self.ext_reset_counter = 0
         self.shutting_down = False
         #: An operator's start until a state acts on it (launch, or PX4's modes after a hold).
         self.start = StartLatch()
-        self.home_hover_thrust_seeded = False
         #: A formation plan's slot, turned with the leader's shared heading (None: a lone follower).
         slot = cfg.formation.slot_leader_m
         self.slot_turner = SlotTurner(slot) if slot is not None else None
@@ -131,33 +148,9 @@ class MissionContext:
             if f.lead_on_shared_motion
             else None
         )
-        #: The shares held to the camera, flown while it misses the leader (``coast_on_shared_position``).
-        self.shared_fix = (
-            SharedRelativeFix(f.shared_offset_tau_s)
-            if f.lead_on_shared_motion and f.coast_on_shared_position
-            else None
-        )
-        #: This tick FOLLOW flew on the shares while the camera missed the leader.
-        self.coasted_on_share = False
         self.leader_motion: LeaderMotion | None = None
 
     # ------------------------------------------------------------------ plumbing
-    def go(self, state: MissionState, reason: Reason, detail: str = "") -> None:
-        if state == self.state and reason != Reason.VISION_MODE_CHANGED:
-            return
-        self.transitions.append(Transition(self.now_s, self.state, state, reason, detail))
-        if state != self.state:
-            self.state = state
-            self.entered_s = self.now_s
-            self.attempts = 0
-            self.last_attempt_s = -math.inf
-            self.law.reset()
-            # A planned approach into the slot on every entry into FOLLOW (planned on its first tick).
-            if state == MissionState.FOLLOW:
-                self.join.arm()
-            else:
-                self.join.cancel()
-
     def t_in_state(self) -> float:
         return self.now_s - self.entered_s
 
@@ -226,65 +219,3 @@ class MissionContext:
         p = np.array(ob.p_ned_rel_m)
         disp = self.ego.displacement(ob.stamp_s, self.now_s)
         return p if disp is None else p - disp
-
-    # ------------------------------------------------------------------ shared transitions
-    def go_px4(self, state: MissionState, reason: Reason, detail: str = "") -> None:
-        """Hand the vehicle to one of PX4's own modes (Hold, Land, RTL); the stream stops the same tick."""
-        self.go(state, reason, detail)
-        kind = {
-            MissionState.PX4_HOLD: CommandKind.HOLD,
-            MissionState.PX4_LAND: CommandKind.LAND,
-            MissionState.PX4_RTL: CommandKind.RTL,
-        }[state]
-        self.send(kind)
-
-    def abort(self, reason: Reason, detail: str = "") -> None:
-        """The configured abort: a PX4 mode while GPS is healthy, our controlled landing when it is not."""
-        if not self.gps.ok:
-            self.go(MissionState.CONTROLLED_LANDING, reason, detail or "no GPS")
-            return
-        target = {
-            "hold": MissionState.PX4_HOLD,
-            "land": MissionState.PX4_LAND,
-            "rtl": MissionState.PX4_RTL,
-        }[self.cfg.mission.leader_lost_action]
-        self.go_px4(target, reason, detail)
-
-    def flying_attitude(self) -> bool:
-        """Whether the current flight uses attitude setpoints (no GPS, or vision on attitude)."""
-        if not self.gps.ok:
-            return True
-        return self.state == MissionState.FOLLOW_VISION and self.vision_mode == VisionMode.ATTITUDE
-
-    def enter_follow(self, inp: MissionInputs, reason: Reason, detail: str = "") -> None:
-        """Go to FOLLOW or FOLLOW_VISION, whichever the GPS allows."""
-        if self.gps.ok:
-            self.go(MissionState.FOLLOW, reason, detail)
-            self.law.seed_velocity(np.array(inp.vehicle.v_ned_m_s))
-        elif self.m.gps_loss_policy == "land":
-            self.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
-        else:
-            self.vision_mode = VisionMode.ATTITUDE
-            self.reset_external()
-            self.go(MissionState.FOLLOW_VISION, reason, detail or f"policy {self.m.gps_loss_policy}")
-
-    def on_gps_lost(self, inp: MissionInputs) -> None:
-        """GPS went bad in flight: vision formation if the policy and the leader allow it, else land."""
-        veh = inp.vehicle
-        if self.shared_fix is not None:
-            self.shared_fix.reset()  # the GPS that comes back may put both ends elsewhere
-        if self.m.gps_loss_policy == "land":
-            self.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "policy land")
-        elif not self.tracked(inp):
-            self.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "leader not tracked")
-        elif not self.link.attitude_available(veh, self.now_s):
-            self.go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
-        else:
-            self.vision_mode = VisionMode.ATTITUDE
-            self.reset_external()
-            self.go(MissionState.FOLLOW_VISION, Reason.GPS_LOST, f"policy {self.m.gps_loss_policy}")
-
-    def reset_external(self) -> None:
-        self.ext_valid_since = None
-        self.ext_since = None
-        self.ext_gave_up = False

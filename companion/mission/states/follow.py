@@ -13,11 +13,20 @@ import math
 import numpy as np
 
 from companion.estimation.leader import LeaderEstimate, TrackStatus
-from companion.kernel.flight import ExternalPosition, Setpoint, VehicleState
+from companion.kernel.flight import ExternalPosition, VehicleState
 from companion.kernel.frames import Vec3
-from companion.mission.shared_motion import shared_rel_now
+from companion.mission.shared_motion import SharedRelativeFix, shared_rel_now
 from companion.mission.states.context import MissionContext
-from companion.mission.states.recovery import RecoveryPhase
+from companion.mission.states.request import (
+    PhaseStep,
+    TransitionRequest,
+    enter_follow,
+    go,
+    gps_lost,
+    hover,
+    moving,
+    reacquire,
+)
 from companion.mission.types import MissionInputs, MissionState, Reason, VisionMode
 
 #: PX4 must report a valid estimate this long before velocity setpoints ride on an external fix, s.
@@ -27,39 +36,65 @@ SHARED_STALE_S = 1.0
 #: The camera has missed the leader this long before FOLLOW flies on its shares instead, s: the track's
 #: coast is sound over a frame or two.
 SHARE_FIX_AFTER_S = 0.1
+#: PX4's reset counter on the external fix: the fix is never reset in flight.
+EXTERNAL_RESET_COUNTER = 0
 
 
 class FollowPhase:
     """The handlers of FOLLOW and FOLLOW_VISION."""
 
-    def __init__(self, ctx: MissionContext, recovery: RecoveryPhase) -> None:
+    def __init__(self, ctx: MissionContext) -> None:
         self.c = ctx
-        #: Where a lost or stale leader hands over (REACQUIRE, HOVER), with the memory they enter with.
-        self.recovery = recovery
         #: The age of the track flown on at the last tick, s: a younger one is another track.
         self._track_age_s = math.inf
+        f = ctx.cfg.formation
+        #: The shares held to the camera, flown while it misses the leader (``coast_on_shared_position``).
+        self.shared_fix = (
+            SharedRelativeFix(f.shared_offset_tau_s)
+            if f.lead_on_shared_motion and f.coast_on_shared_position
+            else None
+        )
+        #: This tick FOLLOW flew on the shares while the camera missed the leader (the machine clears it).
+        self.coasted_on_share = False
+        #: How FOLLOW_VISION flies (set on entry, changed as PX4 takes or drops the external fix).
+        self.vision_mode: VisionMode | None = None
+        #: FOLLOW_VISION's probation of the external fix: since when it is sent and PX4 has called its
+        #: position valid, s, and whether it gave up on PX4 taking it.
+        self._ext_since: float | None = None
+        self._ext_valid_since: float | None = None
+        self._ext_gave_up = False
 
-    def _leader_or_transition(self, inp: MissionInputs) -> LeaderEstimate | None:
-        """The estimate to fly on, or None after going to HOVER (stale) or REACQUIRE (lost)."""
+    def start_vision_on_attitude(self) -> None:
+        """Entering FOLLOW_VISION: attitude first, the external fix on probation afresh."""
+        self.vision_mode = VisionMode.ATTITUDE
+        self._reset_external()
+
+    def forget_share_fix(self) -> None:
+        """GPS lost: the GPS that comes back may put both ends elsewhere."""
+        if self.shared_fix is not None:
+            self.shared_fix.reset()
+
+    def _reset_external(self) -> None:
+        self._ext_valid_since = None
+        self._ext_since = None
+        self._ext_gave_up = False
+
+    def _leader_or_transition(self, inp: MissionInputs) -> LeaderEstimate | TransitionRequest:
+        """The estimate to fly on, or the request to go to HOVER (stale) or REACQUIRE (lost)."""
         est = inp.leader
         if est is None or not self.c.fresh(est):
-            self.recovery.enter_hover(inp)
-            return None
+            return hover("never" if est is None else f"{self.c.now_s - est.stamp_s:.2f} s old")
         if not est.usable:
-            self.recovery.enter_reacquire(
-                inp, "far-field track dropped" if est.far_field else est.status.value
-            )
-            return None
+            return reacquire("far-field track dropped" if est.far_field else est.status.value)
         return est
 
-    def follow(self, inp: MissionInputs) -> tuple[Setpoint | None, ExternalPosition | None, Vec3 | None]:
+    def follow(self, inp: MissionInputs) -> PhaseStep:
         veh = inp.vehicle
         if not self.c.gps.ok:
-            self.c.on_gps_lost(inp)
-            return None, None, None
+            return moving(gps_lost())
         est = self._leader_or_transition(inp)
-        if est is None:
-            return None, None, None
+        if isinstance(est, TransitionRequest):
+            return moving(est)
         self._on_new_track(est)
         p_rel, v_rel = self.relative_now(est, veh)
         p_rel, v_rel = self._through_misses(inp, est, p_rel, v_rel)
@@ -82,7 +117,7 @@ class FollowPhase:
             v_leader_ned_m_s=self._shared_leader_velocity(inp) if motion is None else motion.v_ned_m_s,
             join=self.c.join.reference(self.c.law.slot, p_rel, veh.yaw_rad, self.c.now_s),
         )
-        return cmd.setpoint, None, cmd.error.error_ned_m
+        return PhaseStep(cmd.setpoint, None, cmd.error.error_ned_m)
 
     def _on_new_track(self, est: LeaderEstimate) -> None:
         """Start the law and the join afresh when the tracker moved to another track (a challenger won).
@@ -108,7 +143,7 @@ class FollowPhase:
         camera's last relative position carried on at the shares' relative velocity (after a longer gap, the
         shares' position with its offset from the camera: ``SharedRelativeFix``).
         """
-        fix, motion, sh = self.c.shared_fix, self.c.leader_motion, inp.leader_shared
+        fix, motion, sh = self.shared_fix, self.c.leader_motion, inp.leader_shared
         if fix is None or motion is None or sh is None:
             return p_rel, v_rel
         veh = inp.vehicle
@@ -122,7 +157,7 @@ class FollowPhase:
         p_fix = fix.fix(rel_shared, v_rel_shared, self.c.now_s)
         if p_fix is None:
             return p_rel, v_rel
-        self.c.coasted_on_share = True
+        self.coasted_on_share = True
         return p_fix, v_rel_shared
 
     def _shared_leader_velocity(self, inp: MissionInputs) -> Vec3 | None:
@@ -182,78 +217,34 @@ class FollowPhase:
             yaw_rad=veh.yaw_rad,
             roll_rad=veh.roll_rad,
             pitch_rad=veh.pitch_rad,
-            reset_counter=self.c.ext_reset_counter,
+            reset_counter=EXTERNAL_RESET_COUNTER,
         )
 
-    def follow_vision(
-        self, inp: MissionInputs
-    ) -> tuple[Setpoint | None, ExternalPosition | None, Vec3 | None]:
+    def follow_vision(self, inp: MissionInputs) -> PhaseStep:
         veh = inp.vehicle
         if self.c.gps.ok:
-            self.c.go(MissionState.FOLLOW, Reason.GPS_RESTORED)
-            self.c.law.seed_velocity(np.array(veh.v_ned_m_s))
-            return None, None, None
+            return moving(enter_follow(Reason.GPS_RESTORED))
         if not self.c.link.attitude_available(veh, self.c.now_s):
-            self.c.go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
-            return None, None, None
+            return moving(
+                go(MissionState.CONTROLLED_LANDING, Reason.NO_VISION_FALLBACK, "no attitude or altitude")
+            )
         est = self._leader_or_transition(inp)
-        if est is None:
-            return None, None, None
+        if isinstance(est, TransitionRequest):
+            return moving(est)
         self._on_new_track(est)
         p_rel, v_rel = self.relative_now(est, veh)
         ext = self._external_fix(inp) if self.c.m.gps_loss_policy == "vision_external_position" else None
-
-        if self.c.vision_mode == VisionMode.EXTERNAL_POSITION:
-            if ext is None or veh.position_valid is not True:
-                why = "shared leader position stale" if ext is None else "PX4 rejected the external fix"
-                self.c.vision_mode = VisionMode.ATTITUDE
-                self.c.reset_external()
-                self.c.law.reset()
-                self.c.go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
-            else:
-                vcmd = self.c.law.velocity(
-                    p_rel,
-                    v_rel,
-                    self.c.follower(veh, velocity_valid=True, airframe=inp.airframe),
-                    self.c.now_s,
-                    a_leader_ned_m_s2=est.a_ned_leader_m_s2,
-                    obstacle_ned_m=self.c.obstacle_now(inp),
-                )
-                return vcmd.setpoint, ext, vcmd.error.error_ned_m
-        elif ext is not None and not self.c.ext_gave_up:
-            # Attitude mode while PX4 digests the external fix; switch once it has been valid a while.
-            if self.c.ext_since is None:
-                self.c.ext_since = self.c.now_s
-            if veh.position_valid is True:
-                if self.c.ext_valid_since is None:
-                    self.c.ext_valid_since = self.c.now_s
-                if self.c.now_s - self.c.ext_valid_since >= EXTERNAL_PROBATION_S:
-                    self.c.vision_mode = VisionMode.EXTERNAL_POSITION
-                    self.c.law.reset()
-                    self.c.law.seed_velocity(np.array(veh.v_ned_m_s))
-                    self.c.go(
-                        MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, "external position accepted"
-                    )
-                    vcmd = self.c.law.velocity(
-                        p_rel,
-                        v_rel,
-                        self.c.follower(veh, velocity_valid=True, airframe=inp.airframe),
-                        self.c.now_s,
-                        a_leader_ned_m_s2=est.a_ned_leader_m_s2,
-                        obstacle_ned_m=self.c.obstacle_now(inp),
-                    )
-                    return vcmd.setpoint, ext, vcmd.error.error_ned_m
-            else:
-                self.c.ext_valid_since = None
-                if self.c.now_s - self.c.ext_since > self.c.m.external_position_accept_s:
-                    # PX4 does not take the fix: stop sending it and stay on attitude (said once).
-                    self.c.ext_gave_up = True
-                    accept_s = self.c.m.external_position_accept_s
-                    why = f"attitude: external position not accepted in {accept_s:g} s"
-                    self.c.go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, why)
-                    ext = None
-        elif self.c.ext_gave_up:
-            ext = None
+        ext, request = self._vision_mode_now(ext, veh)
+        if self.vision_mode == VisionMode.EXTERNAL_POSITION:
+            vcmd = self.c.law.velocity(
+                p_rel,
+                v_rel,
+                self.c.follower(veh, velocity_valid=True, airframe=inp.airframe),
+                self.c.now_s,
+                a_leader_ned_m_s2=est.a_ned_leader_m_s2,
+                obstacle_ned_m=self.c.obstacle_now(inp),
+            )
+            return PhaseStep(vcmd.setpoint, ext, vcmd.error.error_ned_m, request)
         acmd = self.c.law.attitude(
             p_rel,
             v_rel,
@@ -262,4 +253,45 @@ class FollowPhase:
             slot_target=self.c.slot_target(inp),
         )
         err = acmd.error.error_ned_m if acmd.error is not None else None
-        return acmd.setpoint, ext, err
+        return PhaseStep(acmd.setpoint, ext, err, request)
+
+    def _vision_mode_now(
+        self, ext: ExternalPosition | None, veh: VehicleState
+    ) -> tuple[ExternalPosition | None, TransitionRequest | None]:
+        """FOLLOW_VISION's mode this tick, the external fix to send, and the mode change to log.
+
+        Velocity on the external fix while PX4 holds it valid, back to attitude when it goes; on attitude,
+        the fix is sent while PX4 digests it and flown once it has been valid ``EXTERNAL_PROBATION_S``;
+        not taken within ``external_position_accept_s``, it is no longer sent (said once).
+        """
+        now_s = self.c.now_s
+        if self.vision_mode == VisionMode.EXTERNAL_POSITION:
+            if ext is not None and veh.position_valid is True:
+                return ext, None
+            why = "shared leader position stale" if ext is None else "PX4 rejected the external fix"
+            self.vision_mode = VisionMode.ATTITUDE
+            self._reset_external()
+            self.c.law.reset()
+            return ext, go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, f"attitude: {why}")
+        if ext is None or self._ext_gave_up:
+            return None, None
+        if self._ext_since is None:
+            self._ext_since = now_s
+        if veh.position_valid is True:
+            if self._ext_valid_since is None:
+                self._ext_valid_since = now_s
+            if now_s - self._ext_valid_since < EXTERNAL_PROBATION_S:
+                return ext, None
+            self.vision_mode = VisionMode.EXTERNAL_POSITION
+            self.c.law.reset()
+            self.c.law.seed_velocity(np.array(veh.v_ned_m_s))
+            return ext, go(
+                MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, "external position accepted"
+            )
+        self._ext_valid_since = None
+        if now_s - self._ext_since <= self.c.m.external_position_accept_s:
+            return ext, None
+        # PX4 does not take the fix: stop sending it and stay on attitude (said once).
+        self._ext_gave_up = True
+        why = f"attitude: external position not accepted in {self.c.m.external_position_accept_s:g} s"
+        return None, go(MissionState.FOLLOW_VISION, Reason.VISION_MODE_CHANGED, why)

@@ -20,6 +20,7 @@ from companion.kernel.frames import Vec3, wrap_pi
 from companion.mission.formation_commands import clamp_norm
 from companion.mission.shared_motion import shared_rel_now
 from companion.mission.states.context import MissionContext
+from companion.mission.states.request import PhaseStep, abort, enter_follow, go, moving, reacquire
 from companion.mission.types import MissionInputs, MissionState, Reason
 
 #: Altitude-hold gain of the attitude hover (1/s).
@@ -54,10 +55,13 @@ class RecoveryPhase:
         #: The height the attitude hover holds (above home, m; NaN: taken on the first tick).
         self.alt_hold_m = math.nan
 
-    def enter_reacquire(self, inp: MissionInputs, detail: str) -> None:
-        """Leader lost: remember where it was going (coast) and which way to scan, then REACQUIRE."""
+    def remember_loss(self, inp: MissionInputs, *, attitude: bool) -> None:
+        """Leader lost, entering REACQUIRE: where it was going (coast) and which way to scan.
+
+        ``attitude``: the flight on entry uses attitude setpoints (no GPS, or vision on attitude).
+        """
         veh = inp.vehicle
-        self.attitude_kind = self.c.flying_attitude()
+        self.attitude_kind = attitude
         # A track dropped as far-field was never the leader: search from here, without coasting toward it.
         far = inp.leader is not None and inp.leader.far_field
         last = None if far else self.c.last_leader
@@ -84,30 +88,23 @@ class RecoveryPhase:
             self.hold_p_ned_m = None
             self.scan_sign = 1.0
         self.alt_hold_m = veh.alt_rel_m
-        self.c.go(MissionState.REACQUIRE, Reason.LEADER_LOST, detail)
 
-    def enter_hover(self, inp: MissionInputs) -> None:
-        """The estimate went stale: hover on the vehicle's own telemetry (HOVER)."""
-        self.attitude_kind = self.c.flying_attitude()
+    def remember_hover(self, inp: MissionInputs, *, attitude: bool) -> None:
+        """The estimate went stale, entering HOVER: hover on the vehicle's own telemetry."""
+        self.attitude_kind = attitude
         self.alt_hold_m = inp.vehicle.alt_rel_m
-        est = inp.leader
-        age = "never" if est is None else f"{self.c.now_s - est.stamp_s:.2f} s old"
-        self.c.go(MissionState.HOVER, Reason.PERCEPTION_STALL, age)
 
-    def reacquire(self, inp: MissionInputs) -> Setpoint | None:
+    def reacquire(self, inp: MissionInputs) -> PhaseStep:
         veh = inp.vehicle
         if self.c.tracked(inp, confirmed_only=True) and (
             self.c.track.steady(inp.leader) or self._found_where_lost(inp)
         ):
-            self.c.enter_follow(inp, Reason.LEADER_REACQUIRED)
-            return None
+            return moving(enter_follow(Reason.LEADER_REACQUIRED))
         if not self.attitude_kind and not self.c.gps.ok:
-            self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while re-acquiring")
-            return None
+            return moving(go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while re-acquiring"))
         t = self.c.t_in_state()
         if t > self.c.m.reacquire_coast_s + self.c.m.reacquire_scan_s:
-            self.c.abort(Reason.REACQUIRE_TIMEOUT)
-            return None
+            return moving(abort(Reason.REACQUIRE_TIMEOUT))
         scanning = t > self.c.m.reacquire_coast_s
         scan_rate = self.scan_sign * math.radians(self.c.m.scan_yaw_rate_deg_s) if scanning else 0.0
         candidate = self.c.track.candidate_rel(inp.leader, self.c.now_s)
@@ -122,27 +119,39 @@ class RecoveryPhase:
         if self.attitude_kind:
             fol = self.c.follower(veh, velocity_valid=False)
             v_down = self._alt_hold_v_down(veh)
-            return self.c.law.hover_attitude(fol, v_down, self.c.now_s, yaw_rate_rad_s=scan_rate).setpoint
-        if not scanning and self.leader_lost_p_ned_m is not None and self.leader_lost_v_ned_m_s is not None:
-            # Coast: the leader's last velocity, looking where it dead-reckons to (GPS is healthy), without
-            # closing on that guess (see FormationLaw.coast_velocity); looking at a candidate instead
-            # when there is one, which the separation barrier then also holds off.
-            p_leader = self.leader_lost_p_ned_m + self.leader_lost_v_ned_m_s * t
-            motion = self.c.leader_motion
-            if motion is not None:
-                # The leader's own velocity as it shares it: the dead reckoning goes on from here at it.
-                self.leader_lost_v_ned_m_s = motion.v_ned_m_s.copy()
-                self.leader_lost_p_ned_m = p_leader - motion.v_ned_m_s * t
-                self.hold_p_ned_m = None
-            p_rel = p_leader - np.array(veh.p_ned_m) if candidate is None else candidate
-            return self.c.law.coast_velocity(
-                self.leader_lost_v_ned_m_s,
-                p_rel,
-                self.c.follower(veh, velocity_valid=True),
-                self.c.obstacle_now(inp),
-                v_station_ned_m_s=self._station_velocity(veh),
+            return PhaseStep(
+                self.c.law.hover_attitude(fol, v_down, self.c.now_s, yaw_rate_rad_s=scan_rate).setpoint
             )
-        return self.c.law.hover_velocity(yaw_rate_rad_s=scan_rate)
+        if not scanning and self.leader_lost_p_ned_m is not None and self.leader_lost_v_ned_m_s is not None:
+            return PhaseStep(self._coast(inp, t, candidate))
+        return PhaseStep(self.c.law.hover_velocity(yaw_rate_rad_s=scan_rate))
+
+    def _coast(self, inp: MissionInputs, t: float, candidate: Vec3 | None) -> Setpoint:
+        """Coast: the leader's last velocity, looking where it dead-reckons to (GPS is healthy).
+
+        Without closing on that guess (see FormationLaw.coast_velocity); looking at a candidate instead
+        when there is one, which the separation barrier then also holds off.
+        """
+        lost_p, lost_v = self.leader_lost_p_ned_m, self.leader_lost_v_ned_m_s
+        if lost_p is None or lost_v is None:  # pragma: no cover - the caller checked
+            return self.c.law.hover_velocity()
+        veh = inp.vehicle
+        p_leader = lost_p + lost_v * t
+        motion = self.c.leader_motion
+        if motion is not None:
+            # The leader's own velocity as it shares it: the dead reckoning goes on from here at it.
+            lost_v = motion.v_ned_m_s.copy()
+            self.leader_lost_v_ned_m_s = lost_v
+            self.leader_lost_p_ned_m = p_leader - motion.v_ned_m_s * t
+            self.hold_p_ned_m = None
+        p_rel = p_leader - np.array(veh.p_ned_m) if candidate is None else candidate
+        return self.c.law.coast_velocity(
+            lost_v,
+            p_rel,
+            self.c.follower(veh, velocity_valid=True),
+            self.c.obstacle_now(inp),
+            v_station_ned_m_s=self._station_velocity(veh),
+        )
 
     def _station_velocity(self, veh: VehicleState) -> Vec3T:
         """Back to where the follower lost a hovering leader (NED, m/s, horizontal); zero otherwise."""
@@ -183,23 +192,21 @@ class RecoveryPhase:
         lim = self.c.limits.max_vertical_speed_m_s
         return float(np.clip(v, -lim, lim))
 
-    def hover(self, inp: MissionInputs) -> Setpoint | None:
+    def hover(self, inp: MissionInputs) -> PhaseStep:
         veh = inp.vehicle
         est = inp.leader
         if self.c.fresh(est) and est is not None:
             if est.usable:
-                self.c.enter_follow(inp, Reason.PERCEPTION_RESUMED)
-                return None
+                return moving(enter_follow(Reason.PERCEPTION_RESUMED))
             if est.status == TrackStatus.LOST:
-                self.enter_reacquire(inp, "after stall")
-                return None
+                return moving(reacquire("after stall"))
         if not self.attitude_kind and not self.c.gps.ok:
-            self.c.go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while hovering")
-            return None
+            return moving(go(MissionState.CONTROLLED_LANDING, Reason.GPS_LOST, "while hovering"))
         if self.c.t_in_state() > self.c.m.stall_hover_s:
-            self.c.abort(Reason.STALL_TIMEOUT)
-            return None
+            return moving(abort(Reason.STALL_TIMEOUT))
         if self.attitude_kind:
             fol = self.c.follower(veh, velocity_valid=False)
-            return self.c.law.hover_attitude(fol, self._alt_hold_v_down(veh), self.c.now_s).setpoint
-        return self.c.law.hover_velocity()
+            return PhaseStep(
+                self.c.law.hover_attitude(fol, self._alt_hold_v_down(veh), self.c.now_s).setpoint
+            )
+        return PhaseStep(self.c.law.hover_velocity())
