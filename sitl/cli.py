@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from companion import __version__
 from companion.kernel.cli import describe_commands
 from companion.kernel.errors import CompanionError
 
 Handler = Callable[[argparse.Namespace], int]
+#: An in-process component of ``sitl serve`` (called with a :class:`sitl.serve.server.SimHandle`).
+Component = Callable[[Any], Awaitable[None]]
 
 
 # Each command imports its module only when it runs: `sitl --help` stays light (no JSBSim, no renderer).
@@ -20,7 +23,7 @@ Handler = Callable[[argparse.Namespace], int]
 def _serve(args: argparse.Namespace) -> int:
     from sitl.serve.server import main  # noqa: PLC0415
 
-    return main(args)
+    return main(args, args.components)
 
 
 def _dataset(args: argparse.Namespace) -> int:
@@ -98,13 +101,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="builtin: the simulator's own PX4-like autopilot (default); px4: a real PX4 SITL process per "
         "vehicle with SIH physics ([px4] binary in the config, or SITL_PX4__BINARY)",
     )
-    s.add_argument(
-        "--component",
-        action="append",
-        default=None,
-        metavar="MODULE:CALLABLE",
-        help="run an in-process async component (e.g. the camera server); repeatable",
-    )
     s.set_defaults(handler=_serve)
 
     d = sub.add_parser("dataset", help="render a detector dataset with YOLO labels and COCO json")
@@ -152,9 +148,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``sitl`` console script."""
+def main(argv: Sequence[str] | None = None, *, components: Sequence[Component] = ()) -> int:
+    """Entry point of the ``sitl`` console script.
+
+    A program that hosts the simulator passes ``components``: async callables ``component(sim)`` that
+    ``serve`` runs beside the simulation (:mod:`sitl.serve.server`).
+    """
     args = build_parser().parse_args(argv)
+    args.components = tuple(components)
     handler: Handler = args.handler
     try:
         return handler(args)

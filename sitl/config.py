@@ -73,14 +73,6 @@ class MavlinkConfig(Section):
     gcs_remote_port: int = Field(14550, ge=1024, le=65535)
 
 
-class ServeConfig(Section):
-    """``sitl serve`` extras."""
-
-    #: In-process async components ("module:callable", each called with a SimHandle), e.g. the
-    #: renderer's camera server.
-    components: tuple[str, ...] = ()
-
-
 class Px4Config(Section):
     """The PX4 backend (``sitl serve --autopilot px4``): one real PX4 SITL process per vehicle."""
 
@@ -112,7 +104,6 @@ class SitlConfig(Section):
     schema_version: int = SCHEMA_VERSION
     world: WorldConfig = WorldConfig()
     mavlink: MavlinkConfig = MavlinkConfig()
-    serve: ServeConfig = ServeConfig()
     px4: Px4Config = Px4Config()
     vehicles: tuple[VehicleConfig, ...] = (
         VehicleConfig(name="leader", role="leader", spawn_ned_m=(8.0, 0.0, 0.0)),

@@ -6,9 +6,8 @@ renders, which would stall the simulator's real-time loop) and forwards it to ev
 over a Unix socket, in the wire format of :mod:`companion.kernel.camera_wire`. A client that falls
 behind loses frames rather than building a backlog. Nothing is rendered while no client is connected.
 
-In ``sitl serve`` add ``components = ["sitl.render.server:camera_component"]`` to ``[serve]`` (or pass
-``--component sitl.render.server:camera_component``): it serves ``/run/wingman/camera.sock`` with the
-scenario's ``[visual]`` table, for the vehicles named ``follower`` and ``leader``.
+``sitl serve`` runs it unless ``--no-camera`` (``--camera PATH``, default ``/run/wingman/camera.sock``),
+with the scenario's ``[visual]`` table, for the vehicles named ``follower`` and ``leader``.
 """
 
 from __future__ import annotations
@@ -274,5 +273,5 @@ def make_camera_component(
     return component
 
 
-#: The default component: ``--component sitl.render.server:camera_component``.
+#: The camera on its default socket, for a program that hosts the simulator (``sitl.cli.main``).
 camera_component = make_camera_component()

@@ -12,10 +12,11 @@ Each link answers its default remote and any peer heard in the last 10 s, and dr
 datagram (:mod:`sitl.serve.udp_link`).
 
 Components: anything else that must live in this process and see the simulation (the renderer's
-camera server) is an async callable ``component(sim: SimHandle) -> None`` named in
-``[serve] components = ["module:callable"]`` or ``--component module:callable``; it runs in the same
-TaskGroup and reads ground truth through :class:`SimHandle` (``truth(name)``, ``t_s``,
-``wait_until(t_s)``). Ctrl-C or SIGTERM stops everything cleanly.
+camera server) is an async callable ``component(sim: SimHandle) -> None``. The simulator's own camera is
+``--camera``; a program that hosts the simulator passes its own components in
+(``sitl.cli.main(argv, components=...)``, as the lab's real path does): the simulator never imports them
+by name. Each runs in the same TaskGroup and reads ground truth through :class:`SimHandle`
+(``truth(name)``, ``t_s``, ``wait_until(t_s)``). Ctrl-C or SIGTERM stops everything cleanly.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import importlib
 import logging
 import math
 import signal
@@ -294,23 +294,8 @@ async def _stop_when(stop: asyncio.Event, tasks: list[asyncio.Task[None]]) -> No
         task.cancel()
 
 
-def load_component(spec: str) -> Component:
-    """``module:callable`` -> the callable (imported now, so a typo fails at startup)."""
-    module_name, _, attr = spec.partition(":")
-    if not module_name or not attr:
-        raise ConfigError(spec, ["a component is 'module:callable'"])
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        raise ConfigError(spec, [f"cannot import {module_name}: {exc}"]) from None
-    component = getattr(module, attr, None)
-    if not callable(component):
-        raise ConfigError(spec, [f"{module_name} has no callable {attr}"])
-    return component  # type: ignore[no-any-return]
-
-
-def main(args: argparse.Namespace) -> int:
-    """Entry point of ``sitl serve``."""
+def main(args: argparse.Namespace, components: Sequence[Component] = ()) -> int:
+    """Entry point of ``sitl serve``; ``components`` are the hosting program's (see the module's doc)."""
     setup_logging(args.log_format, args.log_level)
     config = args.config if args.config is not None else project_root() / "config" / "sitl.toml"
     cfg = load_sitl_config(config)
@@ -320,8 +305,7 @@ def main(args: argparse.Namespace) -> int:
     speed = args.speed if args.speed is not None else cfg.world.speed_factor
     if not (math.isfinite(speed) and 0 < speed <= 100):
         raise ConfigError("--speed", [f"must be in (0, 100] (got {speed})"])
-    specs = list(cfg.serve.components) + list(getattr(args, "component", None) or [])
-    components = [load_component(s) for s in specs]
+    components = list(components)
     if not getattr(args, "no_camera", True):
         from sitl.render.server import make_camera_component  # noqa: PLC0415 (renderer: heavy)
 

@@ -68,8 +68,16 @@ class SimProcess:
         run_dir.mkdir()
         # `python -m` puts the cwd first on sys.path: run from a directory holding only the sitl package.
         (run_dir / "sitl").symlink_to(src / "sitl")
-        args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--no-camera", "--component"]
-        args += ["tests.flight.truth_component:serve_truth"]
+        # ``sitl`` hosting the truth component (passed in, see tests.flight.truth_component).
+        args = [
+            sys.executable,
+            "-m",
+            "tests.flight.truth_component",
+            "--log-level",
+            "INFO",
+            "serve",
+            "--no-camera",
+        ]
         args += (
             ["--config", str(src / "config" / "sitl.toml")] if (src / "config" / "sitl.toml").exists() else []
         )

@@ -1,6 +1,6 @@
 """TEST-ONLY ``sitl serve`` component: streams ground truth of every vehicle to the test over UDP.
 
-Loaded inside the simulator process with ``--component tests.flight.truth_component:serve_truth``; the
+``python -m tests.flight.truth_component serve ...`` is ``sitl`` with :func:`serve_truth` passed in; the
 destination port comes from ``WINGMAN_TEST_TRUTH_PORT``. One JSON datagram every 20 ms of sim time:
 ``{"t_s": ..., "vehicles": {name: {"p": [n, e, d], "v": [...], "q": [w, x, y, z]}}}`` in the world NED frame.
 It exists so flight tests can drive the formation law from the true relative state until the perception
@@ -41,3 +41,9 @@ async def serve_truth(sim: Any) -> None:
                 sock.sendto(payload, ("127.0.0.1", port))
     finally:
         sock.close()
+
+
+if __name__ == "__main__":
+    from sitl.cli import main
+
+    raise SystemExit(main(components=(serve_truth,)))

@@ -99,14 +99,18 @@ def sitl_serve(
     vehicles: int = 2,
     args: list[str] | None = None,
     camera: Path | None = None,
+    host: str = "sitl",
 ) -> Iterator[SitlProcess]:
-    """Start ``python -m sitl serve`` and wait until it says it is running; always stop it."""
+    """Start ``python -m sitl serve`` and wait until it says it is running; always stop it.
+
+    ``host``: the module run with ``-m``, ``sitl`` or a program that hosts it with its own components.
+    """
     ports = pick_ports(vehicles)
     env = os.environ.copy()
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     env.update(ports.env())
     env.update(extra_env or {})
-    cmd = [sys.executable, "-m", "sitl", "serve", "--speed", str(speed)]
+    cmd = [sys.executable, "-m", host, "serve", "--speed", str(speed)]
     cmd += ["--camera", str(camera)] if camera is not None else ["--no-camera"]
     cmd += ["--config", str(config or REPO / "config" / "sitl.toml")]
     if scenario is not None:

@@ -16,7 +16,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.timeout(120)]
 
 
 def test_banner_components_and_ctrl_c() -> None:
-    with sitl_serve(speed=2.0, args=["--component", "tests.integration.sitl_component:report_truth"]) as sim:
+    with sitl_serve(speed=2.0, host="tests.integration.sitl_component") as sim:
         deadline = time.monotonic() + 20
         while sum("component:" in line for line in sim.output) < 6 and time.monotonic() < deadline:
             time.sleep(0.1)

@@ -1,6 +1,6 @@
 """TEST-ONLY ``sitl serve`` component: the renderer's camera server on the socket the test chose.
 
-Loaded in the simulator process with ``--component tests.service.sitl_camera:camera``; the socket path
+``python -m tests.service.sitl_camera serve ...`` is ``sitl`` with :func:`camera` passed in; the socket path
 comes from ``WINGMAN_TEST_CAMERA_SOCK``. The camera is smaller and slower than the D435i default
 (320x240 at 15 Hz, no scattered structures) so that simulator, renderer and service keep real time on a
 2-core test machine; the service's pipeline is the same at any resolution.
@@ -29,3 +29,9 @@ async def camera(sim: Any) -> None:
         wait_until=sim.wait_until,
     ) as server:
         await server.run()
+
+
+if __name__ == "__main__":
+    from sitl.cli import main
+
+    raise SystemExit(main(components=(camera,)))

@@ -62,7 +62,7 @@ def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Child:
     args = [
         sys.executable,
         "-m",
-        "sitl",
+        "tests.service.sitl_camera",  # sitl, its camera passed in
         "--log-level",
         "INFO",
         "serve",
@@ -70,7 +70,7 @@ def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Child:
         "--config",
         str(REPO / "config/sitl.toml"),
     ]
-    args += ["--scenario", str(scenario), "--component", "tests.service.sitl_camera:camera"]
+    args += ["--scenario", str(scenario)]
     return Child(args, env, tmp_path / "sitl.log")
 
 

@@ -4,7 +4,7 @@ One run (:func:`run_real`):
 
 1. ``sitl serve`` starts with the scenario, the leader spawned in the follower's slot, a private block of UDP
    ports, and :mod:`companion.lab.evaluation.sitl_components` inside it (sim clock, truth recorder, the
-   rendered camera on a Unix socket).
+   rendered camera on a Unix socket), passed in by :mod:`companion.lab.evaluation.sitl_host`.
 2. :class:`~companion.app.FollowerService` runs here with the parts ``companion run`` builds
    (:func:`companion.service.wiring.make_parts_factory`): MAVSDK 4 over UDP, the simulator frame source, the
    detector, pose, tracker, mission runner. Its clock is the simulator's (:class:`SimClock`), so ``--speed``
@@ -57,7 +57,8 @@ from companion.viz.setup import health_flags
 log = logging.getLogger(__name__)
 
 SITL_BASE_CONFIG = REPO / "config" / "sitl.toml"
-COMPONENT = "companion.lab.evaluation.sitl_components:run"
+#: The module that runs ``sitl`` with the lab's components passed in.
+SITL_HOST = "companion.lab.evaluation.sitl_host"
 #: Truth samples per sim second (crash and landing detection, tick scoring).
 TRUTH_RATE_HZ = 50.0
 #: Wall time allowed for ``sitl serve`` (and its camera worker) to come up.
@@ -194,10 +195,9 @@ async def run_real(  # noqa: PLR0917 (one call site, every argument needed)
     follower_port = ports.follower_api
     if options.autopilot == "px4":
         follower_port = _px4_environment(env, base_vehicles, work_dir)
-    args = [sys.executable, "-m", "sitl", "--log-level", "INFO", "serve", "--no-camera"]
+    args = [sys.executable, "-m", SITL_HOST, "--log-level", "INFO", "serve", "--no-camera"]
     args += ["--config", str(SITL_BASE_CONFIG), "--autopilot", options.autopilot]
     args += ["--scenario", str(scenario_file), "--speed", repr(options.speed), "--seed", str(seed)]
-    args += ["--component", COMPONENT]
     sim = Child(args, env, work_dir / "sitl.log")
     service_cfg = cfg.model_copy(
         update={

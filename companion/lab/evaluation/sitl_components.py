@@ -1,4 +1,4 @@
-"""What ``companion sim`` runs *inside* ``sitl serve`` (``--component ...evaluation.sitl_components:run``).
+"""What ``companion sim`` runs *inside* ``sitl serve`` (passed in by :mod:`.sitl_host`).
 
 Tasks beside the simulation, configured by the JSON file named in ``$WINGMAN_SIM_RUN`` (written by
 ``companion sim`` for this run; read once here, at the component's edge):

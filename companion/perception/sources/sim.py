@@ -43,7 +43,7 @@ class SimFrameSource:
         except (FileNotFoundError, ConnectionRefusedError) as exc:
             raise CameraError(
                 f"sim camera: no camera server at {path} ({exc.strerror}); is `sitl serve` running with "
-                "the component sitl.render.server:camera_component?"
+                "its camera (not --no-camera)?"
             ) from None
         except TimeoutError:
             raise CameraError(
