@@ -212,8 +212,11 @@ class SigningRelay:
                     self._report("save", f"cannot keep the signing timestamp in {self._store.path}: {exc}")
 
     def stats(self) -> dict[str, Any]:
-        """Counters for the status endpoint (bounded whatever arrives)."""
+        """Counters for the status endpoint (bounded whatever arrives), and where the relay listens."""
         return {
+            "autopilot_url": self.cfg.url,
+            "mavsdk_port": self.local_port,
+            "mavsdk_address": None if self._mavsdk.addr is None else where(self._mavsdk.addr),
             "autopilot_signs": self.autopilot_signs,
             "autopilot_address": None if self._autopilot_addr is None else where(self._autopilot_addr[0]),
             "counters": dict(self.counters),

@@ -102,6 +102,8 @@ async def test_relay_provisions_the_simulator_and_passes_only_signed_frames(tmp_
             beats = tg.create_task(beat(), name="test.beat")
             await until(lambda: relay.autopilot_signs, 15, "the simulator to sign")
             assert relay.provision_attempts >= 1
+            # The status says where MAVSDK's side listens (for `companion status` and the PX4 attack test).
+            assert relay.stats()["mavsdk_port"] == relay.local_port != 0
             await until(lambda: len(mavsdk.heartbeats_from(FOLLOWER)) >= 2, 5, "signed heartbeats for MAVSDK")
             assert all(mavsdk.heartbeats_from(FOLLOWER)), "nothing unsigned of system 2 reached MAVSDK"
             # MAVSDK's plain request goes out signed and its answer comes back.

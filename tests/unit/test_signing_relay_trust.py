@@ -177,6 +177,7 @@ def test_mavsdk_is_the_first_local_sender_the_service_owns_and_others_are_report
     assert len(sent(r)) == 1
     assert r.counters["local_refused"] == 1
     assert r.counters["local_foreign"] == 1
+    assert r.stats()["mavsdk_address"] == "127.0.0.1:6000"
     text = caplog.text
     assert "127.0.0.1:5555 is not MAVSDK: its socket belongs to another process" in text
     assert "a second local sender at 127.0.0.1:6001 (MAVSDK is 127.0.0.1:6000): refused" in text
