@@ -288,12 +288,17 @@ async def attack_and_watch(run: Run, attacker: subprocess.Popen[str]) -> dict[st
 
 
 def _root_and_nobody() -> str | None:
+    """Why the attacks cannot be made here (None: they can)."""
     if os.geteuid() != 0:
         return "needs root: a packet socket on lo, and the attacker runs as the user nobody"
     try:
         pwd.getpwnam("nobody")
     except KeyError:
         return "needs the user nobody for the attacker"
+    try:  # a container may run as root without CAP_NET_RAW
+        socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0800)).close()
+    except OSError as exc:
+        return f"needs a packet socket on lo (CAP_NET_RAW): {exc}"
     return None
 
 
