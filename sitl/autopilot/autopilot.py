@@ -2,8 +2,10 @@
 
 The autopilot is the only thing a MAVLink client talks to. It is transport-free: the UDP server
 (:mod:`sitl.serve.server`) and the lockstep harness (:mod:`sitl.world.lockstep`) both feed it pymavlink
-message objects through its endpoint's ``handle_message`` and collect what it sends from its links'
-``outbox``, so tests and evaluation run exactly the code that answers on the wire.
+message objects through its endpoint's ``handle_message`` and collect what it sends with
+:meth:`Autopilot.drain_outbox`, so tests and evaluation run exactly the code that answers on the wire.
+The world, the pilots and the lab see it through :class:`Autopilot`'s methods (its clock, its links, its
+own estimate, its mode and messages), never through its state.
 
 Loops (PX4's, at the rates PX4 SITL runs them):
 
@@ -27,13 +29,33 @@ one part reads - the estimator, parameters, commander state, setpoints, health b
 
 from __future__ import annotations
 
+from collections import Counter
+from dataclasses import dataclass
+
+from pymavlink.dialects.v20 import common as mavlink
+
 from companion.kernel.frames import R_from_euler
 from sitl.autopilot.flight import FlightLogic
 from sitl.autopilot.mavlink import MavlinkEndpoint
-from sitl.autopilot.state import AutopilotState, AutopilotStatus
+from sitl.autopilot.state import AutopilotState, AutopilotStatus, GlobalEstimate, Home
 from sitl.physics.dynamics import GRAVITY_M_S2
 
-__all__ = ["Autopilot", "AutopilotStatus"]
+__all__ = ["Autopilot", "AutopilotStatus", "OwnEstimate"]
+
+
+@dataclass(frozen=True, slots=True)
+class OwnEstimate:
+    """The autopilot's own estimate as its companion would share it (the EKF's, never the truth).
+
+    ``p_local_ned_m``: position from the vehicle's EKF origin (local NED, m); ``v_ned_m_s``: velocity
+    (NED, m/s); ``yaw_rad``: the heading PX4 estimates; ``global_valid``: PX4 calls its global position
+    valid (what it reports in GLOBAL_POSITION_INT).
+    """
+
+    global_valid: bool
+    p_local_ned_m: tuple[float, float, float]
+    v_ned_m_s: tuple[float, float, float]
+    yaw_rad: float
 
 
 class Autopilot:
@@ -47,6 +69,73 @@ class Autopilot:
         self.state = state
         self.flight = FlightLogic(state)
         self.mavlink = MavlinkEndpoint(state, self.flight)
+        self.name = state.name
+        self.sysid = state.sysid
+
+    # ------------------------------------------------------------------ what the world and harnesses see
+    def set_time(self, t_s: float) -> None:
+        """The world's clock for this physics tick, s."""
+        self.state.t_s = t_s
+
+    @property
+    def any_link_active(self) -> bool:
+        return self.state.any_link_active
+
+    def link_active(self, index: int) -> bool:
+        return self.state.links[index].active
+
+    def open_link(self, index: int) -> None:
+        """Start link ``index``'s default streams (PX4 streams on every configured link)."""
+        self.state.links[index].active = True
+
+    def close_link(self, index: int) -> None:
+        """Stop link ``index``'s streams and drop what it has not sent yet."""
+        out = self.state.links[index]
+        out.active = False
+        out.outbox.clear()
+
+    def drain_outbox(self, index: int) -> list[mavlink.MAVLink_message]:
+        """What the autopilot sent on link ``index`` since the last drain, oldest first."""
+        box = self.state.links[index].outbox
+        if not box:
+            return []
+        out = list(box)
+        box.clear()
+        return out
+
+    def own_estimate(self) -> OwnEstimate:
+        """The EKF's position, velocity and heading (see :class:`OwnEstimate`)."""
+        e, s = self.state.est, self.state
+        return OwnEstimate(
+            bool(e.global_valid), (e.n_m, e.e_m, e.d_m), (e.vn_m_s, e.ve_m_s, e.vd_m_s), s.yaw_est_rad()
+        )
+
+    def global_estimate(self) -> GlobalEstimate | None:
+        """The global position the autopilot reports (GLOBAL_POSITION_INT); None before it has an origin."""
+        return self.state.global_estimate()
+
+    @property
+    def home(self) -> Home | None:
+        return self.state.home
+
+    def time_boot_ms(self) -> int:
+        return self.state.time_boot_ms()
+
+    def status(self) -> AutopilotStatus:
+        return self.state.status()
+
+    def mode(self) -> tuple[str, bool]:
+        """The flight mode (PX4's UI name) and whether it is armed."""
+        return self.state.nav_state.ui_name, self.state.armed
+
+    def status_texts(self) -> list[tuple[float, int, str]]:
+        """The STATUSTEXTs sent so far: (sim time s, MAV_SEVERITY, text)."""
+        return list(self.state.texts_sent)
+
+    @property
+    def counters(self) -> Counter[str]:
+        """Messages in, handler errors, setpoints taken and refused."""
+        return self.state.counters
 
     # ------------------------------------------------------------------ physics-rate loop
     def inner_update(self, dt_s: float) -> tuple[float, float, float, float]:

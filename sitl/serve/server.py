@@ -85,18 +85,17 @@ class SimHandle:
 
     def global_estimate(self, name: str) -> GlobalEstimate | None:
         """The global position ``name``'s autopilot reports (its estimate, not the truth); None before one."""
-        return self._world.autopilot(name).state.global_estimate()
+        return self._world.autopilot(name).global_estimate()
 
     def mode(self, name: str) -> tuple[str, bool]:
         """The autopilot's flight mode (PX4's UI name) and whether it is armed."""
-        s = self._world.autopilot(name).state
-        return s.nav_state.ui_name, s.armed
+        return self._world.autopilot(name).mode()
 
     def status_texts(self, name: str) -> list[tuple[float, str, str]]:
         """The autopilot's STATUSTEXTs so far: (sim time s, severity, text)."""
         return [
             (t_s, SEVERITY[sev] if 0 <= sev < len(SEVERITY) else str(sev), text)
-            for t_s, sev, text in self._world.autopilot(name).state.texts_sent
+            for t_s, sev, text in self._world.autopilot(name).status_texts()
         ]
 
     def _notify(self) -> None:
@@ -271,7 +270,7 @@ class Server:
                 c["send_errors"],
             )
         for v in self.world.vehicles:
-            c = v.autopilot.state.counters
+            c = v.autopilot.counters
             log.info(
                 "%s autopilot: messages %d, handler errors %d, setpoints %d (refused %d)",
                 v.name,

@@ -94,17 +94,15 @@ class MessageLink:
 
     @property
     def active(self) -> bool:
-        return self._ap.state.links[self.index].active
+        return self._ap.link_active(self.index)
 
     def open(self) -> MessageLink:
         """Start the link's streams (PX4 always streams on a configured link; a harness opts in)."""
-        self._ap.state.links[self.index].active = True
+        self._ap.open_link(self.index)
         return self
 
     def close(self) -> None:
-        out = self._ap.state.links[self.index]
-        out.active = False
-        out.outbox.clear()
+        self._ap.close_link(self.index)
         self._outbound.clear()
         self._outbound_delayed.clear()
 
@@ -138,7 +136,7 @@ class MessageLink:
 
     def collect(self, t_s: float) -> None:
         """Move the autopilot's outbox through the outgoing faults (the world calls this)."""
-        box = self._ap.state.links[self.index].outbox
+        box = self._ap.drain_outbox(self.index)
         if box:
             faults = self._faults_out
             if faults.perfect:
@@ -152,7 +150,6 @@ class MessageLink:
                         self._outbound.append((t_s, m))
                     else:
                         heapq.heappush(self._outbound_delayed, (t_s + delay, next(self._seq), m))
-            box.clear()
         q = self._outbound_delayed
         while q and q[0][0] <= t_s:
             due, _, m = heapq.heappop(q)

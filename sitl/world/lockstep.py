@@ -176,7 +176,7 @@ class World:
                 self.pilots.append(TrajectoryPilot(AutopilotPort(leader.autopilot), scenario.leader, traj))
         self.wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
         # Flat lists for the per-tick loop (attribute chains cost as much as the work here).
-        self._pairs = [(v.autopilot, v.autopilot.state, v.dyn) for v in self.vehicles]
+        self._pairs = [(v.autopilot, v.dyn) for v in self.vehicles]
         self._links = [link for v in self.vehicles for link in v.links]
         self._links_open = False
 
@@ -224,8 +224,8 @@ class World:
             for link in self._links:
                 if link._inbound:
                     link.deliver_due(t)
-        for ap, state, dyn in self._pairs:
-            state.t_s = t
+        for ap, dyn in self._pairs:
+            ap.set_time(t)
             dyn.step(*ap.inner_update(dt))
         self._tick = k
         if k % self._outer_every == 0:
@@ -240,7 +240,7 @@ class World:
         if self._links_open:
             for v in self.vehicles:
                 ap = v.autopilot
-                if ap.state.any_link_active:
+                if ap.any_link_active:
                     ap.mavlink.service_links(t)
                     for link in v.links:
                         if link.active:

@@ -63,20 +63,20 @@ class AutopilotPort:
     """The simulator's own autopilot as a :class:`PilotPort`: its state read, its endpoint written."""
 
     def __init__(self, autopilot: Autopilot) -> None:
-        self._state = autopilot.state
+        self._autopilot = autopilot
         self._endpoint = autopilot.mavlink
-        self.name = autopilot.state.name
-        self.sysid = autopilot.state.sysid
+        self.name = autopilot.name
+        self.sysid = autopilot.sysid
 
     @property
     def home(self) -> Home | None:
-        return self._state.home
+        return self._autopilot.home
 
     def time_boot_ms(self) -> int:
-        return self._state.time_boot_ms()
+        return self._autopilot.time_boot_ms()
 
     def status(self) -> AutopilotStatus:
-        return self._state.status()
+        return self._autopilot.status()
 
     def handle_message(self, msg: Any, link: int | None, src_system: int, src_component: int) -> None:
         """Deliver one message from the vehicle's onboard computer (no link: no reply comes back)."""

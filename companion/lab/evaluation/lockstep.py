@@ -286,20 +286,21 @@ class LockstepFlight:
         """
         for f in self.followers:
             if f.autolabel is not None and f.autolabel.share.due(t_s):
-                est = self.world.autopilot("leader").state.est
+                own = self.world.autopilot("leader").own_estimate()
                 p = self._local(self._world_estimate("leader"), f.name)
-                f.autolabel.share.sample(t_s, p, bool(est.global_valid))
+                f.autolabel.share.sample(t_s, p, own.global_valid)
         bus = self.shares
         if bus is None:
             return
         if bus.due(t_s):
             shares = []
             for v in self.world.vehicles:
-                est = v.autopilot.state.est
-                if not est.global_valid:
+                own = v.autopilot.own_estimate()
+                if not own.global_valid:
                     continue
-                v_ned = (float(est.vn_m_s), float(est.ve_m_s), float(est.vd_m_s))
-                yaw = float(v.autopilot.state.yaw_est_rad())
+                vn, ve, vd = own.v_ned_m_s
+                v_ned = (float(vn), float(ve), float(vd))
+                yaw = float(own.yaw_rad)
                 shares.append(
                     Share(v.name, t_s, self._world_estimate(v.name), v_ned, yaw, float(v.dyn.r_rad_s))
                 )
@@ -324,9 +325,9 @@ class LockstepFlight:
 
     def _world_estimate(self, name: str) -> Vec3T:
         """Vehicle ``name``'s own position estimate in the shared world frame (NED from home), m."""
-        est = self.world.autopilot(name).state.est
+        n, e, d = self.world.autopilot(name).own_estimate().p_local_ned_m
         off = self.world.origin_offset_ned_m(name)
-        return (float(est.n_m + off[0]), float(est.e_m + off[1]), float(est.d_m + off[2]))
+        return (float(n + off[0]), float(e + off[1]), float(d + off[2]))
 
     # ------------------------------------------------------------------ cameras
     def _capture(self, f: LockstepFollower, t_s: float) -> None:
