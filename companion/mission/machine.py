@@ -37,8 +37,7 @@ import math
 import numpy as np
 
 from companion.config import Config, slot_refusal
-from companion.kernel.flight import ExternalPosition, FlightMode, Setpoint, VehicleState
-from companion.kernel.frames import Vec3
+from companion.kernel.flight import FlightMode, VehicleState
 from companion.mission.ego import HOLD_S as EGO_STALE_S
 from companion.mission.formation import FormationLaw
 from companion.mission.geometry import Slot
@@ -131,22 +130,8 @@ class MissionMachine:
     # ------------------------------------------------------------------ public
     def step(self, inp: MissionInputs, now_s: float) -> StepOutput:
         """Advance the mission to ``now_s`` with this tick's inputs."""
-        self.c.now_s = now_s
-        self.c.ages.tick(now_s)
-        self.c.book.outgoing = []
-        self.transitions.begin_tick()
-        self._absorb(inp.command_results)
+        self._begin_tick(inp, now_s)
         veh = inp.vehicle
-        self.follow.coasted_on_share = False
-        if self.c.shared_motion is not None:
-            self.c.leader_motion = self.c.shared_motion.update(inp.leader_shared, now_s)
-        self._seed_hover_thrust(veh)
-        self.c.gps.update(veh, now_s)
-        if self.c.gps.ok and veh.position_valid is not False:
-            if now_s - veh.velocity_stamp_s <= EGO_STALE_S:
-                self.c.ego.push(min(veh.velocity_stamp_s, now_s), np.array(veh.v_ned_m_s))
-        else:
-            self.c.ego.clear()
         # An operator's request is checked once, here, on the tick that acts on it: the verdict is the answer.
         req = inp.operator
         refused = None if req is None else self._operator_verdict(req, veh)
@@ -160,16 +145,7 @@ class MissionMachine:
         self.c.update_neighbours(inp)
 
         self._global_checks(inp, taken if taken in (OperatorCommand.LAND, OperatorCommand.HOLD) else None)
-        setpoint: Setpoint | None = None
-        ext: ExternalPosition | None = None
-        err: Vec3 | None = None
-        step = STAY
-        for _ in range(4):  # a transition re-runs the new state's handler in the same tick
-            before = self.c.state
-            step = self._handle(inp)
-            self.transitions.apply(step.request, inp)
-            if self.c.state == before:
-                break
+        step = self._run_phases(inp)
         setpoint, ext, err = step.setpoint, step.external, step.error_ned_m
         if self._manage_offboard(inp, setpoint is not None):
             setpoint, ext, err = None, None, None
@@ -197,6 +173,36 @@ class MissionMachine:
         return self.c.gps.ok
 
     # ------------------------------------------------------------------ plumbing
+    def _begin_tick(self, inp: MissionInputs, now_s: float) -> None:
+        """The tick's time, the command results, the shared motion, the GPS verdict and our own velocity."""
+        self.c.now_s = now_s
+        self.c.ages.tick(now_s)
+        self.c.book.outgoing = []
+        self.transitions.begin_tick()
+        self._absorb(inp.command_results)
+        veh = inp.vehicle
+        self.follow.coasted_on_share = False
+        if self.c.shared_motion is not None:
+            self.c.leader_motion = self.c.shared_motion.update(inp.leader_shared, now_s)
+        self._seed_hover_thrust(veh)
+        self.c.gps.update(veh, now_s)
+        if self.c.gps.ok and veh.position_valid is not False:
+            if now_s - veh.velocity_stamp_s <= EGO_STALE_S:
+                self.c.ego.push(min(veh.velocity_stamp_s, now_s), np.array(veh.v_ned_m_s))
+        else:
+            self.c.ego.clear()
+
+    def _run_phases(self, inp: MissionInputs) -> PhaseStep:
+        """The state's handler, its request applied; a transition re-runs the new state's in the same tick."""
+        step = STAY
+        for _ in range(4):
+            before = self.c.state
+            step = self._handle(inp)
+            self.transitions.apply(step.request, inp)
+            if self.c.state == before:
+                break
+        return step
+
     def _absorb(self, results: tuple[CommandResult, ...]) -> None:
         for r in results:
             self.c.book.absorb(r)
