@@ -44,6 +44,7 @@ from companion.mission.geometry import Slot
 from companion.mission.next_step import next_step
 from companion.mission.offboard import OffboardStream
 from companion.mission.safety import SafetyLimits
+from companion.mission.shared_motion import SharedLeaderMotion
 from companion.mission.states import (
     AIRBORNE_STATES,
     NOT_IN_CONTROL,
@@ -101,6 +102,13 @@ class MissionMachine:
         self.landing = LandingPhase(self.c)
         self.transitions = Transitions(self.c, self.launch, self.follow, self.recovery, self.landing)
         self._hover_thrust_seeded = False
+        f = cfg.formation
+        #: The leader's own motion from its shares (``formation.lead_on_shared_motion``).
+        self._shared_motion = (
+            SharedLeaderMotion(f.shared_accel_tau_s, f.shared_motion_max_age_s, f.max_accel_m_s2)
+            if f.lead_on_shared_motion
+            else None
+        )
 
     @property
     def state(self) -> MissionState:
@@ -182,8 +190,8 @@ class MissionMachine:
         self._absorb(inp.command_results)
         veh = inp.vehicle
         self.follow.coasted_on_share = False
-        if self.c.shared_motion is not None:
-            self.c.leader_motion = self.c.shared_motion.update(inp.leader_shared, now_s)
+        if self._shared_motion is not None:
+            self.c.leader_motion = self._shared_motion.update(inp.leader_shared, now_s)
         self._seed_hover_thrust(veh)
         self.c.gps.update(veh, now_s)
         if self.c.gps.ok and veh.position_valid is not False:

@@ -97,9 +97,9 @@ class Transitions:
             c.law.reset()
             # A planned approach into the slot on every entry into FOLLOW (planned on its first tick).
             if state == MissionState.FOLLOW:
-                c.join.arm()
+                self.follow.join.arm()
             else:
-                c.join.cancel()
+                self.follow.join.cancel()
 
     def _abort(self, reason: Reason, detail: str) -> None:
         if not self.c.gps.ok:

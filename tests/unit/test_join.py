@@ -186,7 +186,9 @@ def forward_commands(cfg: Config, seconds: float) -> tuple[list[float], int]:
     h.run_until(MissionState.FOLLOW, timeout_s=60.0)
     out = [o.setpoint for o in h.run(seconds)]
     assert all(isinstance(sp, VelocityBodySetpoint) for sp in out)
-    return [sp.v_body_m_s[0] for sp in out if isinstance(sp, VelocityBodySetpoint)], h.machine.c.join.planned
+    return [
+        sp.v_body_m_s[0] for sp in out if isinstance(sp, VelocityBodySetpoint)
+    ], h.machine.follow.join.planned
 
 
 def test_the_machine_plans_a_join_when_it_enters_the_formation_off_the_slot() -> None:
@@ -204,4 +206,4 @@ def test_entering_the_formation_in_the_slot_plans_nothing() -> None:
     h.to_follow()
     h.run(1.0)
     assert h.state == MissionState.FOLLOW
-    assert h.machine.c.join.planned == 0
+    assert h.machine.follow.join.planned == 0

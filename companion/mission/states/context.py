@@ -23,12 +23,11 @@ from companion.kernel.stall import StallAwareAge
 from companion.mission.ego import EgoMotion
 from companion.mission.formation import FormationLaw
 from companion.mission.geometry import FollowerState
-from companion.mission.join import JoinPlanner
 from companion.mission.monitors import GpsMonitor, LinkMonitor, TrackMonitor
 from companion.mission.offboard import CommandBook, OffboardStream
-from companion.mission.plan_slot import SlotTarget, SlotTurner, neighbours_now
+from companion.mission.plan_slot import neighbours_now
 from companion.mission.safety import SafetyLimits
-from companion.mission.shared_motion import LeaderMotion, SharedLeaderMotion
+from companion.mission.shared_motion import LeaderMotion
 from companion.mission.states.start_latch import StartLatch
 from companion.mission.types import (
     AirframeDrag,
@@ -115,8 +114,6 @@ class MissionContext:
         self.m = cfg.mission
         self.limits = SafetyLimits.from_config(cfg.safety, cfg.formation.max_accel_m_s2)
         self.law = law or FormationLaw(cfg.formation, self.limits, cfg.mission.hover_thrust_norm)
-        f = cfg.formation
-        self.join = JoinPlanner(f.join_speed_m_s, f.join_accel_m_s2, f.join_min_error_m)
         #: The state and when it was entered, s: written only where transitions are applied
         #: (:class:`~companion.mission.transitions.Transitions`).
         self.state = MissionState.WAIT_LINK
@@ -138,16 +135,7 @@ class MissionContext:
         self.shutting_down = False
         #: An operator's start until a state acts on it (launch, or PX4's modes after a hold).
         self.start = StartLatch()
-        #: A formation plan's slot, turned with the leader's shared heading (None: a lone follower).
-        slot = cfg.formation.slot_leader_m
-        self.slot_turner = SlotTurner(slot) if slot is not None else None
-        f = cfg.formation
-        #: The leader's own motion from its shares (``formation.lead_on_shared_motion``), and this tick's.
-        self.shared_motion = (
-            SharedLeaderMotion(f.shared_accel_tau_s, f.shared_motion_max_age_s, f.max_accel_m_s2)
-            if f.lead_on_shared_motion
-            else None
-        )
+        #: The leader's own motion from its shares this tick (``formation.lead_on_shared_motion``).
         self.leader_motion: LeaderMotion | None = None
 
     # ------------------------------------------------------------------ plumbing
@@ -185,12 +173,6 @@ class MissionContext:
             pitch_rad=veh.pitch_rad,
             airframe=airframe,
         )
-
-    def slot_target(self, inp: MissionInputs) -> SlotTarget | None:
-        """The plan's slot now (None without a plan or a fresh shared heading of the leader)."""
-        if self.slot_turner is None:
-            return None
-        return self.slot_turner.update(inp.leader_shared, self.now_s)
 
     def update_neighbours(self, inp: MissionInputs) -> None:
         """The other followers relative to this one now, for the law's separation barrier."""

@@ -15,6 +15,8 @@ import numpy as np
 from companion.estimation.leader import LeaderEstimate, TrackStatus
 from companion.kernel.flight import ExternalPosition, VehicleState
 from companion.kernel.frames import Vec3
+from companion.mission.join import JoinPlanner
+from companion.mission.plan_slot import SlotTarget, SlotTurner
 from companion.mission.shared_motion import SharedRelativeFix, shared_rel_now
 from companion.mission.states.context import MissionContext
 from companion.mission.states.request import (
@@ -48,6 +50,11 @@ class FollowPhase:
         #: The age of the track flown on at the last tick, s: a younger one is another track.
         self._track_age_s = math.inf
         f = ctx.cfg.formation
+        #: The planned approach into the slot, armed on every entry into FOLLOW (planned on its first tick).
+        self.join = JoinPlanner(f.join_speed_m_s, f.join_accel_m_s2, f.join_min_error_m)
+        #: A formation plan's slot, turned with the leader's shared heading (None: a lone follower).
+        slot = f.slot_leader_m
+        self.slot_turner = SlotTurner(slot) if slot is not None else None
         #: The shares held to the camera, flown while it misses the leader (``coast_on_shared_position``).
         self.shared_fix = (
             SharedRelativeFix(f.shared_offset_tau_s)
@@ -78,6 +85,12 @@ class FollowPhase:
         self._ext_valid_since = None
         self._ext_since = None
         self._ext_gave_up = False
+
+    def _slot_target(self, inp: MissionInputs) -> SlotTarget | None:
+        """The plan's slot now (None without a plan or a fresh shared heading of the leader)."""
+        if self.slot_turner is None:
+            return None
+        return self.slot_turner.update(inp.leader_shared, self.c.now_s)
 
     def _leader_or_transition(self, inp: MissionInputs) -> LeaderEstimate | TransitionRequest:
         """The estimate to fly on, or the request to go to HOVER (stale) or REACQUIRE (lost)."""
@@ -113,9 +126,9 @@ class FollowPhase:
             kp_range_1_s=f.kp_xy_steady if steady else f.kp_xy,
             # The shared motion does not stop when the camera misses the leader.
             coasting=est.status == TrackStatus.COASTING and motion is None,
-            slot_target=self.c.slot_target(inp),
+            slot_target=self._slot_target(inp),
             v_leader_ned_m_s=self._shared_leader_velocity(inp) if motion is None else motion.v_ned_m_s,
-            join=self.c.join.reference(self.c.law.slot, p_rel, veh.yaw_rad, self.c.now_s),
+            join=self.join.reference(self.c.law.slot, p_rel, veh.yaw_rad, self.c.now_s),
         )
         return PhaseStep(cmd.setpoint, None, cmd.error.error_ned_m)
 
@@ -131,7 +144,7 @@ class FollowPhase:
         age_s = est.track_age_s
         if age_s < self._track_age_s and math.isfinite(self._track_age_s):
             self.c.law.reset()
-            self.c.join.arm()
+            self.join.arm()
         self._track_age_s = age_s
 
     def _through_misses(
@@ -163,7 +176,7 @@ class FollowPhase:
     def _shared_leader_velocity(self, inp: MissionInputs) -> Vec3 | None:
         """Formations: the leader's own shared velocity while fresh (None: the law uses the estimate's)."""
         sh = inp.leader_shared
-        if self.c.slot_turner is None or sh is None or sh.v_ned_m_s is None:
+        if self.slot_turner is None or sh is None or sh.v_ned_m_s is None:
             return None
         if not 0.0 <= self.c.ages.age_s(sh.stamp_s, self.c.now_s) <= SHARED_STALE_S:
             return None
@@ -250,7 +263,7 @@ class FollowPhase:
             v_rel,
             self.c.follower(veh, velocity_valid=False),
             self.c.now_s,
-            slot_target=self.c.slot_target(inp),
+            slot_target=self._slot_target(inp),
         )
         err = acmd.error.error_ned_m if acmd.error is not None else None
         return PhaseStep(acmd.setpoint, ext, err, request)
