@@ -38,7 +38,7 @@ from companion.service.latency import LatencyStats
 from companion.service.operator import parse_command
 from companion.service.parts import Parts, PartsContext, PartsFactory
 from companion.service.perception_loop import PerceptionLoop
-from companion.service.ports import FlightSnapshot, MissionPort, StateChange
+from companion.service.ports import FlightPort, FlightSnapshot, StateChange
 from companion.service.reports import (
     STATUS_SCHEMA_VERSION,
     health_msg,
@@ -220,7 +220,7 @@ class FollowerService:
             "on" if self.mqtt else "off",
         )
 
-    async def _run_mission(self, mission: MissionPort) -> None:
+    async def _run_mission(self, mission: FlightPort) -> None:
         if self.cfg.service.auto_start:
             # From the ground only: a vehicle found flying waits for an operator's start.
             mission.request_start(takeover=False)
@@ -236,7 +236,7 @@ class FollowerService:
         await self._farewell(f"mission over: {snap.state}")
         raise _Finished
 
-    async def _until_down(self, mission: MissionPort) -> None:
+    async def _until_down(self, mission: FlightPort) -> None:
         """The mission handed a landing to PX4 and returned: watch it until touchdown and disarm."""
         v = mission.snapshot().vehicle
         if not (v.armed and v.flight_mode == "land"):
@@ -282,7 +282,7 @@ class FollowerService:
                 self.mqtt.event("command_refused", reply, "warning", cmd=name, source="status socket")
         return {"ok": verdict.taken, "detail": reply}
 
-    async def _lifecycle(self, mission: MissionPort) -> None:
+    async def _lifecycle(self, mission: FlightPort) -> None:
         await self._stop.wait()
         timeout_s = self.cfg.service.shutdown_timeout_s
         action = self.cfg.mission.shutdown_action

@@ -1,8 +1,8 @@
 """The camera wire format between the simulator and the service: one RGB-D frame per message.
 
-The simulator's camera server (:class:`sitl.render.server.CameraServer`) writes it over a Unix socket and
-the service's sim frame source (:mod:`companion.perception.sources.sim`) reads it; it lives here so that
-neither program imports the other. One message per frame, little-endian::
+The simulator's camera server (:class:`sitl.render.camera_server.CameraServer`) writes it over a Unix
+socket and the service's sim frame source (:mod:`companion.perception.sources.sim`) reads it; it lives
+here so that neither program imports the other. One message per frame, little-endian::
 
     magic        4 bytes   b"WGRD"
     header_len   uint32

@@ -15,7 +15,7 @@ from companion.kernel.clock import Clock
 from companion.service.health import HealthBoard
 from companion.service.latency import LatencyStats
 from companion.service.perception_loop import PerceptionLoop
-from companion.service.ports import GcsPort, MissionPort
+from companion.service.ports import FlightPort, GcsPort
 from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 
 
@@ -23,7 +23,7 @@ from companion.telemetry.payloads import LeaderPositionMsg, PoseMsg
 class Parts:
     """The flight and perception parts, opened by a :data:`PartsFactory` on the service's exit stack."""
 
-    mission: MissionPort
+    mission: FlightPort
     gcs: GcsPort | None = None
     perception: PerceptionLoop | None = None
     #: Where leader positions received on MQTT go (``leader.shared_position = "mqtt"``).

@@ -101,7 +101,7 @@ class StateChange:
     statustext: str = ""
 
 
-class MissionPort(Protocol):
+class FlightPort(Protocol):
     """The flight side: runs the mission, reports it, and takes requests from the service."""
 
     def snapshot(self) -> FlightSnapshot: ...

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from sitl.render import scene_shaders, shaders
 from sitl.render.config import VisualConfig
 from sitl.render.gl import mat_bytes, set_uniform
-from sitl.render.world import CLOUD_ALTITUDE_M, CLOUD_TEXEL_M, GROUND_PERIOD_M, World
+from sitl.render.surroundings import CLOUD_ALTITUDE_M, CLOUD_TEXEL_M, GROUND_PERIOD_M, World
 
 #: The sky cube stores sqrt(radiance / SKY_SCALE).
 SKY_SCALE = 8.0

@@ -32,8 +32,8 @@ from sitl.render.gl import IDENTITY4, ScenePrograms, color_mask, mat_bytes, set_
 from sitl.render.meshes import F32, VERTEX_ATTRIBUTES, VERTEX_FLOATS, VERTEX_FORMAT
 from sitl.render.noise import FIELD_PX, pattern_texture, sensor_noise_field
 from sitl.render.sensor import sensor_constants, white_balance_gains
+from sitl.render.surroundings import GROUND_PERIOD_M, GROUPS, World, build_world
 from sitl.render.view import FAR_M, NEAR_M, frustum_normals
-from sitl.render.world import GROUND_PERIOD_M, GROUPS, World, build_world
 
 U8 = NDArray[np.uint8]
 #: Indices into ``world.GROUPS``: crowns, generic, diffuse, band, ground.

@@ -20,7 +20,7 @@ from sitl.render.config import CameraModel
 from sitl.render.geometry import CameraPose, LeaderPose
 from sitl.render.meshes import F32
 from sitl.render.shaders import SHADOW_OFFSETS_PX
-from sitl.render.world import GROUND_HALF_M
+from sitl.render.surroundings import GROUND_HALF_M
 
 NEAR_M = 0.05
 FAR_M = 2.0 * GROUND_HALF_M

@@ -1,7 +1,7 @@
 """The camera server's render process: ``python -m sitl.render.worker``, spoken to over stdin/stdout.
 
 moderngl holds the GIL while the GL driver works (a 30-80 ms frame on llvmpipe), which would stall a
-real-time simulator sharing the process; so :class:`sitl.render.server.CameraServer` renders here.
+real-time simulator sharing the process; so :class:`sitl.render.camera_server.CameraServer` renders here.
 
 Protocol. stdin: one JSON line of configuration (``camera``, ``visual``, ``mount``, ``seed``,
 ``depth``), then one JSON line per frame: ``{"t": t_s, "f": pose, "l": pose or null, "dz": m}`` with

@@ -306,7 +306,7 @@ def main(args: argparse.Namespace, components: Sequence[Component] = ()) -> int:
         raise ConfigError("--speed", [f"must be in (0, 100] (got {speed})"])
     components = list(components)
     if not getattr(args, "no_camera", True):
-        from sitl.render.server import make_camera_component  # noqa: PLC0415 (renderer: heavy)
+        from sitl.render.camera_server import make_camera_component  # noqa: PLC0415 (renderer: heavy)
 
         components.append(make_camera_component(args.camera))
     if getattr(args, "autopilot", "builtin") == "px4":

@@ -15,9 +15,9 @@ from companion.config import CameraConfig
 from companion.kernel.errors import CameraError
 from companion.kernel.frames import quat_from_euler
 from companion.perception.sources.sim import SimFrameSource, open_sim_source
+from sitl.render.camera_server import CameraServer
 from sitl.render.config import VisualConfig
 from sitl.render.geometry import VehiclePose
-from sitl.render.server import CameraServer
 
 pytestmark = pytest.mark.render
 

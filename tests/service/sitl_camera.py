@@ -11,8 +11,8 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from sitl.render.camera_server import CameraServer
 from sitl.render.config import CameraModel, VisualConfig
-from sitl.render.server import CameraServer
 
 
 async def camera(sim: Any) -> None:

@@ -10,7 +10,7 @@ import pytest
 from companion.lab.evaluation.obstacles import Envelopes
 from companion.lab.evaluation.outcome import TruthMonitor
 from companion.lab.evaluation.setup import scenario_path
-from sitl.render import world as render_world
+from sitl.render import surroundings
 from sitl.render.config import OccluderSpec, VisualConfig, visual_from_mapping
 from sitl.render.structures import solid_structures
 from sitl.world.scenario import load_scenario
@@ -64,15 +64,15 @@ def test_flying_into_a_tree_is_a_crash_and_passing_it_is_not() -> None:
 
 def test_solid_structures_are_the_ones_the_world_builds(monkeypatch: pytest.MonkeyPatch) -> None:
     built: list[OccluderSpec] = []
-    real_add = render_world.add_structure
+    real_add = surroundings.add_structure
 
     def record(b: object, spec: OccluderSpec, rng: np.random.Generator) -> None:
         built.append(spec)
         real_add(b, spec, rng)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(render_world, "add_structure", record)
+    monkeypatch.setattr(surroundings, "add_structure", record)
     visual = VisualConfig(seed=7, structures=25, occluders=(_tree(30.0, 3.0),))
-    render_world.build_world(visual, np.linspace(0.0, 1.0, 101))
+    surroundings.build_world(visual, np.linspace(0.0, 1.0, 101))
     assert built == list(solid_structures(visual))
     assert len(built) == 26
 

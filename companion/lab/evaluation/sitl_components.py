@@ -5,8 +5,8 @@ Tasks beside the simulation, configured by the JSON file named in ``$WINGMAN_SIM
 
 * ``clock``: publishes the sim time for the service (:mod:`companion.lab.evaluation.simclock`);
 * ``truth``: records both vehicles' truth for scoring (:mod:`companion.lab.evaluation.truthlog`);
-* ``camera``: the renderer's :class:`~sitl.render.server.CameraServer` for the follower at the scenario's
-  camera rate, blind to the leader inside the scenario's ``[run] leader_hidden_s`` windows;
+* ``camera``: the renderer's :class:`~sitl.render.camera_server.CameraServer` for the follower at the
+  scenario's camera rate, blind to the leader inside the scenario's ``[run] leader_hidden_s`` windows;
 * ``autopilot``: every vehicle's flight modes (from its HEARTBEAT) and STATUSTEXTs, as JSON lines, so the
   report shows what the autopilot itself did (its failsafes above all), on either backend;
 * ``leader_share`` (when set): what the leader's companion would share over MQTT for the service's
@@ -141,8 +141,8 @@ async def _leader_share(sim: Any, where: dict[str, Any]) -> None:
 
 
 async def _camera(sim: Any, settings: dict[str, Any]) -> None:
+    from sitl.render.camera_server import CameraServer  # noqa: PLC0415
     from sitl.render.config import CameraModel, visual_from_mapping  # noqa: PLC0415 (renderer: heavy)
-    from sitl.render.server import CameraServer  # noqa: PLC0415
 
     scenario = sim.scenario
     hidden = [(float(a), float(b)) for a, b in settings.get("leader_hidden_s", [])]

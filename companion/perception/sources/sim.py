@@ -1,6 +1,6 @@
 """The simulator's camera as a frame source: RGB-D frames rendered inside ``sitl serve``, over a Unix socket.
 
-The server is :class:`sitl.render.server.CameraServer`; the wire format is
+The server is :class:`sitl.render.camera_server.CameraServer`; the wire format is
 :mod:`companion.kernel.camera_wire`'s, so that the service never imports ``sitl``.
 """
 
