@@ -56,6 +56,22 @@ _TRACK_COLOUR = {
     "confirmed": fm.Color(r=0.1, g=0.9, b=0.2, a=0.35),
     "coasting": fm.Color(r=1.0, g=0.85, b=0.1, a=0.35),
 }
+
+
+def _box_edges(size_m: tuple[float, float, float]) -> list[fm.Point3]:
+    """The 12 edges of a box centred on the origin, as a line list (pairs of points)."""
+    hx, hy, hz = (x / 2.0 for x in size_m)
+    corners = [(sx * hx, sy * hy, sz * hz) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+    pts = []
+    for i, a in enumerate(corners):
+        for b in corners[i + 1 :]:
+            if sum(x != y for x, y in zip(a, b, strict=True)) == 1:  # corners one axis apart: an edge
+                pts += [fm.Point3(x=a[0], y=a[1], z=a[2]), fm.Point3(x=b[0], y=b[1], z=b[2])]
+    return pts
+
+
+#: The formation slot's wire box: the body (0.45 x 0.45 x 0.12 m) with a margin, so both show when they meet.
+_SLOT_EDGES = _box_edges((0.7, 0.7, 0.3))
 _TENTATIVE = fm.Color(r=0.6, g=0.6, b=0.6, a=0.35)
 #: The camera frustum is drawn out to this range, m (about the stereo range).
 FRUSTUM_RANGE_M = 10.0
@@ -363,12 +379,16 @@ class MessageBuilder:
                     timestamp=ts,
                     frame_id=WORLD,
                     id=f"{pre}/slot",
-                    cubes=[
-                        fm.CubePrimitive(
-                            # Where the follower should be: its position plus the formation error.
+                    lines=[
+                        fm.LinePrimitive(
+                            # Where the follower should be (its position plus the formation error): a cyan
+                            # wire box a little larger than the body, seen around it when it is in its slot.
+                            type=fm.LinePrimitiveLineType.LineList,
                             pose=pose((p[0] + e[0], p[1] + e[1], p[2] + e[2])),
-                            size=v3(0.45, 0.45, 0.12),
-                            color=fm.Color(r=0.3, g=0.9, b=1.0, a=0.3),
+                            thickness=2.0,
+                            scale_invariant=True,
+                            points=_SLOT_EDGES,
+                            color=fm.Color(r=0.0, g=0.85, b=1.0, a=1.0),
                         )
                     ],
                 )

@@ -46,9 +46,9 @@ turbulence_m_s = 0.1
 """
 
 
-def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path) -> Child:
+def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path, scenario_toml: str = SCENARIO) -> Child:
     scenario = tmp_path / "scenario.toml"
-    scenario.write_text(SCENARIO)
+    scenario.write_text(scenario_toml)
     env = {
         **os.environ,
         "PYTHONPATH": str(REPO),
