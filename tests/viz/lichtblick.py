@@ -5,8 +5,8 @@ needs), opens a flight's MCAP (``?ds=remote-file``) or a live view (``?ds=foxglo
 shipped layout (docs/foxglove-layout.json), takes screenshots and reads what a person would see: each
 panel's pixels (found by the app's own panel ids, ``Image!camera``, ``3D!scene``, ...) and the Alerts tab.
 
-Where things are: the app folder is ``WINGMAN_LICHTBLICK_WEB`` (default ``../shared/lichtblick-web`` beside
-the repository); Chromium is ``WINGMAN_CHROMIUM`` (default ``chromium`` on PATH, Debian's package), driven
+Where things are: the app folder is ``LICHTBLICK_WEB`` (default ``../shared/lichtblick-web`` beside
+the repository); Chromium is ``LICHTBLICK_CHROMIUM`` (default ``chromium`` on PATH, Debian's package), driven
 by the ``playwright`` package with no browser of its own.
 
 The screenshots in docs/visualisation.md come from here::
@@ -50,11 +50,13 @@ PLOTS = ("Plot!formation", "Plot!relative", "Plot!setpoint")
 
 
 def app_dir() -> Path:
-    return Path(os.environ.get("WINGMAN_LICHTBLICK_WEB", REPO.parent / "shared" / "lichtblick-web"))
+    return Path(os.environ.get("LICHTBLICK_WEB", REPO.parent / "shared" / "lichtblick-web"))
 
 
 def chromium() -> str | None:
-    exe = os.environ.get("WINGMAN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    exe = (
+        os.environ.get("LICHTBLICK_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    )
     return exe if exe and Path(exe).exists() else None
 
 
@@ -62,9 +64,9 @@ def missing() -> str | None:
     """Why the viewer cannot run here, in one line; None when it can."""
     app = app_dir()
     if not (app / "serve.py").is_file() or not (app / "www" / "index.html").is_file():
-        return f"no Lichtblick web build at {app} (set WINGMAN_LICHTBLICK_WEB)"
+        return f"no Lichtblick web build at {app} (set LICHTBLICK_WEB)"
     if chromium() is None:
-        return "no chromium on PATH (apt-get install chromium, or set WINGMAN_CHROMIUM)"
+        return "no chromium on PATH (apt-get install chromium, or set LICHTBLICK_CHROMIUM)"
     try:
         import playwright.sync_api  # noqa: F401
     except ImportError:
@@ -167,6 +169,8 @@ class Shot:
 
     rgb: np.ndarray
     panels: dict[str, tuple[int, int, int, int]]
+    #: Each panel's visible text at the same moment (its notices: "Waiting for ...", "Missing transform ...").
+    texts: dict[str, str] = field(default_factory=dict)
 
     def panel(self, panel_id: str) -> np.ndarray:
         """The panel's content, without its toolbar (the top 30 px)."""
@@ -177,7 +181,7 @@ class Shot:
         """A PNG with a reduced palette: the docs' pictures stay small."""
         from PIL import Image
 
-        Image.fromarray(self.rgb).quantize(colors=128, method=Image.Quantize.MEDIANCUT).save(
+        Image.fromarray(self.rgb).quantize(colors=256, method=Image.Quantize.FASTOCTREE).save(
             path, optimize=True
         )
 
@@ -223,33 +227,30 @@ class Viewer:
         deadline = time.monotonic() + timeout_s
         while True:
             shot = self.shot()
-            if ready(shot, self.panel_texts()) or time.monotonic() > deadline:
+            if ready(shot, shot.texts) or time.monotonic() > deadline:
                 return shot
             time.sleep(1.0)
 
-    def play(self) -> None:
-        self.page.get_by_role("button", name="Play", exact=True).click()
-
-    def pause(self) -> None:
-        """Pause, unless the log has played to its end (then the button reads Play)."""
-        button = self.page.get_by_role("button", name="Pause", exact=True)
-        if button.is_visible():
-            button.click()
+    def play(self, timeout_s: float = 60.0) -> None:
+        """Press Play until the log plays (a press while the app still loads the log is lost)."""
+        controls = self.page.locator('[data-testid="playback-controls"]')
+        before = controls.inner_text()
+        deadline = time.monotonic() + timeout_s
+        while True:
+            button = self.page.get_by_role("button", name="Play", exact=True)
+            if button.is_visible():
+                button.click()
+            time.sleep(1.0)
+            if self.page.get_by_role("button", name="Pause", exact=True).is_visible():
+                return
+            if controls.inner_text() != before:  # played, maybe to the end already
+                return
+            if time.monotonic() > deadline:
+                raise AssertionError(f"the log does not play: {before!r}")
 
     def wait_playing(self, seconds: float) -> None:
         """Let the log play ``seconds`` of real time."""
         time.sleep(seconds)
-
-    def settle(self, timeout_s: float = 30.0) -> None:
-        """Until two screenshots 1 s apart are the same: every panel has drawn (a busy machine is slow)."""
-        last = self.page.screenshot()
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            time.sleep(1.0)
-            now = self.page.screenshot()
-            if now == last:
-                return
-            last = now
 
     def panel_texts(self) -> dict[str, str]:
         """Each panel's visible text (its notices: "Waiting for ...", "Missing transform ...")."""
@@ -258,7 +259,7 @@ class Viewer:
     def shot(self) -> Shot:
         png = self.page.screenshot()
         bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-        return Shot(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), self.page.evaluate(_PANELS_JS))
+        return Shot(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), self.page.evaluate(_PANELS_JS), self.panel_texts())
 
     def alerts(self) -> list[str]:
         """The Alerts tab's entries (empty: "No alerts found"); leaves the tab open."""
@@ -335,7 +336,7 @@ PANEL_NOTICES = ("Missing transform", "not found", "Waiting for", "No messages",
 def check_panels(shot: Shot, texts: dict[str, str]) -> dict[str, str]:
     """What a person would miss in the layout's panels, by check; empty when every panel shows its data.
 
-    ``camera``: the frame drawn (>= 200 colours) with the tracked leader's green box (>= 40 px); ``depth``:
+    ``camera``: the frame drawn (>= 100 colours) with the tracked leader's green box (>= 40 px); ``depth``:
     the depth image drawn (>= 5000 near-black px: no depth) with colour-mapped depth (>= 15 saturated px,
     the leader at 0-10 m); ``3d``: >= 20 px each of the follower, the leader and the slot, and no notice;
     one per plot: >= 150 px of coloured lines; ``notices``: a panel's "Waiting for ...", "not found", ...
@@ -350,7 +351,7 @@ def check_panels(shot: Shot, texts: dict[str, str]) -> dict[str, str]:
     cam = shot.panel(CAMERA)
     box = colour_px(cam, LEADER_BOX_RGB, tol=50)
     colours = distinct_colours(cam)
-    if colours < 200 or box < 40:
+    if colours < 100 or box < 40:
         problems["camera"] = f"{colours} colours, {box} px of the leader box's green"
     depth = shot.panel(DEPTH)
     dark = int((depth.max(axis=2) < 20).sum())
@@ -484,7 +485,13 @@ def _cli() -> int:
     s.add_argument("mcap", type=Path)
     s.add_argument("out", type=Path)
     s.add_argument("--play", type=float, default=3.0, help="real seconds of playing before the screenshot")
-    s.add_argument("--seek", type=float, default=None, help="s from the log's start to seek to first")
+    live = sub.add_parser(
+        "live", help="screenshot of the live view while companion run flies beside sitl serve"
+    )
+    live.add_argument("out", type=Path)
+    live.add_argument("--scenario", type=Path, default=REPO / "config" / "scenarios" / "gps-loss.toml")
+    live.add_argument("--state", default="follow_vision", help="the mission state to take the screenshot in")
+    live.add_argument("--after", type=float, default=3.0, help="real seconds in that state before it")
     a = p.parse_args()
     if a.cmd == "cut":
         print(f"{filter_mcap(a.src, a.dst, start_s=a.start_s, end_s=a.end_s)} messages to {a.dst}")
@@ -506,15 +513,27 @@ def _cli() -> int:
     if why is not None:
         print(why, file=sys.stderr)
         return 1
+    if a.cmd == "live":
+        with tempfile.TemporaryDirectory() as tmp:
+            with live_flight(Path(tmp), a.scenario.read_text()) as flight:
+                flight.wait_state((a.state,), 300)
+                with serve(layout=LAYOUT) as app_url, viewer() as v:
+                    v.open(live_url(app_url, flight.ws_url), playable=False)
+                    time.sleep(a.after)
+                    shot = v.wait_for(lambda shot, texts: not check_panels(shot, texts), 60)
+                    problems = check_panels(shot, shot.texts)
+                    alerts = v.alerts()
+            shot.save(a.out)
+        size_kb = a.out.stat().st_size // 1000
+        print(f"{a.out}: {size_kb} kB; panels {problems or 'all filled'}; alerts {alerts or 'none'}")
+        return 0
     mcap = a.mcap.resolve()
     with serve(layout=LAYOUT) as app_url, serve(directory=mcap.parent) as files, viewer() as v:
         v.open(log_url(app_url, f"{files}/{mcap.name}"))
         v.play()
         v.wait_playing(a.play)
-        v.pause()
-        v.settle()
-        shot = v.shot()
-        problems = check_panels(shot, v.panel_texts())
+        shot = v.wait_for(lambda shot, texts: not check_panels(shot, texts), 90)
+        problems = check_panels(shot, shot.texts)
         alerts = v.alerts()
     shot.save(a.out)
     size_kb = a.out.stat().st_size // 1000
