@@ -4,8 +4,11 @@ On the flight loop (:meth:`on_frame`, :meth:`on_step`, :meth:`on_transition`) it
 to bounded deques and sets an event: no copy, no encoding, no I/O, no lock held for long. The worker thread
 takes them, builds the messages (:mod:`companion.viz.messages`), encodes images (JPEG or PNG, at most at
 each sink's image rate, judged on the frames' own stamps) and writes to the sinks. A worker that falls
-behind drops the oldest frames and steps (counted); transitions are kept. A failing sink is turned off with
-one line; a failure in building a message is counted and said once per kind. The flight never waits.
+behind drops the oldest frames and steps (counted); transitions are kept. The live view gets only the
+newest frame and step of a backlog, and no topic more than :data:`LIVE_MAX_RATE_HZ`, the latest held back
+until its turn (a viewer wants the latest state at a rate it can draw, not a burst); the log gets every
+one. A failing sink is turned off with one line; a failure in building a message is counted and said once
+per kind. The flight never waits.
 
 ``synchronous=True`` (the lockstep simulator, which has no real time) does the same work in the caller,
 every frame and step, so a log is the same on every run.
@@ -19,7 +22,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from companion.config import VizConfig
@@ -43,6 +46,48 @@ STEP_BACKLOG = 100
 HEALTH_PERIOD_S = 1.0
 #: The live view's depth image is every n-th pixel each way (a quarter of the bytes).
 LIVE_DEPTH_STEP = 2
+#: The most messages a second any one live topic gets, judged on the worker's clock when it sends. A viewer
+#: draws at its screen's rate and Lichtblick warns of topics above 60 Hz; the sources are 20 Hz (control
+#: steps) and 30 Hz (camera frames), so this only trims bursts, which a worker that fell behind would
+#: otherwise send at once. The flight log keeps every message.
+LIVE_MAX_RATE_HZ = 40.0
+
+
+@dataclass(slots=True)
+class RateCap:
+    """At most ``max_rate_hz`` messages a topic, the latest kept.
+
+    A message sooner than a period after the last one sent on its topic is held back (a newer one replaces
+    it, counted as dropped) and sent by :meth:`release` once the period is over.
+    """
+
+    max_rate_hz: float
+    last_sent_s: dict[str, float] = field(default_factory=dict)
+    held: dict[str, tuple[int, bytes]] = field(default_factory=dict)
+    dropped: int = 0
+
+    def due(self, topic: str, now_s: float) -> bool:
+        """Whether a message on ``topic`` may go now (if so, it counts as sent and replaces a held one)."""
+        last_s = self.last_sent_s.get(topic)
+        if last_s is not None and now_s - last_s < 1.0 / self.max_rate_hz:
+            return False
+        self.last_sent_s[topic] = now_s
+        self.held.pop(topic, None)
+        return True
+
+    def hold(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        if topic in self.held:
+            self.dropped += 1
+        self.held[topic] = (log_time_ns, data)
+
+    def release(self, now_s: float) -> list[Record]:
+        """The held messages whose period is over, to send now."""
+        out: list[Record] = []
+        for topic in list(self.held):
+            item = self.held[topic]
+            if self.due(topic, now_s):
+                out.append((topic, *item))
+        return out
 
 
 @dataclass(slots=True)
@@ -76,6 +121,8 @@ class _ImagePolicy:
 class _Output:
     sink: Any
     images: _ImagePolicy
+    #: The live view: its topics' rate cap, and only the newest of a backlog is sent.
+    cap: RateCap | None = None
     on: bool = True
     errors: int = 0
 
@@ -90,6 +137,7 @@ class FlightRecorder:
         namespace: topic and frame prefix and the origin in the shared world (formations).
         health: the service's health flags, sampled once a second on the worker (None: none).
         synchronous: do the work in the caller (the lockstep simulator); no thread.
+        send_clock_s: the clock the live view's rate cap is judged on, s (monotonic).
     """
 
     def __init__(
@@ -102,8 +150,10 @@ class FlightRecorder:
         namespace: Namespace | None = None,
         health: Callable[[], dict[str, Any]] | None = None,
         synchronous: bool = False,
+        send_clock_s: Callable[[], float] = time.monotonic,
     ) -> None:
         self.cfg = cfg
+        self._send_clock_s = send_clock_s
         self.clock = clock
         self.synchronous = synchronous
         self.builder = MessageBuilder(geometry, namespace or Namespace(), time_offset_s)
@@ -136,7 +186,7 @@ class FlightRecorder:
     def add_live(self, sink: LiveSink) -> None:
         c = self.cfg
         policy = _ImagePolicy("jpeg", c.live_image_rate_hz, c.live_depth_rate_hz or None, LIVE_DEPTH_STEP)
-        self._outputs.append(_Output(sink, policy))
+        self._outputs.append(_Output(sink, policy, RateCap(LIVE_MAX_RATE_HZ)))
 
     def add_log(self, sink: McapSink) -> None:
         c = self.cfg
@@ -155,6 +205,7 @@ class FlightRecorder:
         self.frames_seen += 1
         if self.synchronous:
             self._guard("frame", self._frame, frame, result, track)
+            self._release()
             return
         if len(self._frames) == FRAME_BACKLOG:
             self.frames_dropped += 1
@@ -165,6 +216,7 @@ class FlightRecorder:
         now_s = self.clock.now_s()
         if self.synchronous:
             self._guard("step", self._step, now_s, inputs, out)
+            self._release()
             self._maybe_health(now_s)
             return
         if len(self._steps) == STEP_BACKLOG:
@@ -174,7 +226,7 @@ class FlightRecorder:
 
     def on_transition(self, tr: Transition) -> None:
         if self.synchronous:
-            self._guard("transition", self._emit, self.builder.transition_records(tr))
+            self._guard("transition", self._emit, self.builder.transition_records(tr), capped=False)
             return
         self._transitions.append(tr)
         self._wake.set()
@@ -212,15 +264,18 @@ class FlightRecorder:
             "steps_dropped": self.steps_dropped,
             "images_written": self.images_written,
             "build_errors": self.build_errors,
+            "live_dropped": sum(o.cap.dropped for o in self._outputs if o.cap is not None),
             "outputs": {o.sink.name: {"on": o.on, "errors": o.errors} for o in self._outputs},
         }
 
     # ---------------------------------------------------------------- the worker
     def _run(self) -> None:
         while True:
-            self._wake.wait(timeout=HEALTH_PERIOD_S)
+            held = any(o.cap is not None and o.cap.held for o in self._outputs)
+            self._wake.wait(timeout=1.0 / LIVE_MAX_RATE_HZ if held else HEALTH_PERIOD_S)
             self._wake.clear()
             self._drain()
+            self._release()
             self._maybe_health(self.clock.now_s())
             if self._stop:
                 self._drain()
@@ -228,19 +283,21 @@ class FlightRecorder:
 
     def _drain(self) -> None:
         while self._transitions:
-            self._guard(
-                "transition", self._emit, self.builder.transition_records(self._transitions.popleft())
-            )
+            records = self.builder.transition_records(self._transitions.popleft())
+            self._guard("transition", self._emit, records, capped=False)  # every change, never capped
         # Frames before steps: a frame was captured before the steps queued beside it, and it brings the
         # camera's intrinsics the scene's frustum is drawn from.
+        # A backlog goes whole to the log; the live view gets its newest frame and step only.
         while self._frames:
-            self._guard("frame", self._frame, *self._frames.popleft())
+            item = self._frames.popleft()
+            self._guard("frame", self._frame, *item, live=not self._frames)
         while self._steps:
-            self._guard("step", self._step, *self._steps.popleft())
+            step = self._steps.popleft()
+            self._guard("step", self._step, *step, live=not self._steps)
 
-    def _guard(self, kind: str, fn: Callable[..., None], *args: Any) -> None:
+    def _guard(self, kind: str, fn: Callable[..., None], *args: Any, **kwargs: Any) -> None:
         try:
-            fn(*args)
+            fn(*args, **kwargs)
         except Exception as exc:  # a bug in building a message must not end the worker or the flight
             self.build_errors += 1
             if kind not in self._said:
@@ -252,18 +309,18 @@ class FlightRecorder:
                     exc,
                 )
 
-    def _step(self, now_s: float, inputs: MissionInputs, out: StepOutput) -> None:
-        self._emit(self.builder.step_records(now_s, inputs, out))
+    def _step(self, now_s: float, inputs: MissionInputs, out: StepOutput, *, live: bool = True) -> None:
+        self._emit(self.builder.step_records(now_s, inputs, out), live=live)
 
-    def _frame(self, frame: RgbdFrame, result: DetectorResult, track: Any) -> None:
+    def _frame(self, frame: RgbdFrame, result: DetectorResult, track: Any, *, live: bool = True) -> None:
         b = self.builder
-        self._emit(b.frame_records(frame, result, track))
+        self._emit(b.frame_records(frame, result, track), live=live)
         encoded: dict[str, bytes] = {}
         depth: dict[int, Record] = {}
         image_topic, depth_topic = b.ns.topic(ch.IMAGE), b.ns.topic(ch.DEPTH)
         calibration: Record | None = None
         for o in self._outputs:
-            if not o.on:
+            if not o.on or (o.cap is not None and not live):
                 continue
             pol = o.images
             colour = o.sink.wants(image_topic) and pol.due(frame.stamp_s, "colour")
@@ -285,6 +342,14 @@ class FlightRecorder:
                 self._write(o, records)
                 self.images_written += int(colour) + int(deep)
 
+    def _release(self) -> None:
+        """Send the live view's held-back messages that are due (the latest of each topic)."""
+        for o in self._outputs:
+            if o.on and o.cap is not None and o.cap.held:
+                records = o.cap.release(self._send_clock_s())
+                if records:
+                    self._write(o, records, capped=False)
+
     def _maybe_health(self, now_s: float) -> None:
         if now_s < self._next_health_s:
             return
@@ -295,15 +360,20 @@ class FlightRecorder:
                 payload.update(self._health())
         self._guard("health sample", self._emit, [self.builder.health_record(now_s, payload)])
 
-    def _emit(self, records: list[Record]) -> None:
+    def _emit(self, records: list[Record], *, live: bool = True, capped: bool = True) -> None:
         for o in self._outputs:
-            if o.on:
-                self._write(o, records)
+            if o.on and (live or o.cap is None):
+                self._write(o, records, capped=capped)
 
-    def _write(self, o: _Output, records: list[Record]) -> None:
+    def _write(self, o: _Output, records: list[Record], *, capped: bool = True) -> None:
+        cap = o.cap if capped else None
+        now_s = self._send_clock_s() if cap is not None else 0.0
         try:
             for topic, ns, data in records:
-                o.sink.write(topic, ns, data)
+                if cap is None or cap.due(topic, now_s):
+                    o.sink.write(topic, ns, data)
+                else:
+                    cap.hold(topic, ns, data)
         except SinkError as exc:
             self._off(o, str(exc))
         except Exception as exc:  # the SDK's own errors: the same rule
