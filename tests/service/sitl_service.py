@@ -74,7 +74,24 @@ def sim_process(tmp_path: Path, ports: Ports, camera_sock: Path, scenario_toml: 
     return Child(args, env, tmp_path / "sitl.log")
 
 
-def service_config(tmp_path: Path, link_port: int, camera_sock: Path, broker_port: int) -> Path:
+def service_config(
+    tmp_path: Path, link_port: int, camera_sock: Path, broker_port: int | None, extra_toml: str = ""
+) -> Path:
+    """The service's config beside the simulator: its MQTT on ``broker_port`` (None: no MQTT), plus
+    ``extra_toml`` (further tables, e.g. the live view's)."""
+    mqtt = (
+        f"""[mqtt]
+enabled = true
+port = {broker_port}
+state_rate_hz = 5.0
+pose_rate_hz = 5.0
+health_rate_hz = 1.0
+reconnect_min_s = 0.2
+reconnect_max_s = 1.0
+"""
+        if broker_port is not None
+        else ""
+    )
     cfg = tmp_path / "wingman.toml"
     cfg.write_text(
         f"""
@@ -93,22 +110,14 @@ shutdown_hold_s = 1.0
 # The rendered camera lags 0.3-0.8 s behind the simulation on the shared 2-core test machine (frames
 # carry that true age, see companion/service/stamps.py); the default 0.5 s would hover on every lag.
 stale_estimate_s = 1.5
-[mqtt]
-enabled = true
-port = {broker_port}
-state_rate_hz = 5.0
-pose_rate_hz = 5.0
-health_rate_hz = 1.0
-reconnect_min_s = 0.2
-reconnect_max_s = 1.0
-[status]
+{mqtt}[status]
 socket_path = "{tmp_path}/run/status.sock"
 [service]
 auto_start = true
 shutdown_timeout_s = 90.0
 [logging]
 format = "json"
-"""
+{extra_toml}"""
     )
     return cfg
 

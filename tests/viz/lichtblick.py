@@ -417,38 +417,13 @@ def live_flight(tmp_path: Path, scenario_toml: str | None = None) -> Iterator[Li
     import asyncio
 
     from companion.lab.evaluation.procs import Child
-    from tests.service.sitl_service import SCENARIO, Ports, sim_process
+    from tests.service.sitl_service import SCENARIO, Ports, service_config, sim_process
 
     ports = Ports.pick()
     cam = tmp_path / "cam.sock"
     ws_port = _free_port()
     sim = sim_process(tmp_path, ports, cam, scenario_toml or SCENARIO)
-    cfg = tmp_path / "wingman.toml"
-    cfg.write_text(
-        f"""
-vehicle_id = "follower1"
-[link]
-url = "udpin://0.0.0.0:{ports.follower_api}"
-[camera]
-source = "sim"
-path = "{cam}"
-[detector]
-runtime = "truth"
-[formation]
-offset_cam_m = [0.0, 0.0, 8.0]   # the leader spawns 8 m ahead: the slot is where the follower starts
-[mission]
-shutdown_hold_s = 1.0
-stale_estimate_s = 1.5           # the rendered camera lags up to 0.8 s on a busy 2-core machine
-[status]
-socket_path = "{tmp_path}/run/status.sock"
-[service]
-auto_start = true
-shutdown_timeout_s = 30.0
-[viz]
-live = true
-port = {ws_port}
-"""
-    )
+    cfg = service_config(tmp_path, ports.follower_api, cam, None, f"[viz]\nlive = true\nport = {ws_port}\n")
     svc = Child(
         [sys.executable, "-m", "companion", "run", "--config", str(cfg)],
         {**os.environ, "PYTHONPATH": str(REPO)},
@@ -516,19 +491,15 @@ def _cli() -> int:
         print(why, file=sys.stderr)
         return 1
     if a.cmd == "live":
-        with tempfile.TemporaryDirectory() as tmp:
-            with live_flight(Path(tmp), a.scenario.read_text()) as flight:
-                flight.wait_state((a.state,), 300)
-                with serve(layout=LAYOUT) as app_url, viewer() as v:
-                    v.open(live_url(app_url, flight.ws_url), playable=False)
-                    time.sleep(a.after)
-                    shot = v.wait_for(lambda shot, texts: not check_panels(shot, texts), 60)
-                    problems = check_panels(shot, shot.texts)
-                    alerts = v.alerts()
-            shot.save(a.out)
-        size_kb = a.out.stat().st_size // 1000
-        print(f"{a.out}: {size_kb} kB; panels {problems or 'all filled'}; alerts {alerts or 'none'}")
-        return 0
+        with tempfile.TemporaryDirectory() as tmp, live_flight(Path(tmp), a.scenario.read_text()) as flight:
+            flight.wait_state((a.state,), 300)
+            with serve(layout=LAYOUT) as app_url, viewer() as v:
+                v.open(live_url(app_url, flight.ws_url), playable=False)
+                time.sleep(a.after)
+                shot = v.wait_for(lambda shot, texts: not check_panels(shot, texts), 60)
+                problems = check_panels(shot, shot.texts)
+                alerts = v.alerts()
+        return _saved(shot, a.out, problems, alerts)
     mcap = a.mcap.resolve()
     with serve(layout=LAYOUT) as app_url, serve(directory=mcap.parent) as files, viewer() as v:
         v.open(log_url(app_url, f"{files}/{mcap.name}"))
@@ -537,9 +508,14 @@ def _cli() -> int:
         shot = v.wait_for(lambda shot, texts: not check_panels(shot, texts), 90)
         problems = check_panels(shot, shot.texts)
         alerts = v.alerts()
-    shot.save(a.out)
-    size_kb = a.out.stat().st_size // 1000
-    print(f"{a.out}: {size_kb} kB; panels {problems or 'all filled'}; alerts {alerts or 'none'}")
+    return _saved(shot, a.out, problems, alerts)
+
+
+def _saved(shot: Shot, out: Path, problems: dict[str, str], alerts: list[str]) -> int:
+    """Write the screenshot and say what it shows (the CLI's exit status)."""
+    shot.save(out)
+    size_kb = out.stat().st_size // 1000
+    print(f"{out}: {size_kb} kB; panels {problems or 'all filled'}; alerts {alerts or 'none'}")
     return 0
 
 
